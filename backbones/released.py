@@ -1,0 +1,123 @@
+"""Released checkpoints: the real ones from the HF cache, or tiny ones trained here natively.
+
+A random-init tiny VLA has no meaningful native tower, so the offline world trains each tiny
+policy natively (all of it, its own tower included) on the training episodes of the tiny suites,
+saves it with save_pretrained and from then on loads it through the same from_pretrained path as
+a real checkpoint. Deterministic, keyed by (config, data fingerprints, protocol), rebuilt only
+when missing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import torch
+
+from backbones import adapter_module, get_entry
+from bench.protocol import Profile
+from bench.train import FitConfig, fit
+
+RELEASE_VERSION = "1"
+
+
+def union_stats(suites, train_frames: dict[str, torch.Tensor]) -> dict:
+    """LeRobot-style stats for state and action over the training frames of all suites, plus
+    per-channel image stats (both policies keep images un-normalised, but the keys must exist)."""
+    stats: dict = {}
+    for key, attr in (("observation.state", "state"), ("action", "action")):
+        values = torch.cat([getattr(s, attr)[train_frames[s.name]] for s in suites]).double()
+        stats[key] = {
+            "mean": values.mean(0), "std": values.std(0).clamp(min=1e-6),
+            "min": values.min(0).values, "max": values.max(0).values,
+            "q01": torch.quantile(values, 0.01, dim=0), "q99": torch.quantile(values, 0.99, dim=0),
+        }
+        stats[key] = {k: v.float() for k, v in stats[key].items()}
+    for cam in suites[0].camera_keys:
+        stats[cam] = {
+            "mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25),
+            "min": torch.zeros((3, 1, 1)), "max": torch.ones((3, 1, 1)),
+            "q01": torch.zeros((3, 1, 1)), "q99": torch.ones((3, 1, 1)),
+        }
+    return stats
+
+
+def release_key(name: str, profile: Profile, suites, chunk_size: int) -> str:
+    p = profile.protocol
+    blob = json.dumps({
+        "v": RELEASE_VERSION, "backbone": name, "chunk": chunk_size,
+        "suites": sorted(s.fingerprint for s in suites),
+        "native_steps": p.native_steps, "native_lr": p.native_lr, "batch": p.batch_size,
+        "split_seed": p.split_seed, "heldout": p.heldout_episodes_per_task,
+    }, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+
+
+def tiny_release_dir(cache: Path, name: str, key: str) -> Path:
+    return cache / "released" / f"{name}-{key}"
+
+
+def train_tiny_release(name: str, profile: Profile, suites, train_frames, folder: Path,
+                       chunk_size: int, progress: bool = True) -> None:
+    """Build the tiny policy, train ALL of it with its own loss, save it into `folder`."""
+    from bench.suites.windows import raw_batch
+
+    module = adapter_module(name)
+    stats = union_stats(suites, train_frames)
+    backbone = module.build_tiny_policy(stats, suites[0].camera_keys, chunk_size=chunk_size, seed=0)
+    policy = backbone.policy
+    policy.train()
+    for p in policy.parameters():
+        p.requires_grad_(True)
+    # Alternate suites frame by frame: one frame list, tagged by suite.
+    tagged = torch.cat([
+        torch.stack([torch.full_like(train_frames[s.name], i), train_frames[s.name]], dim=1)
+        for i, s in enumerate(suites)
+    ])
+
+    def next_batch(rows):
+        raws = [raw_batch(suites[i], rows[rows[:, 0] == i][:, 1], chunk_size, with_images=True)
+                for i in range(len(suites)) if (rows[:, 0] == i).any()]
+        merged = {}
+        for key in raws[0]:
+            vals = [r[key] for r in raws]
+            merged[key] = sum(vals, []) if isinstance(vals[0], list) else torch.cat(vals)
+        return merged, None
+
+    p = profile.protocol
+    cfg = FitConfig(steps=p.native_steps, batch_size=p.batch_size, lr=p.native_lr,
+                    weight_decay=0.0, warmup_steps=max(1, p.native_steps // 20), grad_clip=1.0,
+                    log_every=max(1, p.native_steps // 20))
+    curve = fit(backbone, list(policy.parameters()), tagged, next_batch, cfg, seed=0,
+                label=f"native training of tiny {name}", progress=progress)
+    policy.eval()
+    tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    module.save_pretrained(backbone, tmp)
+    (tmp / "graftbench_release.json").write_text(json.dumps({
+        "backbone": name, "loss_curve": curve, "suites": [s.name for s in suites],
+        "fingerprints": [s.fingerprint for s in suites], "native_steps": p.native_steps,
+    }, indent=1))
+    if folder.exists():
+        shutil.rmtree(folder)
+    os.replace(tmp, folder)
+
+
+def load_released(name: str, profile: Profile, suites, train_frames, cache: Path,
+                  chunk_size: int = 10, progress: bool = True):
+    """The released policy for `name` in this profile's world, loaded with from_pretrained."""
+    module = adapter_module(name)
+    if profile.source == "hub":
+        # Real base checkpoints carry their pre-training stats, not LIBERO's: normalise with the
+        # suites' training-episode stats, as LeRobot's fine-tuning does with dataset_stats.
+        return module.load_policy(get_entry(name).repo_id, stats=union_stats(suites, train_frames))
+    key = release_key(name, profile, suites, chunk_size)
+    folder = tiny_release_dir(cache, name, key)
+    if not (folder / "graftbench_release.json").exists():
+        print(f"[graftbench] training tiny released {name} -> {folder}", file=sys.stderr)
+        train_tiny_release(name, profile, suites, train_frames, folder, chunk_size, progress)
+    return module.load_policy(str(folder))

@@ -1,0 +1,437 @@
+"""SmolVLA (LeRobot `SmolVLAPolicy`, lerobot 0.6.1) behind the graftbench `Backbone` interface.
+
+Places in lerobot/policies/smolvla this adapter relies on (line numbers for 0.6.1):
+- graft point: `SmolVLMWithExpertModel.embed_image` (smolvlm_with_expert.py ~202-215) = vision
+  tower -> connector (pixel shuffle by scale_factor, Linear to the LM width). It is looked up on the
+  instance by `VLAFlowMatching.embed_prefix` (modeling_smolvla.py ~580), which multiplies its output
+  by sqrt(width) afterwards (~585): a grafted embedder keeps that scaling.
+- images reach `embed_image` resized with padding and mapped to [-1, 1] (`prepare_images` ~334-380),
+  one call per camera in `config.image_features` order.
+- loss: `SmolVLAPolicy.forward(batch, noise, time, reduction="none")` (~277-332) cuts the padded
+  action dims, zeroes `action_is_pad` steps and averages over the valid (step, dim) entries.
+- sampling: `predict_action_chunk(batch, noise)` (~232-241, ~195-230) returns the Euler-integrated chunk cut to
+  the real action dims and still NORMALISED (the post-processor is not applied). It calls
+  `self.eval()` and fills an action queue; `sample_actions` below restores the mode and the queue.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+from pathlib import Path
+from typing import Iterator
+
+import torch
+from torch import Tensor
+
+from backbones.base import Backbone, BackboneInfo, BackboneUnavailable, ImageEmbedder
+from backbones.tiny_smolvla import REAL_VLM, TINY_VLM, real_shape_vlm_folder, tiny_vlm_folder, tokens_per_camera
+from bench.suites.base import ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY
+
+HUB_REPO_ID = "lerobot/smolvla_base"
+NATIVE_FEATURE_DOC = (
+    "SmolVLM's SigLIP vision tower output, vision_model(pixels).last_hidden_state reshaped to "
+    "(B, C, h, w): taken BEFORE the connector's pixel shuffle and Linear to the LM width "
+    "(smolvla_base: C=768 on a 32x32 patch grid, shuffled by 4 into 8x8 = 64 tokens)."
+)
+INFO_REAL = BackboneInfo(
+    name="smolvla",
+    native_grid=(8, 8),
+    lm_width=960,
+    chunk_size=50,
+    max_action_dim=32,
+    num_denoise_steps=10,
+    native_feature_doc=NATIVE_FEATURE_DOC,
+)
+# Assumed camera layout of lerobot/smolvla_base (its config lists observation.images.camera1/2/3,
+# SO-100 views): LIBERO's agent view feeds camera1 and the wrist view camera2; camera3 is dropped
+# from the config (not fed as an empty -1 image), as a two-camera LIBERO fine-tune of it would be.
+SMOLVLA_BASE_RENAME = {
+    "observation.images.image": "observation.images.camera1",
+    "observation.images.wrist_image": "observation.images.camera2",
+}
+# VLAFlowMatching.sample_time (modeling_smolvla.py ~549-550): Beta(1.5, 1.0) * 0.999 + 0.001.
+TIME_BETA_ALPHA, TIME_SCALE, TIME_OFFSET = 1.5, 0.999, 0.001
+# save_pretrained copies a local SmolVLM folder (the tiny one) here so the folder is self-contained.
+VENDORED_VLM_DIR = "smolvlm"
+
+
+class SmolVLABackbone(Backbone):
+    """A real SmolVLAPolicy with its own pre/post-processors (rename map lives in the preprocessor)."""
+
+    def __init__(self, policy, preprocessor, postprocessor, name: str = "smolvla"):
+        from lerobot.processor import (
+            NormalizerProcessorStep,
+            RenameObservationsProcessorStep,
+            UnnormalizerProcessorStep,
+        )
+
+        self.policy = policy
+        self.preprocessor = preprocessor
+        self.postprocessor = postprocessor
+        self.rename_map = dict(_find_step(preprocessor, RenameObservationsProcessorStep).rename_map)
+        self._normalizer = _find_step(preprocessor, NormalizerProcessorStep)
+        self._unnormalizer = _find_step(postprocessor, UnnormalizerProcessorStep)
+        dataset_key = {policy_key: key for key, policy_key in self.rename_map.items()}
+        self.camera_keys = tuple(dataset_key.get(k, k) for k in policy.config.image_features)
+        self.info = info_from_policy(policy, name)
+
+    # -- processing -------------------------------------------------------------------------
+    def preprocess(self, raw: dict) -> dict:
+        missing = [k for k in self.camera_keys if k not in raw]
+        if missing:
+            raise KeyError(f"raw batch lacks camera(s) {missing}; this SmolVLA reads {list(self.camera_keys)}")
+        batch = self.preprocessor(dict(raw))
+        # SmolVLA silently drops missing cameras beyond `empty_cameras` (prepare_images ~372-376).
+        absent = [k for k in self.policy.config.image_features if k not in batch]
+        if absent:
+            raise KeyError(f"after renaming with {self.rename_map} the batch lacks policy camera(s) {absent}")
+        return batch
+
+    def normalize_actions(self, actions: Tensor) -> Tensor:
+        return self._apply_action_step(self._normalizer, actions)
+
+    def unnormalize_actions(self, actions: Tensor) -> Tensor:
+        return self._apply_action_step(self._unnormalizer, actions)
+
+    @staticmethod
+    def _apply_action_step(step, actions: Tensor) -> Tensor:
+        from lerobot.processor import TransitionKey, create_transition
+
+        return step(create_transition(action=actions))[TransitionKey.ACTION]
+
+    # -- graft point ------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def image_embedder(self, fn: ImageEmbedder) -> Iterator[None]:
+        target = self.policy.model.vlm_with_expert
+        previous = target.__dict__.get("embed_image")  # set when embedders are nested
+        width = self.info.lm_width
+        lm_dtype = target.get_vlm_model().text_model.get_input_embeddings().weight.dtype
+
+        def grafted_embed_image(image: Tensor) -> Tensor:
+            tokens = fn(image)
+            if tokens.ndim != 3 or tokens.shape[0] != image.shape[0] or tokens.shape[-1] != width:
+                raise ValueError(
+                    f"image embedder returned {tuple(tokens.shape)}; SmolVLA needs "
+                    f"({image.shape[0]}, N_tokens, {width})"
+                )
+            return tokens.to(lm_dtype)
+
+        target.embed_image = grafted_embed_image  # instance attribute shadows the method
+        try:
+            yield
+        finally:
+            if previous is None:
+                del target.embed_image
+            else:
+                target.embed_image = previous
+
+    def native_tower_grid(self, image: Tensor) -> Tensor:
+        tower = self.policy.model.vlm_with_expert.get_vlm_model().vision_model
+        hidden = tower(pixel_values=image.to(dtype=tower.dtype), patch_attention_mask=None).last_hidden_state
+        patch = tower.config.patch_size
+        rows, cols = image.shape[-2] // patch, image.shape[-1] // patch
+        if rows * cols != hidden.shape[1]:
+            raise RuntimeError(f"tower gave {hidden.shape[1]} patches for a {rows}x{cols} grid")
+        return hidden.reshape(hidden.shape[0], rows, cols, hidden.shape[-1]).permute(0, 3, 1, 2).float()
+
+    # -- loss and sampling ------------------------------------------------------------------
+    def loss(self, batch: dict, noise: Tensor, time: Tensor) -> Tensor:
+        self._check_noise(batch, noise)
+        if batch[ACTION_KEY].shape[1] != self.info.chunk_size:
+            raise ValueError(f"action chunk has {batch[ACTION_KEY].shape[1]} steps; SmolVLA needs {self.info.chunk_size}")
+        per_sample, _ = self.policy.forward(batch, noise=noise, time=time, reduction="none")
+        return per_sample
+
+    def sample_time(self, batch_size: int, generator: torch.Generator) -> Tensor:
+        # Beta(a, 1) has CDF t**a, so u**(1/a) with u ~ U(0, 1) draws it from `generator` alone.
+        uniform = torch.rand(batch_size, generator=generator, device=generator.device)
+        time = uniform.pow(1.0 / TIME_BETA_ALPHA) * TIME_SCALE + TIME_OFFSET
+        return time.to(device=self.policy.config.device, dtype=torch.float32)
+
+    @torch.no_grad()
+    def sample_actions(self, batch: dict, noise: Tensor) -> Tensor:
+        self._check_noise(batch, noise)
+        was_training = self.policy.training
+        try:
+            return self.policy.predict_action_chunk(dict(batch), noise=noise)
+        finally:
+            self.policy.reset()  # empty the action queue predict_action_chunk filled
+            self.policy.train(was_training)
+
+    def _check_noise(self, batch: dict, noise: Tensor) -> None:
+        expected = (batch[STATE_KEY].shape[0], self.info.chunk_size, self.info.max_action_dim)
+        if tuple(noise.shape) != expected:
+            raise ValueError(f"noise has shape {tuple(noise.shape)}; SmolVLA needs {expected}")
+
+    def language_model(self) -> torch.nn.Module:
+        return self.policy.model.vlm_with_expert.get_vlm_model().text_model
+
+
+def info_from_policy(policy, name: str = "smolvla") -> BackboneInfo:
+    """The BackboneInfo a built SmolVLAPolicy implies (token grid from its resize and VLM config)."""
+    config = policy.config
+    vlm_config = policy.model.vlm_with_expert.config
+    if config.resize_imgs_with_padding is not None:
+        width, height = config.resize_imgs_with_padding  # SmolVLA stores (width, height)
+    else:
+        height, width = next(iter(config.image_features.values())).shape[1:]
+    step = vlm_config.vision_config.patch_size * vlm_config.scale_factor
+    return BackboneInfo(
+        name=name,
+        native_grid=(height // step, width // step),
+        lm_width=vlm_config.text_config.hidden_size,
+        chunk_size=config.chunk_size,
+        max_action_dim=config.max_action_dim,
+        num_denoise_steps=config.num_steps,
+        native_feature_doc=NATIVE_FEATURE_DOC,
+    )
+
+
+def build_tiny_policy(
+    stats: dict,
+    camera_keys=IMAGE_KEYS,
+    image_hw: tuple[int, int] = (64, 64),
+    state_dim: int = LIBERO_STATE_DIM,
+    action_dim: int = LIBERO_ACTION_DIM,
+    chunk_size: int = 10,
+    seed: int = 0,
+    *,
+    device: str = "cpu",
+) -> SmolVLABackbone:
+    """A real SmolVLAPolicy on the tiny local SmolVLM (~0.4M params), same weights for a seed."""
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    side = TINY_VLM["vision"]["image_size"]
+    config = _libero_config(
+        camera_keys, (3, *image_hw), state_dim, action_dim,
+        vlm_model_name=str(tiny_vlm_folder()), resize_imgs_with_padding=(side, side),
+        chunk_size=chunk_size, n_action_steps=chunk_size, device=device,
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        policy = SmolVLAPolicy(config)
+    policy.to(device).eval()
+    preprocessor, postprocessor = make_pre_post_processors(config, dataset_stats=stats)
+    return SmolVLABackbone(policy, preprocessor, postprocessor)
+
+
+def _libero_config(camera_keys, image_shape, state_dim, action_dim, **overrides):
+    from lerobot.configs import FeatureType, PolicyFeature
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+
+    inputs = {key: PolicyFeature(FeatureType.VISUAL, tuple(image_shape)) for key in camera_keys}
+    inputs[STATE_KEY] = PolicyFeature(FeatureType.STATE, (state_dim,))
+    outputs = {ACTION_KEY: PolicyFeature(FeatureType.ACTION, (action_dim,))}
+    # num_vlm_layers=0 keeps every text layer of the given VLM (16 of SmolVLM2's 32 is the default).
+    overrides.setdefault("num_vlm_layers", 0)
+    return SmolVLAConfig(input_features=inputs, output_features=outputs, **overrides)
+
+
+def save_pretrained(backbone: SmolVLABackbone, folder) -> Path:
+    """Policy weights + config and both processors into `folder`; load_policy(folder) restores it."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    vlm_source = Path(backbone.policy.config.vlm_model_name)
+    if vlm_source.is_dir() and vlm_source.resolve() != (folder / VENDORED_VLM_DIR).resolve():
+        shutil.copytree(vlm_source, folder / VENDORED_VLM_DIR, dirs_exist_ok=True)
+    backbone.policy.save_pretrained(folder)
+    backbone.preprocessor.save_pretrained(folder)
+    backbone.postprocessor.save_pretrained(folder)
+    return folder
+
+
+def load_policy(
+    path_or_repo_id: str,
+    *,
+    stats: dict | None = None,
+    rename_map: dict[str, str] | None = None,
+    camera_keys=IMAGE_KEYS,
+    state_dim: int = LIBERO_STATE_DIM,
+    action_dim: int = LIBERO_ACTION_DIM,
+    device: str | None = None,
+) -> SmolVLABackbone:
+    """A saved SmolVLA (local folder or hub id in the HF cache), fitted to LIBERO's features.
+
+    When the checkpoint's features differ from LIBERO's (smolvla_base: cameras camera1/2/3, 6-dim
+    state and action), its cameras are renamed (`rename_map`, default SMOLVLA_BASE_RENAME), unused
+    ones dropped, state/action resized (both are zero-padded to 32 inside anyway), and `stats`
+    (dataset stats) are required: its saved normaliser does not cover LIBERO. With `stats`, the
+    processors are rebuilt from them; without, the saved processors are loaded.
+    """
+    from lerobot.configs import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+    from lerobot.processor import RenameObservationsProcessorStep
+
+    local = Path(path_or_repo_id).expanduser()
+    source = str(local) if local.is_dir() else path_or_repo_id
+    if not local.is_dir():
+        _require_hub_files(path_or_repo_id, ("config.json", "model.safetensors"))
+    with _hub_errors_as_unavailable(path_or_repo_id):
+        config = PreTrainedConfig.from_pretrained(source)
+    if config.type != "smolvla":
+        raise ValueError(f"{path_or_repo_id} holds a '{config.type}' policy; load_policy reads 'smolvla'")
+    config.load_vlm_weights = False  # the checkpoint carries every VLM weight; keep float32
+    if device is not None:
+        config.device = device
+    vendored = local / VENDORED_VLM_DIR
+    if vendored.is_dir():
+        config.vlm_model_name = str(vendored)
+    elif not Path(config.vlm_model_name).is_dir():
+        _require_hub_files(config.vlm_model_name, ("config.json", "tokenizer_config.json"))
+
+    if rename_map is None:
+        rename_map = {} if all(k in config.image_features for k in camera_keys) else dict(SMOLVLA_BASE_RENAME)
+    adapted = _fit_features(config, rename_map, camera_keys, state_dim, action_dim)
+    if adapted and stats is None:
+        raise ValueError(
+            f"{path_or_repo_id}'s saved normaliser covers its own features, not LIBERO's "
+            f"(state {state_dim}, action {action_dim}): pass stats=<dataset stats> to load_policy"
+        )
+    with _hub_errors_as_unavailable(config.vlm_model_name):
+        policy = SmolVLAPolicy.from_pretrained(source, config=config)
+    _check_all_weights_loaded(policy, source)
+
+    if stats is not None:
+        preprocessor, postprocessor = make_pre_post_processors(config, dataset_stats=stats)
+    else:
+        overrides = {"tokenizer_processor": {"tokenizer_name": config.vlm_model_name}}
+        if device is not None:
+            overrides["device_processor"] = {"device": device}
+        with _hub_errors_as_unavailable(path_or_repo_id):
+            preprocessor, postprocessor = make_pre_post_processors(
+                config, pretrained_path=source, preprocessor_overrides=overrides
+            )
+    if rename_map:
+        _find_step(preprocessor, RenameObservationsProcessorStep).rename_map = dict(rename_map)
+    return SmolVLABackbone(policy, preprocessor, postprocessor)
+
+
+def _fit_features(config, rename_map, camera_keys, state_dim, action_dim) -> bool:
+    """Point the config at LIBERO's cameras/state/action in place; True if anything changed."""
+    from lerobot.configs import FeatureType, PolicyFeature
+
+    wanted = [rename_map.get(k, k) for k in camera_keys]
+    unknown = [k for k in wanted if k not in config.image_features]
+    if unknown:
+        raise ValueError(
+            f"cameras {list(camera_keys)} map to {unknown} under rename map {rename_map}, but the "
+            f"checkpoint's cameras are {list(config.image_features)}: pass rename_map=..."
+        )
+    inputs = {
+        key: feature for key, feature in config.input_features.items()
+        if feature.type != FeatureType.VISUAL or key in wanted  # checkpoint order is kept
+    }
+    inputs[STATE_KEY] = PolicyFeature(FeatureType.STATE, (state_dim,))
+    outputs = {ACTION_KEY: PolicyFeature(FeatureType.ACTION, (action_dim,))}
+    changed = inputs != config.input_features or outputs != config.output_features
+    config.input_features, config.output_features = inputs, outputs
+    return changed
+
+
+def _check_all_weights_loaded(policy, source: str) -> None:
+    """LeRobot loads with strict=False and only logs missing keys: make a miss an error."""
+    from huggingface_hub import hf_hub_download
+    from safetensors import safe_open
+
+    local = Path(source)
+    model_file = local / "model.safetensors" if local.is_dir() else hf_hub_download(source, "model.safetensors")
+    with safe_open(str(model_file), framework="pt") as handle:
+        saved = set(handle.keys())
+    state = policy.state_dict()
+    saved_ptrs = {state[k].data_ptr() for k in saved if k in state}
+    missing = sorted(k for k in state if k not in saved and state[k].data_ptr() not in saved_ptrs)
+    if missing:
+        raise RuntimeError(f"{source} lacks {len(missing)} weights of SmolVLAPolicy, e.g. {missing[:3]}")
+
+
+def _offline() -> bool:
+    from huggingface_hub import constants
+
+    flag = os.environ.get("HF_HUB_OFFLINE", "").upper() in {"1", "ON", "YES", "TRUE"}
+    return constants.HF_HUB_OFFLINE or flag
+
+
+def _require_hub_files(repo_id: str, filenames: tuple[str, ...]) -> None:
+    """Offline and not cached: raise BackboneUnavailable at once instead of retrying the network."""
+    from huggingface_hub import constants, try_to_load_from_cache
+
+    if not _offline():
+        return  # online: let from_pretrained download it
+    absent = [f for f in filenames if not isinstance(try_to_load_from_cache(repo_id, f), str)]
+    if absent:
+        raise BackboneUnavailable(_unavailable_message(repo_id, constants.HF_HUB_CACHE))
+
+
+def _unavailable_message(repo_id: str, cache: str) -> str:
+    return (
+        f"{repo_id} is not in the Hugging Face cache ({cache}) and the hub is offline: on a networked "
+        f"machine run `hf download {repo_id}` (and `hf download HuggingFaceTB/SmolVLM2-500M-Video-Instruct` "
+        f"for smolvla_base's VLM config and tokenizer) into that cache, or pass a local folder"
+    )
+
+
+@contextlib.contextmanager
+def _hub_errors_as_unavailable(repo_id: str) -> Iterator[None]:
+    from huggingface_hub import constants
+    from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError
+
+    try:
+        yield
+    except (LocalEntryNotFoundError, HfHubHTTPError, FileNotFoundError) as error:
+        if Path(repo_id).is_dir():
+            raise
+        raise BackboneUnavailable(_unavailable_message(repo_id, constants.HF_HUB_CACHE)) from error
+
+
+def _find_step(pipeline, step_type):
+    found = [step for step in pipeline.steps if isinstance(step, step_type)]
+    if len(found) != 1:
+        raise RuntimeError(f"expected one {step_type.__name__} in {pipeline.name}, found {len(found)}")
+    return found[0]
+
+
+def check_real_shapes() -> dict:
+    """smolvla_base's architecture, built offline without weights: token grid and LM width checked.
+
+    The whole policy is built on the meta device from SmolVLM2-500M's numbers (REAL_VLM); a CPU
+    copy of its vision tower cut to one layer (layers keep shapes) plus the real connector pushes
+    one 512 px image through, since the tower's position ids cannot run on meta tensors.
+    """
+    import copy
+
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+    from transformers.models.smolvlm.modeling_smolvlm import SmolVLMConnector, SmolVLMVisionTransformer
+
+    config = _libero_config(IMAGE_KEYS, (3, 256, 256), LIBERO_STATE_DIM, LIBERO_ACTION_DIM,
+                            vlm_model_name=str(real_shape_vlm_folder()), device="cpu",
+                            num_vlm_layers=16)  # SmolVLA's default: 16 of SmolVLM2's 32 layers
+    with torch.device("meta"):
+        policy = SmolVLAPolicy(config)
+    vlm_config = policy.model.vlm_with_expert.get_vlm_model().config
+    one_layer = copy.deepcopy(vlm_config.vision_config)
+    one_layer.num_hidden_layers = 1
+    side = config.resize_imgs_with_padding[0]
+    with torch.random.fork_rng(devices=[]), torch.no_grad():
+        tower_out = SmolVLMVisionTransformer(one_layer)(pixel_values=torch.zeros(1, 3, side, side)).last_hidden_state
+        tokens = SmolVLMConnector(vlm_config)(tower_out)
+    info = info_from_policy(policy)
+    shapes = {
+        "tokens_per_camera": tokens.shape[1],
+        "native_grid": info.native_grid,
+        "lm_width": tokens.shape[2],
+        "tower_tokens": tower_out.shape[1],
+        "tower_width": tower_out.shape[2],
+        "expert_width": policy.model.vlm_with_expert.expert_hidden_size,
+        "parameters": sum(p.numel() for p in policy.parameters()),
+    }
+    grid = tokens_per_camera(REAL_VLM)
+    expected = {"tokens_per_camera": grid[0] * grid[1], "native_grid": INFO_REAL.native_grid,
+                "lm_width": INFO_REAL.lm_width}
+    wrong = {k: (shapes[k], v) for k, v in expected.items() if shapes[k] != v}
+    if wrong or info.lm_width != INFO_REAL.lm_width or info.chunk_size != INFO_REAL.chunk_size:
+        raise RuntimeError(f"real SmolVLA shapes (got, expected) disagree with INFO_REAL: {wrong}")
+    return shapes

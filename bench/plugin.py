@@ -1,0 +1,222 @@
+"""The pytest plugin: options, the grid parametrisation, the session object, the report hook.
+
+Hooks only hand work on: `pytest_configure` builds ONE `GraftSession`; cells run through it;
+`pytest_sessionfinish` asks it for the report (controller only under xdist).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench.cells import CellSpec, control_cells, graft_cells
+from bench.paths import REPO_ROOT
+from bench.protocol import ALL_CONTROLS, get_profile, with_overrides
+
+SESSION_KEY = pytest.StashKey["GraftSession"]()
+
+
+def _csv(value: str | None) -> tuple[str, ...] | None:
+    return tuple(v.strip() for v in value.split(",") if v.strip()) if value else None
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    g = parser.getgroup("graftbench", "graftbench grid")
+    g.addoption("--profile", default="tiny", help="tiny (offline default) or paper")
+    g.addoption("--backbones", help="comma list, e.g. smolvla,pi05")
+    g.addoption("--encoders", help="comma list of registry names or timm:<model>")
+    g.addoption("--suites", help="comma list, e.g. spatial,object")
+    g.addoption("--seeds", help="comma list of ints, e.g. 0,1,2")
+    g.addoption("--controls", help=f"comma list of control kinds ({','.join(ALL_CONTROLS)}) or none")
+    g.addoption("--steps", type=int, help="projector steps (overrides the profile's protocol)")
+    g.addoption("--results-dir", help="results store (default .graftbench/results/<profile>)")
+    g.addoption("--report", help="where REPORT.md goes (default: REPORT.md at the repo root)")
+    g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
+    g.addoption("--features", default="cache", choices=("cache", "loop"),
+                help="pooled features from the on-disk cache (default) or the encoder in the loop")
+
+
+def build_profile(config: pytest.Config):
+    opt = config.getoption
+    try:
+        profile = get_profile(opt("--profile"))
+        seeds = _csv(opt("--seeds"))
+        controls = _csv(opt("--controls"))
+        if controls == ("none",):
+            controls = ()
+        bad = [c for c in controls or () if c not in ALL_CONTROLS]
+        if bad:
+            raise ValueError(f"unknown control kind(s) {bad}; valid: {', '.join(ALL_CONTROLS)}")
+        return with_overrides(
+            profile,
+            backbones=_csv(opt("--backbones")),
+            encoders=_csv(opt("--encoders")),
+            suites=_csv(opt("--suites")),
+            seeds=tuple(int(s) for s in seeds) if seeds else None,
+            controls=controls,
+            steps=opt("--steps"),
+        )
+    except ValueError as e:
+        raise pytest.UsageError(str(e)) from None
+
+
+def _validate_names(profile) -> None:
+    """Unknown backbone/suite/encoder names fail at collection, listing the valid ones."""
+    from backbones import get_entry
+    from bench.suites import SUITES
+    from encoders import get_spec
+
+    try:
+        for b in profile.backbones:
+            get_entry(b)
+        for e in set(profile.encoders) | set(profile.control_encoders):
+            get_spec(e)
+    except ValueError as e:
+        raise pytest.UsageError(str(e)) from None
+    for s in profile.suites:
+        if s not in SUITES:
+            raise pytest.UsageError(f"unknown suite {s!r}; valid suites: {', '.join(SUITES)}")
+
+
+def _offline_env(offline: bool) -> None:
+    if not offline:
+        return
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    os.environ["TRANSFORMERS_OFFLINE"] = "1"
+    os.environ["HF_DATASETS_OFFLINE"] = "1"
+    if "huggingface_hub.constants" in sys.modules:  # imported before us: patch the cached flag
+        sys.modules["huggingface_hub.constants"].HF_HUB_OFFLINE = True
+
+
+class GraftSession:
+    """State of one pytest run of the grid: profile, store, workspace, what ran."""
+
+    def __init__(self, config: pytest.Config) -> None:
+        self.config = config
+        self.profile = build_profile(config)
+        _offline_env(self.profile.offline)
+        results = config.getoption("--results-dir")
+        self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name
+        report = config.getoption("--report")
+        self.report_path = Path(report) if report else REPO_ROOT / "REPORT.md"
+        self.rerun = bool(config.getoption("--rerun"))
+        self.features_mode = config.getoption("--features")
+        self._workspace = None
+        self._store = None
+        self.selected: list[str] = []
+        self.ran: list[str] = []
+        self.resumed: list[str] = []
+        self.extra_sections: list[tuple[str, str]] = []
+
+    @property
+    def store(self):
+        from bench.store import ResultStore
+
+        if self._store is None:
+            self._store = ResultStore(self.results_dir)
+        return self._store
+
+    def workspace(self):
+        from bench.workspace import Workspace
+
+        if self._workspace is None:
+            quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
+            self._workspace = Workspace(self.profile, self.store, rerun=self.rerun, progress=not quiet)
+        return self._workspace
+
+    def run(self, cell: CellSpec) -> dict:
+        """The stored record when current (resume), else measure the cell now."""
+        from bench.runner import run_cell
+
+        if not self.rerun:
+            record = self.store.current(cell.id, self.profile.protocol.hash)
+            if record is not None:
+                self.resumed.append(cell.id)
+                return record
+        try:
+            record = run_cell(cell, self.workspace(), features_mode=self.features_mode)
+        except Exception as e:
+            self.store.write_failure({
+                "cell_id": cell.id, "kind": cell.kind, "backbone": cell.backbone,
+                "suite": cell.suite, "encoder": cell.encoder, "seed": cell.seed,
+                "variant": cell.variant, "error": f"{type(e).__name__}: {e}",
+                "protocol_hash": self.profile.protocol.hash,
+            })
+            raise
+        self.ran.append(cell.id)
+        return record
+
+    def finish(self) -> Path | None:
+        if not self.selected:
+            return None
+        from bench.report import build_report
+
+        return build_report(self.results_dir, self.report_path, extra_sections=self.extra_sections)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "cell: a graftbench grid cell")
+    config.stash[SESSION_KEY] = GraftSession(config)
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    names = metafunc.fixturenames
+    if "graft_cell" not in names and "control_cell" not in names:
+        return
+    session: GraftSession = metafunc.config.stash[SESSION_KEY]
+    _validate_names(session.profile)
+    cells = graft_cells(session.profile) if "graft_cell" in names else control_cells(session.profile)
+    argname = "graft_cell" if "graft_cell" in names else "control_cell"
+    metafunc.parametrize(
+        argname,
+        [pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone)) for c in cells],
+    )
+
+
+def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items) -> None:
+    gs: GraftSession = config.stash[SESSION_KEY]
+    gs.selected = [
+        item.callspec.params.get("graft_cell", item.callspec.params.get("control_cell")).id
+        for item in items
+        if hasattr(item, "callspec") and ({"graft_cell", "control_cell"} & set(item.callspec.params))
+    ]
+    if gs.selected and not hasattr(config, "workerinput"):
+        gs.store.write_grid(gs.selected, gs.profile.name)
+
+
+@pytest.fixture(scope="session")
+def graft_session(request: pytest.FixtureRequest) -> GraftSession:
+    return request.config.stash[SESSION_KEY]
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    if hasattr(session.config, "workerinput"):
+        return  # xdist worker: the controller builds the report from the shared store
+    gs: GraftSession = session.config.stash.get(SESSION_KEY, None)
+    if gs is None or not gs.selected:
+        return
+    try:
+        path = gs.finish()
+    except Exception as e:  # a report bug must not hide the cell results
+        sys.stderr.write(f"\n[graftbench] REPORT.md not written: {type(e).__name__}: {e}\n")
+        return
+    if path is not None:
+        gs.report_written = path
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    gs: GraftSession | None = config.stash.get(SESSION_KEY, None)
+    if gs is None or not gs.selected or hasattr(config, "workerinput"):
+        return
+    tr = terminalreporter
+    tr.write_sep("-", "graftbench")
+    tr.write_line(f"profile {gs.profile.name}, protocol {gs.profile.protocol.hash}, "
+                  f"results in {gs.results_dir}")
+    tr.write_line(f"cells selected {len(gs.selected)}, measured {len(gs.ran)}, "
+                  f"resumed from store {len(gs.resumed)}")
+    written = getattr(gs, "report_written", None)
+    if written:
+        tr.write_line(f"report: {written}")

@@ -1,0 +1,134 @@
+"""The fixed grafting protocol and the run profiles (tiny offline world vs. the paper grid).
+
+Every constant that changes a number lives in `Protocol`; its hash goes into every record, so a
+resumed or compared run never mixes numbers measured under different rules.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Constants of one grafting run. Bump `version` when a change moves numbers on purpose."""
+
+    version: str = "1"
+    # Projector training. The paper gives 2,000 steps; optimiser, lr, schedule and batch are our
+    # choices where it is silent (stated in REPORT.md).
+    steps: int = 2000
+    batch_size: int = 32
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    warmup_steps: int = 100
+    grad_clip: float = 1.0
+    loss_log_every: int = 10
+    # Held-out split: whole episodes per task, drawn with a seed that never depends on the cell.
+    split_seed: int = 1234
+    heldout_episodes_per_task: int = 2
+    # Evaluation windows: one window every `eval_stride` frames of each held-out episode.
+    eval_stride: int = 10
+    eval_batch_size: int = 16
+    # Seed of the fixed per-window sampler noise (common random numbers across cells).
+    eval_noise_seed: int = 4321
+    # LoRA control: adapters on the frozen language model's attention projections.
+    lora_rank: int = 8
+    lora_alpha: int = 16
+    lora_targets: tuple[str, ...] = ("q_proj", "v_proj")
+    # Released tiny checkpoints (offline world only): native training of the whole tiny policy.
+    native_steps: int = 0
+    native_lr: float = 3e-4
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @property
+    def hash(self) -> str:
+        """12 hex chars of sha256 over the canonical JSON of all fields."""
+        blob = json.dumps(self.to_dict(), sort_keys=True, default=list).encode()
+        return hashlib.sha256(blob).hexdigest()[:12]
+
+    def replace(self, **changes) -> "Protocol":
+        return dataclasses.replace(self, **changes)
+
+
+PAPER_ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
+ALL_CONTROLS = ("native", "native_wrapped", "lora", "pooling", "zero_image", "shuffled_image")
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Which world a run lives in and the default grid selected in it."""
+
+    name: str
+    # "tiny": tiny LeRobot policies, random-init timm architectures and generated suites, all
+    # built locally; "hub": real checkpoints, pretrained weights and LIBERO from the HF cache.
+    source: str
+    offline: bool
+    protocol: Protocol
+    backbones: tuple[str, ...]
+    suites: tuple[str, ...]
+    encoders: tuple[str, ...]
+    seeds: tuple[int, ...]
+    controls: tuple[str, ...] = ALL_CONTROLS
+    # Encoders the control cells (lora, pooling, zero/shuffled image) are run for.
+    control_encoders: tuple[str, ...] = ("pixels",)
+
+
+TINY = Profile(
+    name="tiny",
+    source="tiny",
+    offline=True,
+    protocol=Protocol(
+        steps=60,
+        batch_size=16,
+        lr=3e-3,
+        warmup_steps=5,
+        loss_log_every=5,
+        heldout_episodes_per_task=2,
+        eval_stride=6,
+        eval_batch_size=32,
+        native_steps=600,
+    ),
+    backbones=("smolvla", "pi05"),
+    suites=("spatial", "object"),
+    encoders=PAPER_ENCODERS + ("pixels", "blind"),
+    seeds=(0, 1),
+)
+
+PAPER = Profile(
+    name="paper",
+    source="hub",
+    offline=False,
+    protocol=Protocol(),
+    backbones=("smolvla", "pi05"),
+    suites=("spatial", "object"),
+    encoders=PAPER_ENCODERS,
+    seeds=(0, 1, 2),
+    control_encoders=PAPER_ENCODERS,
+)
+
+PROFILES: dict[str, Profile] = {p.name: p for p in (TINY, PAPER)}
+
+
+def get_profile(name: str) -> Profile:
+    try:
+        return PROFILES[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown profile {name!r}; choose one of {sorted(PROFILES)} (--profile NAME)"
+        ) from None
+
+
+def with_overrides(profile: Profile, **changes) -> Profile:
+    """A copy of `profile` with grid fields (and `steps`, routed into the protocol) replaced."""
+    steps = changes.pop("steps", None)
+    if steps is not None:
+        changes["protocol"] = profile.protocol.replace(steps=int(steps))
+    changes = {k: v for k, v in changes.items() if v is not None}
+    return dataclasses.replace(profile, **changes)
+
+

@@ -1,0 +1,197 @@
+"""One cell, top to bottom: build graft -> train projector -> score -> record."""
+
+from __future__ import annotations
+
+import datetime as dt
+import time
+
+import torch
+
+from bench import cells as K
+from bench.cells import CellSpec
+from bench.evaluate import derangement, score
+from bench.features import encode_pooled
+from bench.graft import GraftFeed, Projector, assert_only_trainable, trainable_parameters
+from bench.provenance import (
+    git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
+)
+from bench.suites.windows import raw_batch
+from bench.train import FitConfig, fit
+from bench.workspace import Workspace
+
+SCHEMA = 1
+
+
+class _Captured(Exception):
+    def __init__(self, image):
+        self.image = image
+
+
+def pooling_grid(native: tuple[int, int], variant: str | None) -> tuple[int, int]:
+    """The token grid per camera of a cell: native, or the pooling control's variant."""
+    rows, cols = native
+    return {
+        None: native,
+        "half": (max(1, rows // 2), max(1, cols // 2)),
+        "double": (rows * 2, cols * 2),
+        "global": (1, 1),
+    }[variant]
+
+
+def native_tower_channels(backbone, suite, frames) -> int:
+    """Channels of the native tower's grid, probed on the image the policy hands its tower."""
+    def capture(image):
+        raise _Captured(image)
+
+    batch = backbone.preprocess(raw_batch(suite, frames[:1], backbone.info.chunk_size))
+    noise = torch.zeros((1, backbone.info.chunk_size, backbone.info.max_action_dim))
+    try:
+        with backbone.image_embedder(capture), torch.no_grad():
+            backbone.loss(batch, noise, torch.full((1,), 0.5))
+    except _Captured as c:
+        return int(backbone.native_tower_grid(c.image).shape[1])
+    raise RuntimeError("the backbone never called its image embedder")
+
+
+def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dict:
+    """Measure one cell and write its record. features_mode: "cache" (pooled features computed
+    once per frame) or "loop" (the encoder runs inside every step: the naive reference)."""
+    if features_mode not in ("cache", "loop"):
+        raise ValueError(f"features_mode {features_mode!r} not in ('cache', 'loop')")
+    p = ws.profile.protocol
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    suite = ws.suite(cell.suite)
+    split = ws.split(cell.suite)
+    backbone = ws.fresh_backbone(cell.backbone) if cell.kind == K.LORA else ws.backbone(cell.backbone)
+    info = backbone.info
+    device = next(backbone.policy.parameters()).device
+    reset_peak_memory(device)
+    grid = pooling_grid(info.native_grid, cell.variant if cell.kind == K.POOLING else None)
+    perm = derangement(len(split.windows), p.split_seed)
+
+    feed = projector = None
+    encoder = None
+    curve: list[list[float]] = []
+    lora_params = 0
+    timings["build"] = time.perf_counter() - t_start
+
+    if cell.trains_projector:
+        t0 = time.perf_counter()
+        if cell.kind == K.NATIVE_WRAPPED:
+            channels = native_tower_channels(backbone, suite, split.train_frames)
+            tower = backbone.native_tower_grid
+            features = None
+        else:
+            encoder = ws.encoder(cell.encoder)
+            tower = None
+            features = ws.features(cell.encoder, cell.suite, grid) if features_mode == "cache" else None
+            channels = int(next(iter(features.values())).shape[-1]) if features else encoder.channels
+        timings["features"] = time.perf_counter() - t0
+
+        def pooled(frames, source_frames=None):
+            """Graft features of `frames` (from `source_frames`' pixels for shuffled images)."""
+            src = frames if source_frames is None else source_frames
+            if features is not None:
+                return {k: v[src] for k, v in features.items()}
+            return encode_pooled(encoder, suite.images(src), grid)
+
+        def zero_pooled(n):
+            blank = {k: torch.zeros((1, *suite.image_shape)) for k in suite.camera_keys}
+            return {k: v.expand(n, -1, -1) for k, v in encode_pooled(encoder, blank, grid).items()}
+
+        with torch.random.fork_rng():
+            torch.manual_seed(stable_seed(cell.seed, "projector-init"))
+            projector = Projector(channels, info.lm_width).to(device)
+        if cell.kind == K.LORA:
+            lora_params = _add_lora(backbone, p)
+        expected = trainable_parameters(projector) + lora_params
+        frozen = [backbone.policy] + ([encoder] if encoder is not None else [])
+        assert_only_trainable(expected, projector, *frozen,
+                              what="projector + LoRA" if lora_params else "projector")
+        feed = GraftFeed(projector, backbone.camera_keys, grid, tower=tower)
+        train_zero = cell.kind == K.ZERO_IMAGE and cell.variant == "train"
+        needs_pixels = tower is not None or features is None
+
+        def next_batch(frames):
+            raw = raw_batch(suite, frames, info.chunk_size, with_images=needs_pixels)
+            for k in suite.camera_keys:  # the graft ignores them; the policy's pipeline wants them
+                raw.setdefault(k, torch.zeros((len(frames), *suite.image_shape)))
+            if tower is not None:
+                return raw, None
+            return raw, zero_pooled(len(frames)) if train_zero else pooled(frames)
+
+        t0 = time.perf_counter()
+        params = list(projector.parameters()) + [
+            q for q in backbone.policy.parameters() if q.requires_grad
+        ]
+        fit_cfg = FitConfig(p.steps, p.batch_size, p.lr, p.weight_decay, p.warmup_steps,
+                            p.grad_clip, p.loss_log_every)
+        curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
+                    feed=feed, label=cell.id, progress=ws.progress)
+        timings["train"] = time.perf_counter() - t0
+        projector.eval()
+
+        if tower is not None:
+            features_for = None
+        elif cell.kind == K.ZERO_IMAGE:
+            features_for = lambda pos, frames: zero_pooled(len(frames))  # noqa: E731
+        elif cell.kind == K.SHUFFLED_IMAGE:
+            features_for = lambda pos, frames: pooled(frames, split.windows[perm[pos]])  # noqa: E731
+        else:
+            features_for = lambda pos, frames: pooled(frames)  # noqa: E731
+        images_for = None
+    else:
+        timings["features"] = timings["train"] = 0.0
+        features_for = None
+        if cell.kind == K.ZERO_IMAGE:
+            images_for = lambda pos, frames, imgs: {k: torch.zeros_like(v) for k, v in imgs.items()}  # noqa: E731
+        elif cell.kind == K.SHUFFLED_IMAGE:
+            images_for = lambda pos, frames, imgs: suite.images(split.windows[perm[pos]])  # noqa: E731
+        else:
+            images_for = None
+
+    t0 = time.perf_counter()
+    scores = score(backbone, suite, split.windows, p.eval_batch_size, p.eval_noise_seed,
+                   feed=feed, features_for=features_for, images_for=images_for)
+    timings["eval"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+
+    ref = cell.reference
+    record = {
+        "schema": SCHEMA, "status": "ok", "cell_id": cell.id, "kind": cell.kind,
+        "backbone": cell.backbone, "suite": cell.suite, "encoder": cell.encoder,
+        "seed": cell.seed, "variant": cell.variant, "reference": ref.id if ref else None,
+        "grid": list(grid), "features_mode": features_mode if encoder is not None else None,
+        "profile": ws.profile.name, "protocol": p.to_dict(), "protocol_hash": p.hash,
+        **scores,
+        "trainable_params": trainable_parameters(projector, backbone.policy) if projector else 0,
+        "projector_params": trainable_parameters(projector) if projector else 0,
+        "lora_params": lora_params,
+        "loss_curve": curve,
+        "encoder_weights": getattr(encoder, "weights_id", None),
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "peak_memory_mb": peak_memory_mb(device), "device": str(device), "hardware": hardware(),
+        "versions": versions(), "git_commit": git_commit(),
+        "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    ws.store.write(record)
+    return record
+
+
+def _add_lora(backbone, p) -> int:
+    """LoRA adapters (peft) on the frozen LM's attention; returns the adapter parameter count."""
+    from peft import LoraConfig, inject_adapter_in_model
+
+    lm = backbone.language_model()
+    config = LoraConfig(r=p.lora_rank, lora_alpha=p.lora_alpha,
+                        target_modules=list(p.lora_targets), lora_dropout=0.0, bias="none")
+    inject_adapter_in_model(config, lm)
+    adapters = [q for n, q in lm.named_parameters() if "lora_" in n]
+    if not adapters:
+        raise RuntimeError(
+            f"LoRA targets {p.lora_targets} matched no module of the {backbone.info.name} LM"
+        )
+    for q in adapters:
+        q.requires_grad_(True)
+    return sum(q.numel() for q in adapters)

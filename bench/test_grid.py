@@ -1,0 +1,34 @@
+"""The grid. One parametrised case per cell; ids read as the cell, so
+`pytest bench -k "pi05 and spatial"` selects exactly that slice.
+
+A case asserts what must hold of any cell (finite loss that went down, the freeze, a finite
+recorded MSE); it never asserts a ranking: rankings are the report's business.
+"""
+
+import math
+
+
+def _check_record(record: dict, cell) -> None:
+    assert record["cell_id"] == cell.id
+    for space in ("normalized", "raw"):
+        assert math.isfinite(record["mse"][space]), f"{cell.id}: {space} MSE not finite"
+    assert record["n_windows"] == len(record["per_window"]["normalized"]) > 0
+    if cell.trains_projector:
+        # Freeze by construction, verified: trainable = projector (+ LoRA adapters).
+        assert record["trainable_params"] == record["projector_params"] + record["lora_params"]
+        curve = [loss for _, loss in record["loss_curve"]]
+        assert all(math.isfinite(v) for v in curve)
+        head, tail = curve[: max(1, len(curve) // 4)], curve[-max(1, len(curve) // 4):]
+        assert sum(tail) / len(tail) < sum(head) / len(head), (
+            f"{cell.id}: training did not reduce the loss ({head} -> {tail})"
+        )
+    else:
+        assert record["trainable_params"] == 0
+
+
+def test_graft(graft_cell, graft_session):
+    _check_record(graft_session.run(graft_cell), graft_cell)
+
+
+def test_control(control_cell, graft_session):
+    _check_record(graft_session.run(control_cell), control_cell)
