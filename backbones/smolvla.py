@@ -9,8 +9,8 @@ Places in lerobot/policies/smolvla this adapter relies on (line numbers for 0.6.
   one call per camera in `config.image_features` order.
 - loss: `SmolVLAPolicy.forward(batch, noise, time, reduction="none")` (~277-332) cuts the padded
   action dims, zeroes `action_is_pad` steps and averages over the valid (step, dim) entries.
-- sampling: `predict_action_chunk(batch, noise)` (~232-241, ~195-230) returns the Euler-integrated chunk cut to
-  the real action dims and still NORMALISED (the post-processor is not applied). It calls
+- sampling: `predict_action_chunk(batch, noise)` (~232-241, ~195-230) returns the Euler-integrated
+  chunk cut to the real action dims and still NORMALISED (the post-processor is not applied). It calls
   `self.eval()` and fills an action queue; `sample_actions` below restores the mode and the queue.
 """
 
@@ -45,8 +45,10 @@ INFO_REAL = BackboneInfo(
     native_feature_doc=NATIVE_FEATURE_DOC,
 )
 # Assumed camera layout of lerobot/smolvla_base (its config lists observation.images.camera1/2/3,
-# SO-100 views): LIBERO's agent view feeds camera1 and the wrist view camera2; camera3 is dropped
-# from the config (not fed as an empty -1 image), as a two-camera LIBERO fine-tune of it would be.
+# SO-100 views; not checked against the file here, which is not in this cache): LIBERO's agent
+# view feeds camera1 and the wrist view camera2. camera3 is dropped from the config, which is what
+# LeRobot itself does with a camera absent from the batch when empty_cameras=0 (prepare_images
+# ~372-376), e.g. when fine-tuning smolvla_base on two-camera LIBERO.
 SMOLVLA_BASE_RENAME = {
     "observation.images.image": "observation.images.camera1",
     "observation.images.wrist_image": "observation.images.camera2",
@@ -269,6 +271,8 @@ def load_policy(
     local = Path(path_or_repo_id).expanduser()
     source = str(local) if local.is_dir() else path_or_repo_id
     if not local.is_dir():
+        if path_or_repo_id.startswith(("/", ".", "~")) or path_or_repo_id.count("/") > 1:
+            raise FileNotFoundError(f"no SmolVLA checkpoint folder at {path_or_repo_id}")
         _require_hub_files(path_or_repo_id, ("config.json", "model.safetensors"))
     with _hub_errors_as_unavailable(path_or_repo_id):
         config = PreTrainedConfig.from_pretrained(source)

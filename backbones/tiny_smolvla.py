@@ -27,16 +27,17 @@ from bench.paths import cache_dir
 # Bump when the folder contents change in a way the spec hash below does not see.
 FOLDER_FORMAT = "1"
 
-# Words of the LIBERO task strings (Spatial, Object, Goal, 10) plus the synthetic suites'
-# colours and shapes. Anything else becomes [UNK]; text is lowercased, punctuation is split off.
+# Words of the LIBERO task strings (Spatial, Object, Goal, 10) and of the synthetic suites'
+# (bench/suites/synthetic.py). Anything else becomes [UNK]; text is lowercased and punctuation
+# split off ("counter-clockwise" -> counter - clockwise).
 TASK_WORDS = """
-a about above across after against all alphabet an and apple around at back basket bbq behind
-below beside between big black blue book bottle bottom bowl box butter cabinet caddy can
-center chocolate close cookie cream cube cheese compartment counter cup dish drawer dressing
-empty flat frying from front gray green in inside into it juice ketchup kitchen left lift
-lower middle milk moka mug next of on onto open orange pan pick place plate pot pudding purple
-push put rack ramekin red right salad sauce second shelf side small soup stack stove table
-the then third to tomato top towards turn two under up upper white wine wooden yellow
+a above akita all alphabet and apple around at back basket bbq behind below beside between black
+block blue book both bottle bottom bowl box butter cabinet caddy center cheese chocolate clockwise
+close compartment cookie counter cream cross cup desk disk drawer dressing flat from front frying
+green gripper in inside into it its juice ketchup left match matching microwave middle milk moka
+mug mugs next object of off on one onto open opposite orange pan pick place plate porcelain pot
+pots pudding push put rack ramekin red right salad sauce shelf square stack step stove table the
+to tomato top towards tray triangle turn up white wine wooden yellow
 """.split()
 PUNCTUATION = list(".,;:!?'\"-()")
 SPECIAL_TOKENS = {

@@ -165,10 +165,12 @@ def make_record(*, kind: str = GRAFT, backbone: str = "smolvla", suite: str = "s
                 level: float = 0.1, noise: float = 0.0, per_window: list[float] | None = None,
                 n_windows: int = 24, n_tasks: int = 2, chunk: int = 5, raw_scale: float = 2.0,
                 **overrides) -> dict:
-    """A schema-1 record whose normalised per-window MSE averages `level` (plus seeded noise).
+    """A schema-1 record whose normalised per-window MSE averages exactly `level`.
 
     Window difficulty is a fixed ramp shared by all cells (0.5x .. 1.5x `level`), so paired
-    differences between cells built with noise=0 are exact constants. `per_window` overrides it.
+    differences between cells built with noise=0 are proportional to that ramp. `noise` adds
+    per-window jitter seeded by the cell id and centred, so the cell mean stays `level`.
+    `per_window` replaces all of this. Raw values are `raw_scale` x normalised.
     """
     if kind in NATIVE_KINDS:
         encoder = None
@@ -176,7 +178,8 @@ def make_record(*, kind: str = GRAFT, backbone: str = "smolvla", suite: str = "s
     if per_window is None:
         difficulty = np.linspace(0.5, 1.5, n_windows)
         rng = np.random.default_rng(zlib.crc32(cell_id.encode()))
-        values = level * difficulty + noise * rng.standard_normal(n_windows)
+        jitter = rng.standard_normal(n_windows)
+        values = level * difficulty + noise * (jitter - jitter.mean())
     else:
         values = np.asarray(per_window, dtype=float)
         n_windows = len(values)

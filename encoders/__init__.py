@@ -1,0 +1,22 @@
+"""Candidate encoders: a registry of frozen pixels -> feature-grid modules.
+
+Importing this package registers the paper's timm encoders and the known-answer encoders.
+"""
+
+from encoders.base import Encoder, EncoderSpec, UnknownEncoder
+from encoders.registry import (
+    SOURCES,
+    EncoderUnavailable,
+    build_encoder,
+    get_spec,
+    list_encoders,
+    register,
+    register_prefix,
+)
+from encoders import known as _known  # noqa: F401  (registers pixels, blind)
+from encoders import timm_encoders as _timm_encoders  # noqa: F401  (registers the paper's four)
+
+__all__ = [
+    "SOURCES", "Encoder", "EncoderSpec", "EncoderUnavailable", "UnknownEncoder", "build_encoder",
+    "get_spec", "list_encoders", "register", "register_prefix",
+]

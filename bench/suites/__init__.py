@@ -79,7 +79,7 @@ def suite_from_dataset(name: str, ds, images_in_memory: bool) -> Suite:
     hf = ds.hf_dataset
     cols = _columns(hf, [STATE_KEY, ACTION_KEY, "episode_index", "frame_index", "task_index"])
     _check_contiguous(ds.repo_id, cols["episode_index"], cols["frame_index"])
-    tasks_df = ds.meta.tasks.sort values("task_index") if False else ds.meta.tasks.sort_values("task_index")
+    tasks_df = ds.meta.tasks.sort_values("task_index")
     tasks = [str(t) for t in tasks_df.index]
     if list(tasks_df["task_index"]) != list(range(len(tasks))):
         raise SuiteUnavailable(f"{ds.repo_id}: task indices are not 0..{len(tasks) - 1}")

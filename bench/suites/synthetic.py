@@ -194,7 +194,7 @@ def spatial_episode(rng: np.random.Generator, task: int, length: int) -> tuple[s
                 ("square", held["red"], COLOURS["red"], 3.0),
                 ("square", held["blue"], COLOURS["blue"], 3.0)]
 
-    text = f"pick up the {colour} block and place it on the {dest}"
+    text = f"pick up the {colour} block and place it {'on' if dest == 'plate' else 'in'} the {dest}"
     return text, _rollout(rng, length, pick, place, items_of)
 
 
@@ -251,15 +251,23 @@ def generate_suite(name: str, root: str | Path, seed: int, **overrides) -> Path:
     """
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    import datasets
+
     params = {**SUITE_PARAMS[name], **overrides} if name in SUITE_PARAMS else overrides
     stream = episodes(name, seed, **params)
-    ds = LeRobotDataset.create(repo_id(name), fps=FPS, features=features(), root=root,
-                               robot_type="panda", use_videos=False)
-    for text, frames in stream:
-        for frame in frames:
-            ds.add_frame({**frame, "task": text})
-        ds.save_episode()
-    ds.finalize()
+    bars = datasets.is_progress_bar_enabled()
+    datasets.disable_progress_bars()  # one "Map" bar per episode otherwise
+    try:
+        ds = LeRobotDataset.create(repo_id(name), fps=FPS, features=features(), root=root,
+                                   robot_type="panda", use_videos=False)
+        for text, frames in stream:
+            for frame in frames:
+                ds.add_frame({**frame, "task": text})
+            ds.save_episode()
+        ds.finalize()
+    finally:
+        if bars:
+            datasets.enable_progress_bars()
     shutil.rmtree(Path(root) / "images", ignore_errors=True)  # PNG staging, now in parquet
     (Path(root) / "graftbench_suite.json").write_text(json.dumps(
         {"name": name, "seed": seed, "generator_version": GENERATOR_VERSION, **params}, indent=1))

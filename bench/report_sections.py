@@ -1,0 +1,263 @@
+"""The analysis sections of REPORT.md: each takes a ReportContext and returns markdown.
+
+Every section renders what the stored records allow and says what is missing instead of failing.
+Provenance and per-task sections live in report_provenance.py.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bench.analysis import CONFIDENCE, PRIMARY, Ranking
+from bench.analysis_controls import ControlDelta, WrapperNeutrality
+from bench.analysis_transfer import SUPPORT_RULES, Transfer, min_exact_kendall_p
+from bench.records import Results
+from bench.report_format import bullets, half_width, interval, num, pct, table, yes_no
+
+TIER_RULE = (
+    f"**Top tier (near-tie band)**: the leader (lowest mean normalised MSE over seeds) plus every "
+    f"encoder whose paired difference to the leader (encoder minus leader, same windows, mean "
+    f"over the seeds both have) has a {CONFIDENCE:.0%} bootstrap interval that contains 0."
+)
+INTERVAL_METHOD = (
+    "Intervals: scipy.stats.bootstrap (percentile, paired=True) over held-out **windows**: each "
+    "replicate draws one set of window indices and applies it to every cell (all encoders, all "
+    "seeds) of the backbone x suite, so differences are paired; seeds are kept, not resampled."
+)
+
+
+@dataclass
+class ReportContext:
+    """Everything the sections need, computed once from the stored records."""
+
+    results: Results
+    out_path: Path
+    rankings: list[Ranking]
+    transfers: list[Transfer]
+    support: dict
+    wrapper: dict[tuple[str, str], WrapperNeutrality]
+    controls: list[ControlDelta]
+    plots: list[tuple[str, Path]] = field(default_factory=list)
+    n_resamples: int = 0
+
+    @property
+    def records(self) -> list[dict]:
+        return self.results.records
+
+    def wrapper_text(self, backbone: str, suite: str) -> str:
+        wn = self.wrapper.get((backbone, suite))
+        if wn is None or not wn.mean:
+            return "not measured (no native + native_wrapped pair)"
+        return f"{pct(wn.mean[PRIMARY])} (mean over seeds {sorted(wn.per_seed)})"
+
+
+def answer_lines(ctx: ReportContext) -> list[str]:
+    """The short answer at the top: is the small backbone's winner in the large one's tier?"""
+    if not ctx.records:
+        return [f"No finished cells under `{ctx.results.root}` yet: nothing to answer."]
+    lines = []
+    for t in ctx.transfers:
+        if not t.complete:
+            lines.append(f"Suite **{t.suite}**: no answer yet ({t.missing}).")
+            continue
+        verdict = {True: "**is**", False: "**is not**", None: "cannot be placed"}
+        tier = next(r.top_tier for r in ctx.rankings
+                    if r.backbone == t.large and r.suite == t.suite)
+        lines.append(
+            f"On this grid, the small-backbone winner (**{t.small_winner}** on {t.small}) "
+            f"{verdict[t.small_winner_in_large_tier]} in the large backbone's ({t.large}) top "
+            f"tier on suite **{t.suite}** (top tier: {', '.join(tier)}; Kendall tau-b "
+            f"{num(t.agreement.get('tau_b'), 2)} over {len(t.encoders)} encoders; wrapper "
+            f"delta {t.small} {ctx.wrapper_text(t.small, t.suite)}, {t.large} "
+            f"{ctx.wrapper_text(t.large, t.suite)}).")
+    s = ctx.support
+    if s["comparisons_total"] or s["seed_cells_total"]:
+        lines.append(
+            f"{s['comparisons_supporting']} of {s['comparisons_total']} backbone-suite "
+            f"comparisons and {s['seed_cells_supporting']} of {s['seed_cells_total']} seed-level "
+            f"cells support backbone-dependent rankings (rules under Rank transfer).")
+    return lines
+
+
+def caveats(ctx: ReportContext) -> str:
+    profiles = sorted({r.get("profile", "?") for r in ctx.records}
+                      | ({ctx.results.grid_profile} if ctx.results.grid_profile else set()))
+    hashes = sorted({r.get("protocol_hash", "?") for r in ctx.records})
+    protocol = ctx.records[0].get("protocol", {}) if ctx.records else {}
+    wrapper = [f"{b} x {s}: {ctx.wrapper_text(b, s)}" for b, s in sorted(ctx.wrapper)]
+    lines = [
+        "**Offline action MSE is not closed-loop task success.** No simulator rollouts were run; "
+        "this is a pre-commitment diagnostic for choosing an encoder, not a deployment claim.",
+        "**Conclusions are conditional on the fixed wrapper** (adaptive average pool to the "
+        "native token grid, LayerNorm without affine, one trainable Linear). Its neutrality "
+        "delta (native-wrapped vs native) is shown beside every ranking: "
+        + ("; ".join(wrapper) if wrapper else "not measured in these results") + ".",
+        f"**Profile(s) that ran: {', '.join(profiles) or 'unknown'}.**"
+        + (" Tiny-profile numbers come from tiny random-init encoders, tiny policies and "
+           "generated suites: they exercise the code paths and say **nothing** about real "
+           "encoders." if "tiny" in profiles else ""),
+        "**What offline action MSE means here**: held-out whole EPISODES per task, split with a "
+        f"fixed split seed (split_seed={protocol.get('split_seed', '?')}, "
+        f"{protocol.get('heldout_episodes_per_task', '?')} episodes per task) that does not "
+        "depend on the cell seed, so every cell of a suite is scored on identical windows; the "
+        "backbone's own flow-matching sampler (its default denoising steps) with noise fixed per "
+        f"window (common random numbers, eval_noise_seed={protocol.get('eval_noise_seed', '?')}); "
+        "only the real action dimensions (LIBERO: 7; padding masked out); over the full action "
+        "chunk; reported in the backbone's normalised action space (primary) and in raw units.",
+        "**MSE levels are not comparable across backbones** (different action normalisation): "
+        "compare rankings across backbones, never levels; every plot gives each backbone its "
+        "own axis.",
+    ]
+    if len(hashes) > 1:
+        lines.append(f"**Warning: records come from {len(hashes)} different protocols** "
+                     f"({', '.join(hashes)}); numbers measured under different rules are mixed.")
+    return bullets(lines)
+
+
+def rankings_section(ctx: ReportContext) -> str:
+    if not ctx.rankings:
+        return "No graft cells in the results: nothing to rank."
+    parts = [f"Ranked by mean normalised MSE over seeds (lower is better); raw MSE beside it. "
+             f"{INTERVAL_METHOD} {ctx.n_resamples} replicates. Differences in raw units are "
+             f"against the normalised leader. {TIER_RULE}"]
+    for r in ctx.rankings:
+        parts.append(f"### {r.backbone} x {r.suite}")
+        parts.append(f"Wrapper neutrality delta on {r.backbone} x {r.suite}: "
+                     f"{ctx.wrapper_text(r.backbone, r.suite)}.")
+        if r.error:
+            parts.append(f"_Not ranked: {r.error}_")
+            continue
+        rows = []
+        for e in r.encoders:
+            seeds = ", ".join(f"s{s}: {num(v)}" for s, v in e.per_seed[PRIMARY].items())
+            rows.append([e.rank, e.encoder, num(e.mean[PRIMARY]), half_width(e.ci[PRIMARY]),
+                         interval(e.ci[PRIMARY]), num(e.mean["raw"]), interval(e.ci["raw"]),
+                         seeds, num(e.diff[PRIMARY], 3), interval(e.diff_ci[PRIMARY], 3),
+                         yes_no(e.in_top_tier)])
+        parts.append(table(rows, ["rank", "encoder", "norm. MSE", "±", "95% CI", "raw MSE",
+                                  "raw 95% CI", "per seed (norm.)", "Δ vs leader",
+                                  "Δ 95% CI", "top tier"]))
+        parts.append(f"{r.n_windows} held-out windows; seeds {r.seeds}; per-seed winners: "
+                     + ", ".join(f"s{s}: {w}" for s, w in r.seed_winners.items())
+                     + (" (**seed-sensitive**)" if r.seed_sensitive else "") + ".")
+    return "\n\n".join(parts)
+
+
+def transfer_section(ctx: ReportContext) -> str:
+    sizes = sorted({len(t.encoders) for t in ctx.transfers if t.complete} | {4})
+    min_ps = ", ".join(f"n = {n}: p >= {num(min_exact_kendall_p(n), 3)}" for n in sizes)
+    parts = [
+        "Kendall tau-b (scipy.stats.kendalltau, variant b; exact p where there are no ties) and "
+        "top-weighted tau (scipy.stats.weightedtau on -MSE, so agreement among the best encoders "
+        "counts most) between the two backbones' mean rankings, over encoders run on both.",
+        f"**With so few encoders tau cannot reach significance**: the smallest two-sided p "
+        f"scipy's exact method can give (perfect agreement) is {min_ps}. Read tau as a "
+        f"description, not a test.",
+    ]
+    rows, notes = [], []
+    for t in ctx.transfers:
+        if not t.complete:
+            notes.append(f"{t.suite} ({t.small} -> {t.large}): {t.missing}")
+            continue
+        a = t.agreement
+        rows.append([t.suite, f"{t.small} -> {t.large}", len(t.encoders), num(a["tau_b"], 3),
+                     num(a["p_value"], 3), num(t.min_p, 3), num(a["weighted_tau"], 3),
+                     t.small_winner, yes_no(t.small_winner_in_large_tier), t.large_winner,
+                     yes_no(t.large_winner_in_small_tier),
+                     ctx.wrapper_text(t.small, t.suite), ctx.wrapper_text(t.large, t.suite)])
+        if "note" in a:
+            notes.append(f"{t.suite}: {a['note']}")
+    if rows:
+        parts.append(table(rows, ["suite", "small -> large", "n enc.", "tau-b", "p (exact)",
+                                  "min. attainable p", "weighted tau", "small winner",
+                                  "in large top tier", "large winner", "in small top tier",
+                                  "wrapper Δ small", "wrapper Δ large"]))
+    if notes:
+        parts.append(bullets(notes))
+    s = ctx.support
+    parts.append(SUPPORT_RULES)
+    parts.append(f"**{s['comparisons_supporting']} of {s['comparisons_total']} backbone-suite "
+                 f"comparisons and {s['seed_cells_supporting']} of {s['seed_cells_total']} "
+                 f"seed-level cells support backbone-dependent rankings.**")
+    if s["comparisons"]:
+        parts.append(table([[c["suite"], f"{c['source']} -> {c['target']}",
+                             yes_no(c["supports"])] for c in s["comparisons"]],
+                           ["suite", "source winner -> target tier", "supports"]))
+    return "\n\n".join(parts)
+
+
+def tie_section(ctx: ReportContext) -> str:
+    rows = [[r.backbone, r.suite, r.leader, ", ".join(r.top_tier), len(r.top_tier),
+             yes_no(len(r.top_tier) > 1),
+             ", ".join(f"s{s}: {w}" for s, w in r.seed_winners.items()),
+             yes_no(r.seed_sensitive)] for r in ctx.rankings if r.encoders]
+    return "\n\n".join([TIER_RULE, table(rows, ["backbone", "suite", "leader", "top tier",
+                                                "tier size", "near-tie", "per-seed winners",
+                                                "seed-sensitive"])])
+
+
+def seed_section(ctx: ReportContext) -> str:
+    parts = ["Per-seed winners (lowest normalised MSE within one seed):"]
+    rows = []
+    for r in ctx.rankings:
+        for seed, winner in r.seed_winners.items():
+            value = next(e.per_seed[PRIMARY][seed] for e in r.encoders if e.encoder == winner)
+            rows.append([r.backbone, r.suite, seed, winner, num(value)])
+    parts.append(table(rows, ["backbone", "suite", "seed", "winner", "winner norm. MSE"]))
+    cells = [c for t in ctx.transfers if t.complete for c in t.seed_cells]
+    parts.append("Seed-level cells (one seed of each backbone; supports = winners differ):")
+    if cells:
+        small, large = next((t.small, t.large) for t in ctx.transfers if t.complete)
+        parts.append(table(
+            [[c.suite, c.small_seed, c.large_seed, len(c.encoders), c.small_winner,
+              c.large_winner, num(c.agreement["tau_b"], 3), num(c.agreement["weighted_tau"], 3),
+              yes_no(c.supports)] for c in cells],
+            ["suite", f"{small} seed", f"{large} seed", "n enc.", f"{small} winner",
+             f"{large} winner", "tau-b", "weighted tau", "supports"]))
+    else:
+        parts.append("_Needs graft cells on both backbones of a suite._")
+    return "\n\n".join(parts)
+
+
+def wrapper_section(ctx: ReportContext) -> str:
+    rows = []
+    for cd in ctx.controls:
+        if cd.kind != "native_wrapped":
+            continue
+        rows.append([cd.backbone, cd.suite, cd.seed, num(cd.reference_mse.get(PRIMARY)),
+                     num(cd.mse[PRIMARY]), pct(cd.delta.get(PRIMARY)), pct(cd.delta.get("raw")),
+                     "" if cd.reference_found else f"reference {cd.reference_id} missing"])
+    for (b, s), wn in sorted(ctx.wrapper.items()):
+        if wn.mean:
+            rows.append([b, s, "mean", "", "", pct(wn.mean[PRIMARY]), pct(wn.mean["raw"]), ""])
+    intro = ("Wrapper neutrality delta = (native_wrapped - native) / native on mean MSE, per "
+             "seed and averaged over seeds. 0 would mean the wrapper alone costs nothing; the "
+             "published study found +45..56% on SmolVLA and -50..52% on pi0.5.")
+    if not rows:
+        return intro + "\n\n_No native_wrapped cells in the results._"
+    return intro + "\n\n" + table(rows, ["backbone", "suite", "seed", "native norm. MSE",
+                                         "wrapped norm. MSE", "Δ norm.", "Δ raw", "note"])
+
+
+def controls_section(ctx: ReportContext) -> str:
+    rows = [[cd.backbone, cd.suite, cd.label, cd.seed, num(cd.mse[PRIMARY]), cd.reference_id,
+             num(cd.reference_mse.get(PRIMARY)) if cd.reference_found else "missing",
+             pct(cd.delta.get(PRIMARY)), pct(cd.delta.get("raw"))] for cd in ctx.controls]
+    intro = ("Every control cell against its reference record: delta = (control - reference) / "
+             "reference. zero_image / shuffled_image near 0 means the policy barely uses vision; "
+             "lora and pooling show whether a little backbone capacity or another token grid "
+             "moves the score.")
+    if not rows:
+        return intro + "\n\n_No control cells in the results._"
+    return intro + "\n\n" + table(rows, ["backbone", "suite", "control", "seed", "norm. MSE",
+                                         "reference", "reference norm. MSE", "Δ norm.",
+                                         "Δ raw"])
+
+
+def plots_section(ctx: ReportContext) -> str:
+    if not ctx.plots:
+        return "_No figures: no cells with data to draw._"
+    base = ctx.out_path.parent
+    return "\n\n".join(f"![{title}]({path.relative_to(base).as_posix()})"
+                       for title, path in ctx.plots)

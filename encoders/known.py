@@ -1,0 +1,67 @@
+"""Known-answer encoders for validity tests: `pixels` keeps all visual information, `blind` none.
+
+Both take images at their native size (no resize); `input_size` in their specs is nominal.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from encoders.base import Encoder, EncoderSpec
+from encoders.registry import register
+
+PIXEL_PATCH = 8
+BLIND_SHAPE = (16, 2, 2)  # (C, h, w)
+
+
+class _KnownEncoder(Encoder):
+    """No weights: the same module whatever the source; always in eval mode like any encoder."""
+
+    channels: int
+
+    def __init__(self, spec: EncoderSpec, source: str = "tiny"):
+        super().__init__()
+        self.spec = spec
+        self.input_size = spec.input_size
+        self.weights_id = "none"
+        self.eval()
+
+    def train(self, mode: bool = True) -> "_KnownEncoder":
+        return super().train(False)
+
+
+class PixelsEncoder(_KnownEncoder):
+    """Raw pixels, patchified: (B, 3, H, W) -> (B, 3*8*8, H/8, W/8); channel = c*64 + dy*8 + dx."""
+
+    channels = 3 * PIXEL_PATCH * PIXEL_PATCH
+
+    def forward(self, images: Tensor) -> Tensor:
+        b, c, h, w = images.shape
+        if c != 3 or h % PIXEL_PATCH or w % PIXEL_PATCH:
+            raise ValueError(f"pixels encoder needs (B, 3, H, W) with H, W multiples of "
+                             f"{PIXEL_PATCH}; got {tuple(images.shape)}")
+        patches = F.unfold(images.float(), kernel_size=PIXEL_PATCH, stride=PIXEL_PATCH)
+        return patches.reshape(b, self.channels, h // PIXEL_PATCH, w // PIXEL_PATCH)
+
+
+class BlindEncoder(_KnownEncoder):
+    """Constant all-ones grid (B, 16, 2, 2) whatever the input: carries no visual information."""
+
+    channels = BLIND_SHAPE[0]
+
+    def forward(self, images: Tensor) -> Tensor:
+        return torch.ones((images.shape[0], *BLIND_SHAPE), dtype=torch.float32,
+                          device=images.device)
+
+
+register(EncoderSpec(
+    name="pixels", timm_name=None, input_size=64, layout="map",
+    description="known answer: raw 8x8 pixel patches, 192 ch, (H/8)x(W/8) grid; all visual "
+                "information, no learning"), PixelsEncoder)
+
+register(EncoderSpec(
+    name="blind", timm_name=None, input_size=64, layout="map",
+    description="known answer: constant ones, 16 ch, 2x2 grid; no visual information"),
+    BlindEncoder)

@@ -1,0 +1,92 @@
+"""Encoder registry: name -> EncoderSpec + builder. Adding an encoder is one `register(...)` call.
+
+Names of the form "<prefix>:<model>" (e.g. "timm:resnet18") are resolved on the fly by the
+resolver registered for that prefix, so any timm model can be tried without an entry.
+"""
+
+from __future__ import annotations
+
+import difflib
+from typing import Callable
+
+from encoders.base import Encoder, EncoderSpec, UnknownEncoder
+
+SOURCES = ("tiny", "hub")
+
+# builder(spec, source) -> frozen Encoder
+Builder = Callable[[EncoderSpec, str], Encoder]
+# resolver(model_name after the prefix) -> EncoderSpec (raises UnknownEncoder if it does not exist)
+Resolver = Callable[[str], EncoderSpec]
+
+_SPECS: dict[str, EncoderSpec] = {}
+_BUILDERS: dict[str, Builder] = {}
+_PREFIXES: dict[str, tuple[Resolver, Builder]] = {}
+
+
+class EncoderUnavailable(RuntimeError):
+    """Weights for a real encoder are absent (offline cache miss): one line naming the fix."""
+
+
+def register(spec: EncoderSpec, builder: Builder) -> EncoderSpec:
+    """Add one encoder; a duplicate name is an error (never silently replaced)."""
+    if ":" in spec.name:
+        raise ValueError(f"encoder name {spec.name!r} must not contain ':' (reserved for prefixes "
+                         f"like {sorted(p + ':' for p in _PREFIXES)})")
+    if spec.name in _SPECS:
+        raise ValueError(f"encoder {spec.name!r} is already registered "
+                         f"(as {_SPECS[spec.name]!r}); pick another name")
+    _SPECS[spec.name] = spec
+    _BUILDERS[spec.name] = builder
+    return spec
+
+
+def register_prefix(prefix: str, resolver: Resolver, builder: Builder) -> None:
+    """Accept names "<prefix>:<model>" resolved on the fly (e.g. "timm:resnet18")."""
+    if prefix in _PREFIXES:
+        raise ValueError(f"encoder prefix {prefix!r} is already registered")
+    _PREFIXES[prefix] = (resolver, builder)
+
+
+def list_encoders() -> list[str]:
+    """Registered encoder names, sorted (on-the-fly "<prefix>:<model>" names are not listed)."""
+    return sorted(_SPECS)
+
+
+def _unknown(name: str) -> UnknownEncoder:
+    valid = list_encoders()
+    close = difflib.get_close_matches(name, valid, n=3, cutoff=0.5)
+    hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+    prefixes = ", ".join(f"'{p}:<model>'" for p in sorted(_PREFIXES))
+    return UnknownEncoder(f"unknown encoder {name!r}.{hint} Registered encoders: {', '.join(valid)}"
+                          + (f"; also accepted: {prefixes}." if prefixes else "."))
+
+
+def _split_prefix(name: str) -> tuple[str, str] | None:
+    if ":" not in name:
+        return None
+    prefix, model = name.split(":", 1)
+    if prefix not in _PREFIXES or not model:
+        raise _unknown(name)
+    return prefix, model
+
+
+def get_spec(name: str) -> EncoderSpec:
+    """The EncoderSpec of a registered name or of a "<prefix>:<model>" name."""
+    if name in _SPECS:
+        return _SPECS[name]
+    split = _split_prefix(name)
+    if split is None:
+        raise _unknown(name)
+    prefix, model = split
+    return _PREFIXES[prefix][0](model)
+
+
+def build_encoder(name: str, source: str) -> Encoder:
+    """Frozen eval-mode encoder. source "tiny": random-init small profile (seed 0); "hub": real
+    pretrained weights from the local HF cache (raises EncoderUnavailable when absent)."""
+    if source not in SOURCES:
+        raise ValueError(f"encoder source {source!r} is not one of {SOURCES}")
+    spec = get_spec(name)
+    split = _split_prefix(name)
+    builder = _PREFIXES[split[0]][1] if split else _BUILDERS[name]
+    return builder(spec, source)

@@ -1,0 +1,44 @@
+import pytest
+
+from bench.cells import CellSpec, control_cells, graft_cells
+from bench.protocol import TINY, get_profile, with_overrides
+
+
+def test_ids_read_as_the_cell():
+    assert CellSpec("graft", "smolvla", "spatial", 0, "dinov2_s").id == "smolvla-spatial-dinov2_s-seed0"
+    assert CellSpec("native_wrapped", "pi05", "object", 1).id == "pi05-object-native_wrapped-seed1"
+    assert CellSpec("pooling", "pi05", "object", 1, "pixels", "half").id == "pi05-object-pixels-pool_half-seed1"
+    assert CellSpec("zero_image", "smolvla", "spatial", 0, None, "eval").id == "smolvla-spatial-native-zero_image_eval-seed0"
+    assert CellSpec("graft", "smolvla", "spatial", 0, "timm:resnet18").id == "smolvla-spatial-timm_resnet18-seed0"
+
+
+def test_references_point_at_the_right_cell():
+    assert CellSpec("native_wrapped", "pi05", "object", 1).reference.id == "pi05-object-native-seed1"
+    assert CellSpec("lora", "pi05", "object", 1, "pixels").reference.id == "pi05-object-pixels-seed1"
+    assert CellSpec("shuffled_image", "pi05", "object", 1).reference.id == "pi05-object-native-seed1"
+    assert CellSpec("graft", "pi05", "object", 1, "pixels").reference is None
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(kind="graft", encoder=None), "needs an encoder"),
+    (dict(kind="nonsense", encoder="x"), "unknown cell kind"),
+    (dict(kind="pooling", encoder="x", variant="triple"), "pooling variant"),
+    (dict(kind="zero_image", encoder=None, variant="train"), "not retrained"),
+])
+def test_bad_cells_are_rejected(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        CellSpec(backbone="smolvla", suite="spatial", seed=0, **kwargs)
+
+
+def test_tiny_grid_size_and_unique_ids():
+    grafts = graft_cells(TINY)
+    assert len(grafts) == 2 * 2 * len(TINY.encoders) * 2
+    ids = [c.id for c in grafts + control_cells(TINY)]
+    assert len(ids) == len(set(ids))
+
+
+def test_profile_overrides_and_errors():
+    p = with_overrides(TINY, steps=7, seeds=(3,))
+    assert p.protocol.steps == 7 and p.seeds == (3,) and p.protocol.hash != TINY.protocol.hash
+    with pytest.raises(ValueError, match="unknown profile 'papr'"):
+        get_profile("papr")

@@ -1,0 +1,167 @@
+"""Encoder registry, tiny/hub builds, and the known-answer encoders."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import timm
+import torch
+
+import encoders
+from encoders import EncoderSpec, EncoderUnavailable, UnknownEncoder, build_encoder, get_spec
+
+# (registry name, real forward_features channels, tiny channels, tiny grid side at 64 px input)
+EXPECTED = {
+    "siglip": (768, 64, 4),
+    "dinov2_s": (384, 64, 4),
+    "fastvit": (1024, 256, 2),
+    "repvit": (384, 64, 2),
+    "pixels": (192, 192, 8),
+    "blind": (16, 16, 2),
+}
+# The paper's parameter counts (without head), in millions.
+PAPER_PARAMS_M = {"siglip": 92.9, "dinov2_s": 22.1, "fastvit": 10.6, "repvit": 4.7}
+
+
+def test_registry_lists_exactly_the_expected_encoders():
+    assert encoders.list_encoders() == sorted(EXPECTED)
+
+
+@pytest.mark.parametrize("name", encoders.list_encoders())
+def test_tiny_encoder_grid_shape_and_frozen(name):
+    real_c, tiny_c, side = EXPECTED[name]
+    enc = build_encoder(name, "tiny")
+    images = torch.rand(2, 3, 64, 64)
+    grid = enc(images)
+    assert grid.shape == (2, tiny_c, side, side) and grid.dtype == torch.float32
+    assert enc.channels == tiny_c and side >= 2
+    assert torch.isfinite(grid).all()
+    assert not any(p.requires_grad for p in enc.parameters())
+    enc.train()  # a parent's .train() must not unfreeze BatchNorm/dropout
+    assert not enc.training and not any(m.training for m in enc.modules())
+    if get_spec(name).timm_name is not None:
+        assert enc.weights_id == "tiny-init0"
+        assert str(real_c) in get_spec(name).description
+
+
+@pytest.mark.parametrize("name", list(PAPER_PARAMS_M))
+def test_tiny_build_is_deterministic_and_leaves_global_rng_alone(name):
+    torch.manual_seed(123)
+    before = torch.rand(1)
+    torch.manual_seed(123)
+    a = build_encoder(name, "tiny")
+    assert torch.equal(torch.rand(1), before)  # init happened in a forked RNG
+    b = build_encoder(name, "tiny")
+    images = torch.rand(2, 3, 64, 64)
+    assert torch.equal(a(images), b(images))
+
+
+@pytest.mark.parametrize("name", list(PAPER_PARAMS_M))
+def test_real_architecture_matches_paper(name):
+    """Real architecture (meta device: no memory, no init): param count and channels."""
+    spec = get_spec(name)
+    with torch.device("meta"):
+        model = timm.create_model(spec.timm_name, pretrained=False, num_classes=0)
+    params_m = sum(p.numel() for p in model.parameters()) / 1e6
+    assert params_m == pytest.approx(PAPER_PARAMS_M[name], rel=0.02)
+    assert f"{PAPER_PARAMS_M[name]}M" in spec.description
+    assert model.num_features == EXPECTED[name][0]
+    assert getattr(model, "num_prefix_tokens", 0) == spec.num_prefix_tokens
+    if spec.layout == "tokens":
+        assert hasattr(model, "num_prefix_tokens")
+
+
+def test_unknown_name_lists_valid_names_and_suggests():
+    with pytest.raises(UnknownEncoder) as err:
+        get_spec("dinov2")
+    msg = str(err.value)
+    assert "'dinov2'" in msg and "Did you mean 'dinov2_s'" in msg
+    for name in EXPECTED:
+        assert name in msg
+    assert "timm:<model>" in msg
+    with pytest.raises(UnknownEncoder, match="Did you mean 'timm:resnet18'"):
+        get_spec("timm:resnt18")
+    with pytest.raises(UnknownEncoder):
+        build_encoder("nope:resnet18", "tiny")
+
+
+def test_bad_source_and_duplicate_registration_fail():
+    with pytest.raises(ValueError, match="'hubb'"):
+        build_encoder("siglip", "hubb")
+    with pytest.raises(ValueError, match="already registered"):
+        encoders.register(EncoderSpec(name="siglip", timm_name="resnet18", input_size=224),
+                          lambda spec, source: None)
+
+
+def test_timm_prefix_builds_any_timm_model():
+    spec = get_spec("timm:resnet18")
+    assert spec.layout == "map" and spec.timm_name == "resnet18" and spec.input_size == 224
+    enc = build_encoder("timm:resnet18", "tiny")
+    grid = enc(torch.rand(1, 3, 64, 64))  # resized to 224 inside
+    assert grid.shape == (1, 512, 7, 7)
+    vit = get_spec("timm:vit_small_patch14_dinov2")
+    assert vit.layout == "tokens" and vit.num_prefix_tokens == 1
+
+
+def _fake_hub_cache(root, repo_id: str, state_dict: dict) -> None:
+    from safetensors.torch import save_file
+
+    repo = root / ("models--" + repo_id.replace("/", "--"))
+    (repo / "snapshots" / "0").mkdir(parents=True)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text("0")
+    save_file({k: v.contiguous() for k, v in state_dict.items()},
+              str(repo / "snapshots" / "0" / "model.safetensors"))
+
+
+@pytest.fixture
+def hub_cache(tmp_path, monkeypatch):
+    from huggingface_hub import constants
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path))
+    return tmp_path
+
+
+def test_hub_missing_weights_fail_fast_with_the_fix(hub_cache):
+    with pytest.raises(EncoderUnavailable) as err:
+        build_encoder("repvit", "hub")
+    msg = str(err.value)
+    assert "\n" not in msg and "'repvit'" in msg and "timm/repvit_m1" in msg
+    assert "huggingface-cli download" in msg and "source='tiny'" in msg
+
+
+def test_hub_loads_cached_weights(hub_cache):
+    """The hub path on a local cache: same weights in, same features out, pretrained tag kept."""
+    real = timm.create_model("repvit_m1", pretrained=False, num_classes=0).eval()
+    _fake_hub_cache(hub_cache, "timm/repvit_m1.dist_in1k", real.state_dict())
+    enc = build_encoder("repvit", "hub")
+    assert enc.weights_id == "pretrained:repvit_m1.dist_in1k"
+    images = torch.rand(1, 3, 224, 224)
+    mean = torch.tensor(enc.spec.mean).view(1, 3, 1, 1)
+    std = torch.tensor(enc.spec.std).view(1, 3, 1, 1)
+    with torch.no_grad():
+        expected = real.forward_features((images - mean) / std)
+    assert torch.allclose(enc(images), expected, atol=1e-5)
+
+
+def test_pixels_grid_carries_the_image_exactly():
+    enc = build_encoder("pixels", "tiny")
+    images = torch.rand(2, 3, 64, 48)
+    grid = enc(images)
+    b, c, h, w = grid.shape
+    assert (c, h, w) == (192, 8, 6)
+    # channel = colour*64 + dy*8 + dx, position (row, col) -> pixel (row*8 + dy, col*8 + dx)
+    rebuilt = grid.reshape(b, 3, 8, 8, h, w).permute(0, 1, 4, 2, 5, 3).reshape(b, 3, h * 8, w * 8)
+    assert torch.equal(rebuilt, images)
+    assert grid[0, 0 * 64 + 1 * 8 + 2, 3, 4] == images[0, 0, 3 * 8 + 1, 4 * 8 + 2]
+    with pytest.raises(ValueError, match="multiples of 8"):
+        enc(torch.rand(1, 3, 60, 64))
+
+
+def test_blind_is_identical_for_different_images():
+    enc = build_encoder("blind", "hub")
+    a, b = enc(torch.zeros(3, 3, 64, 64)), enc(torch.rand(3, 3, 96, 96))
+    assert torch.equal(a, b) and a.shape == (3, 16, 2, 2) and (a != 0).all()

@@ -1,0 +1,163 @@
+"""REPORT.md built from stored records: every section renders, links resolve, tables are sound."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from bench.records import load_results, make_failed, make_grid, make_record, save_record
+from bench.report import SECTIONS, build_report, main
+
+ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
+RESAMPLES = 200
+HEADINGS = [title for title, _ in SECTIONS]
+
+
+def full_grid() -> list[dict]:
+    levels = {}
+    for i, enc in enumerate(ENCODERS):
+        levels["smolvla", "spatial", enc] = 0.070 + 0.003 * i
+        levels["smolvla", "object", enc] = 0.050 + 0.002 * i
+        levels["pi05", "object", enc] = 0.020 + 0.001 * i
+    levels |= {("pi05", "spatial", e): v for e, v in
+               zip(ENCODERS, (0.0267, 0.0256, 0.0290, 0.0300))}
+    records = make_grid(levels, (0, 1), noise=0.001,
+                        native={("smolvla", "spatial"): (0.10, 0.15),
+                                ("pi05", "spatial"): (0.02, 0.01)})
+    records += [make_record(kind="lora", encoder="dinov2_s", level=0.068),
+                make_record(kind="pooling", encoder="dinov2_s", variant="1x1", level=0.09),
+                make_record(kind="zero_image", encoder="dinov2_s", level=0.2),
+                make_record(kind="shuffled_image", encoder=None, level=0.3)]
+    return records
+
+
+def write_grid(root: Path, records: list[dict], expected: list[dict] | None = None) -> Path:
+    for r in records:
+        save_record(root, r)
+    ids = [r["cell_id"] for r in (expected if expected is not None else records)]
+    (root / "grid.json").write_text(json.dumps({"expected": ids, "profile": "tiny"}))
+    return root
+
+
+def check_markdown(path: Path) -> str:
+    """Assert GitHub-markdown sanity: links resolve, tables are rectangular, fences close."""
+    text = path.read_text(encoding="utf-8")
+    for target in re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", text):
+        assert not target.startswith(("/", "http")), f"image link not relative: {target}"
+        assert (path.parent / target).is_file(), f"image link to a missing file: {target}"
+    assert text.count("```") % 2 == 0, "unbalanced code fence"
+    lines = text.splitlines()
+    i = 0
+    while i < len(lines):
+        if not lines[i].startswith("|"):
+            i += 1
+            continue
+        assert i > 0 and lines[i - 1].strip() == "", f"table without blank line before: {i}"
+        block = []
+        while i < len(lines) and lines[i].startswith("|"):
+            block.append(lines[i])
+            i += 1
+        assert len(block) >= 2 and re.fullmatch(r"\|(\s*:?-+:?\s*\|)+", block[1]), block[:2]
+        widths = {len(re.split(r"(?<!\\)\|", line)) - 2 for line in block}
+        assert len(widths) == 1, f"table with rows of different column counts: {block[0]}"
+    return text
+
+
+@pytest.fixture(scope="module")
+def full_report(tmp_path_factory) -> tuple[Path, str]:
+    root = write_grid(tmp_path_factory.mktemp("full"), full_grid())
+    save_record(root, make_failed(encoder="broken", error="Traceback\nRuntimeError: out | of"))
+    (root / "cells" / "garbage.json").write_text("{not json")
+    out = build_report(root, root / "REPORT.md", n_resamples=RESAMPLES,
+                       extra_sections=[("Against baseline", "| a | b |\n|---|---|\n| 1 | 2 |")])
+    return out, check_markdown(out)
+
+
+def test_full_report_sections_and_answer(full_report):
+    out, text = full_report
+    for title in HEADINGS + ["Against baseline"]:
+        assert f"\n## {title}\n" in text
+    assert "could not be rendered" not in text
+    assert ("the small-backbone winner (**siglip** on smolvla) **is not** in the large "
+            "backbone's (pi05) top tier on suite **spatial**") in text
+    assert "tiny" in text and "say **nothing** about real encoders" in text
+    assert "p >= 0.0833" in text
+    assert "+50.0%" in text and "-50.0%" in text  # wrapper neutrality 0.10 -> 0.15, 0.02 -> 0.01
+    assert "not closed-loop" in text.replace("**", "")
+    assert text.index("## Provenance") < text.index("## Against baseline")
+
+
+def test_full_report_lists_failed_and_skipped(full_report):
+    out, text = full_report
+    assert "smolvla-spatial-broken-seed0" in text and "RuntimeError: out \\| of" in text
+    assert "cells/garbage.json" in text
+    assert len(re.findall(r"!\[", text)) == 3
+
+
+def test_csv_and_json_beside_the_report(full_report):
+    out, _ = full_report
+    with open(out.parent / "REPORT_cells.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(full_grid()) + 1
+    assert {r["status"] for r in rows} == {"ok", "failed"}
+    summary = json.loads((out.parent / "REPORT_summary.json").read_text())
+    assert summary["support"]["comparisons_total"] == 4
+    assert summary["wrapper_neutrality"]["smolvla x spatial"]["mean"]["normalized"] == \
+        pytest.approx(0.5)
+    assert summary["cells"]["failed"] == ["smolvla-spatial-broken-seed0"]
+
+
+def test_half_grid_renders_every_section_and_lists_missing(tmp_path):
+    records = full_grid()
+    kept = records[::2]
+    kept = [r for r in kept if r["backbone"] == "smolvla" or r["suite"] != "object"]
+    write_grid(tmp_path, kept, expected=records)
+    out = build_report(tmp_path, tmp_path / "out" / "REPORT.md", n_resamples=RESAMPLES)
+    text = check_markdown(out)
+    for title in HEADINGS:
+        assert f"\n## {title}\n" in text
+    assert "could not be rendered" not in text
+    assert "needs both backbones" in text and "pi05 has no graft cells on object" in text
+    missing = [r["cell_id"] for r in records if r not in kept]
+    assert f"{len(missing)} missing of {len(records)} expected" in text
+    for cell_id in missing:
+        assert f"`{cell_id}`" in text
+
+
+def test_one_backbone_and_empty_results_do_not_crash(tmp_path):
+    smol = [r for r in full_grid() if r["backbone"] == "smolvla"]
+    out = build_report(write_grid(tmp_path / "one", smol), n_resamples=RESAMPLES)
+    assert out == tmp_path / "one" / "REPORT.md"
+    text = check_markdown(out)
+    assert "needs both backbones" in text and "could not be rendered" not in text
+    (tmp_path / "empty").mkdir()
+    text = check_markdown(build_report(tmp_path / "empty", n_resamples=RESAMPLES))
+    assert "No finished cells" in text and "could not be rendered" not in text
+
+
+def test_window_mismatch_is_reported_not_raised(tmp_path):
+    records = [make_record(encoder="siglip"),
+               make_record(encoder="dinov2_s", window_ids=list(range(100, 124)))]
+    text = check_markdown(build_report(write_grid(tmp_path, records), n_resamples=RESAMPLES))
+    assert "Not ranked" in text and "other held-out windows" in text
+
+
+def test_load_results_skips_bad_files(tmp_path):
+    write_grid(tmp_path, [make_record()])
+    (tmp_path / "cells" / "nan.json").write_text(json.dumps(
+        make_record(encoder="x", per_window=[0.1, float("nan")])))
+    res = load_results(tmp_path)
+    assert [r["cell_id"] for r in res.records] == ["smolvla-spatial-dinov2_s-seed0"]
+    assert res.skipped and "non-finite" in res.skipped[0][1] and res.missing == []
+
+
+def test_cli_entry_point(tmp_path, capsys):
+    write_grid(tmp_path, full_grid()[:8])
+    assert main([str(tmp_path), "--out", str(tmp_path / "R.md"), "--resamples", "50"]) == 0
+    assert (tmp_path / "R.md").is_file() and "wrote" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "nope")])

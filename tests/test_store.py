@@ -1,0 +1,44 @@
+import json
+
+import pytest
+
+from bench.store import ResultStore, ResultsDirError, atomic_write_json
+
+
+def test_write_load_and_resume_by_protocol_hash(tmp_path):
+    store = ResultStore(tmp_path)
+    store.write({"cell_id": "c1", "status": "ok", "protocol_hash": "aaa", "mse": {"normalized": 1.0}})
+    assert store.current("c1", "aaa")["mse"]["normalized"] == 1.0
+    assert store.current("c1", "bbb") is None  # other protocol: recompute
+    assert store.current("c2", "aaa") is None
+
+
+def test_failure_never_counts_as_done_and_is_cleared_by_success(tmp_path):
+    store = ResultStore(tmp_path)
+    store.write_failure({"cell_id": "c1", "error": "boom", "protocol_hash": "aaa"})
+    assert store.current("c1", "aaa") is None
+    assert (tmp_path / "failed" / "c1.json").exists()
+    store.write({"cell_id": "c1", "status": "ok", "protocol_hash": "aaa"})
+    assert not (tmp_path / "failed" / "c1.json").exists()
+
+
+def test_atomic_write_leaves_old_file_on_crash(tmp_path):
+    path = tmp_path / "r.json"
+    atomic_write_json(path, {"a": 1})
+    with pytest.raises(TypeError):
+        atomic_write_json(path, {"a": object()})  # not serialisable: fails mid-write
+    assert json.loads(path.read_text()) == {"a": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temp file left behind
+
+
+def test_corrupt_record_is_treated_as_missing(tmp_path):
+    store = ResultStore(tmp_path)
+    store.cell_path("c1").write_text("{half a rec")
+    assert store.current("c1", "aaa") is None
+
+
+def test_results_dir_that_is_a_file_is_a_clear_error(tmp_path):
+    blocker = tmp_path / "results"
+    blocker.write_text("not a folder")
+    with pytest.raises(ResultsDirError, match=r"not writable.*--results-dir"):
+        ResultStore(blocker)

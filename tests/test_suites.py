@@ -1,0 +1,249 @@
+"""LIBERO-format suites: generation, loading, the planted visual signal, splits and windows."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from bench.paths import cache_dir
+from bench.suites import SUITES, libero, load_suite, suite_from_dataset, synthetic
+from bench.suites.base import IMAGE_KEYS, STATE_KEY, Suite, SuiteUnavailable
+from bench.suites.windows import (
+    action_chunks,
+    episode_frames,
+    episode_tasks,
+    eval_windows,
+    heldout_split,
+    raw_batch,
+)
+
+SMALL = dict(episodes_per_task=1, min_len=6, max_len=8)
+
+
+@pytest.fixture(scope="module")
+def spatial() -> Suite:
+    return load_suite("spatial", "tiny")
+
+
+@pytest.fixture(scope="module")
+def objects() -> Suite:
+    return load_suite("object", "tiny")
+
+
+def _load(root) -> Suite:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return suite_from_dataset("spatial", LeRobotDataset("t/x", root=root), images_in_memory=True)
+
+
+def _hand_suite(lengths: list[int], image_shape=(3, 4, 4)) -> Suite:
+    """Episodes of the given lengths; action[f] = f in every dimension, one task per episode."""
+    n = sum(lengths)
+    episode = torch.repeat_interleave(torch.arange(len(lengths)), torch.tensor(lengths))
+    frame = torch.cat([torch.arange(k) for k in lengths])
+    return Suite(
+        name="hand", repo_id="t/hand", root="", fps=10, fingerprint="0",
+        camera_keys=IMAGE_KEYS, image_shape=image_shape,
+        state=torch.zeros(n, 8), action=torch.arange(n, dtype=torch.float32)[:, None].repeat(1, 7),
+        episode_index=episode, frame_index=frame, task_index=episode,
+        tasks=[f"task {i}" for i in range(len(lengths))], stats={},
+        image_loader=lambda f: {c: torch.zeros(len(f), 3, 4, 4, dtype=torch.uint8) for c in IMAGE_KEYS},
+    )
+
+
+# -- generation and loading -------------------------------------------------------------------
+def test_generation_is_deterministic_in_the_seed(tmp_path):
+    a = _load(synthetic.generate_suite("spatial", tmp_path / "a", seed=0, **SMALL))
+    b = _load(synthetic.generate_suite("spatial", tmp_path / "b", seed=0, **SMALL))
+    c = _load(synthetic.generate_suite("spatial", tmp_path / "c", seed=1, **SMALL))
+    assert a.fingerprint == b.fingerprint != c.fingerprint
+    assert torch.equal(a.action, b.action) and torch.equal(a.state, b.state)
+    frames = torch.arange(a.num_frames)
+    assert all(torch.equal(a.images(frames)[k], b.images(frames)[k]) for k in IMAGE_KEYS)
+    assert a.action.shape != c.action.shape or not torch.equal(a.action, c.action)
+
+
+def test_tiny_suite_is_a_libero_format_lerobot_dataset(spatial):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset(spatial.repo_id, root=spatial.root)
+    for camera in IMAGE_KEYS:
+        assert ds.features[camera]["dtype"] == "image"
+        assert tuple(ds.features[camera]["shape"]) == (64, 64, 3)
+        assert tuple(ds[0][camera].shape) == (3, 64, 64)
+    assert tuple(ds.features[STATE_KEY]["shape"]) == (8,)
+    assert tuple(ds.features["action"]["shape"]) == (7,)
+    assert ds.fps == 10 and ds.num_episodes == 40 and len(ds.meta.tasks) == 4
+    assert ds[0]["task"] == spatial.tasks[int(ds[0]["task_index"])]
+    # The Suite mirrors the dataset.
+    assert spatial.state.shape == (spatial.num_frames, 8) and spatial.action.shape[1] == 7
+    lengths = torch.bincount(spatial.episode_index)
+    assert lengths.min() >= 30 and lengths.max() <= 40
+    images = spatial.images(torch.tensor([0, 5, spatial.num_frames - 1]))
+    for camera in IMAGE_KEYS:
+        assert images[camera].shape == (3, 3, 64, 64) and images[camera].dtype == torch.float32
+        assert 0.0 <= images[camera].min() and images[camera].max() <= 1.0
+    assert spatial.stats["action"]["mean"].shape == (7,)
+
+
+def test_tiny_suite_is_cached_under_a_content_key(spatial):
+    path = synthetic.tiny_suite_path("spatial")
+    assert str(path) == spatial.root and path.parent == cache_dir() / "suites"
+    assert path.name == "spatial-" + synthetic.content_key("spatial", 0, **synthetic.SUITE_PARAMS["spatial"])
+    assert not list(path.parent.glob(f".tmp-{path.name}-*"))
+    assert load_suite("spatial", "tiny").fingerprint == spatial.fingerprint
+
+
+def test_images_of_the_wrong_shape_fail_clearly():
+    suite = _hand_suite([3], image_shape=(3, 8, 8))
+    with pytest.raises(ValueError, match=r"\(3, 4, 4\).*\(3, 8, 8\)"):
+        suite.images(torch.tensor([0]))
+
+
+def test_unknown_names_and_sources_list_the_valid_ones():
+    with pytest.raises(ValueError, match="valid names.*object.*spatial"):
+        load_suite("spatail", "tiny")
+    with pytest.raises(ValueError, match="tiny.*hub"):
+        load_suite("spatial", "local")
+    with pytest.raises(ValueError, match="no tiny"):
+        load_suite("goal", "tiny")
+    assert set(SUITES) == {"spatial", "object", "goal", "10"}
+
+
+# -- the planted visual signal ----------------------------------------------------------------
+def _centroid(image: np.ndarray, colour: str) -> np.ndarray:
+    """(col, row) centroid of pixels close to a named colour in an (H, W, 3) uint8 image."""
+    ref = np.array(synthetic.COLOURS[colour])
+    rows, cols = np.nonzero(np.abs(image.astype(int) - ref).max(-1) < 40)
+    assert len(rows) > 0, colour
+    return np.array([cols.mean(), rows.mean()])
+
+
+def _first_frames(suite: Suite) -> torch.Tensor:
+    return torch.nonzero(suite.frame_index == 0).flatten()
+
+
+def test_spatial_action_points_at_the_target_drawn_in_the_image(spatial):
+    first = _first_frames(spatial)
+    images = (spatial.images(first)[IMAGE_KEYS[0]] * 255).round().byte().permute(0, 2, 3, 1).numpy()
+    target, distractor = [], []
+    for image, frame in zip(images, first.tolist()):
+        colour = "red" if "red" in spatial.tasks[spatial.task_index[frame]] else "blue"
+        other = "blue" if colour == "red" else "red"
+        target.append(_centroid(image, colour))
+        distractor.append(_centroid(image, other))
+    action_xy = spatial.action[first, :2].numpy()
+    for axis in (0, 1):  # image col <-> world x, row <-> world y
+        assert np.corrcoef(np.array(target)[:, axis], action_xy[:, axis])[0, 1] > 0.8
+        assert abs(np.corrcoef(np.array(distractor)[:, axis], action_xy[:, axis])[0, 1]) < 0.5
+    # The target is not in the state: the start pose barely varies and says nothing about it.
+    state_xy = spatial.state[first, :2].numpy()
+    assert abs(np.corrcoef(state_xy[:, 0], action_xy[:, 0])[0, 1]) < 0.5
+
+
+def test_object_identity_in_the_image_decides_the_destination(objects):
+    first = _first_frames(objects)
+    images = (objects.images(first)[IMAGE_KEYS[0]] * 255).round().byte().permute(0, 2, 3, 1).numpy()
+    colours = [name.split()[0] for name in synthetic.OBJECT_TYPES]
+    last = torch.nonzero(torch.diff(objects.episode_index, append=torch.tensor([-1])) != 0).flatten()
+    destinations_per_task: dict[int, set] = {}
+    for image, f0, f1 in zip(images, first.tolist(), last.tolist()):
+        counts = [(np.abs(image.astype(int) - synthetic.COLOURS[c]).max(-1) < 40).sum() for c in colours]
+        identity = int(np.argmax(counts))
+        final_xy = objects.state[f1, :2].numpy()
+        basket = int(np.argmin(np.linalg.norm(synthetic.BASKETS - final_xy, axis=1)))
+        task = int(objects.task_index[f0])
+        assert basket == synthetic.object_destination(identity, task)
+        destinations_per_task.setdefault(task, set()).add(basket)
+    # The task string alone does not decide where the object goes.
+    assert all(len(d) >= 3 for d in destinations_per_task.values())
+
+
+# -- held-out split, windows, chunks ----------------------------------------------------------
+def test_heldout_split_is_whole_episodes_per_task_from_the_split_seed_only(spatial):
+    train, heldout = heldout_split(spatial, split_seed=1234, per_task=2)
+    assert sorted(train + heldout) == spatial.episodes and not set(train) & set(heldout)
+    tasks = episode_tasks(spatial)
+    assert sorted(tasks[e] for e in heldout) == [0, 0, 1, 1, 2, 2, 3, 3]
+    train_frames, heldout_frames = episode_frames(spatial, train), episode_frames(spatial, heldout)
+    assert len(train_frames) + len(heldout_frames) == spatial.num_frames
+    assert not set(spatial.episode_index[train_frames].tolist()) & set(heldout)
+    torch.manual_seed(99)
+    np.random.seed(99)  # a cell seed must not move the split
+    assert heldout_split(spatial, 1234, 2) == (train, heldout)
+    assert heldout_split(spatial, 1235, 2)[1] != heldout
+    with pytest.raises(ValueError, match="10 episodes"):
+        heldout_split(spatial, 1234, per_task=10)
+
+
+def test_eval_windows_every_stride_frames_from_frame_zero():
+    suite = _hand_suite([5, 7])
+    assert eval_windows(suite, [0, 1], stride=3).tolist() == [0, 3, 5, 8, 11]
+    assert eval_windows(suite, [1], stride=10).tolist() == [5]
+
+
+def test_action_chunks_repeat_the_last_action_and_mark_padding():
+    suite = _hand_suite([3, 4])  # frames 0-2 | 3-6, action[f] = f
+    actions, is_pad = action_chunks(suite, torch.tensor([1, 3, 6]), chunk=4)
+    assert actions[:, :, 0].tolist() == [[1, 2, 2, 2], [3, 4, 5, 6], [6, 6, 6, 6]]
+    assert is_pad.tolist() == [[False, False, True, True], [False] * 4, [False, True, True, True]]
+    assert actions.shape == (3, 4, 7) and actions.dtype == torch.float32
+
+
+def test_raw_batch_has_the_documented_keys(spatial):
+    frames = eval_windows(spatial, heldout_split(spatial, 1234, 2)[1], stride=6)[:4]
+    batch = raw_batch(spatial, frames, chunk=50)
+    assert set(batch) == {*IMAGE_KEYS, STATE_KEY, "action", "action_is_pad", "task"}
+    assert batch[IMAGE_KEYS[1]].shape == (4, 3, 64, 64) and batch[STATE_KEY].shape == (4, 8)
+    assert batch["action"].shape == (4, 50, 7) and batch["action_is_pad"].shape == (4, 50)
+    assert batch["action_is_pad"][:, -1].all()  # episodes are shorter than 50 frames
+    assert batch["task"] == [spatial.tasks[t] for t in spatial.task_index[frames]]
+    assert set(raw_batch(spatial, frames, 50, with_images=False)) == {STATE_KEY, "action",
+                                                                       "action_is_pad", "task"}
+
+
+# -- the real source --------------------------------------------------------------------------
+def test_hub_suite_absent_offline_fails_fast_naming_repo_and_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.delenv(libero.ROOT_ENV, raising=False)
+    monkeypatch.setattr(libero, "lerobot_home", lambda: tmp_path / "lerobot")
+    start = time.perf_counter()
+    with pytest.raises(SuiteUnavailable) as err:
+        load_suite("spatial", "hub")
+    assert time.perf_counter() - start < 2.0
+    assert "lerobot/libero_spatial_image" in str(err.value) and str(tmp_path / "lerobot") in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_hub_source_loads_a_local_libero_copy(spatial):
+    suite = load_suite("spatial", "hub", root=spatial.root)
+    assert torch.equal(suite.action, spatial.action) and suite.tasks == spatial.tasks
+    frames = torch.tensor([0, 17])
+    assert torch.allclose(suite.images(frames)[IMAGE_KEYS[0]], spatial.images(frames)[IMAGE_KEYS[0]])
+
+
+def test_hub_dataset_missing_a_feature_names_it(tmp_path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = synthetic.features()
+    del features[IMAGE_KEYS[1]]
+    ds = LeRobotDataset.create("lerobot/libero_spatial_image", fps=10, features=features,
+                               root=tmp_path / "libero_spatial_image", use_videos=False)
+    for _ in range(2):
+        ds.add_frame({IMAGE_KEYS[0]: np.zeros((64, 64, 3), np.uint8),
+                      STATE_KEY: np.zeros(8, np.float32), "action": np.zeros(7, np.float32),
+                      "task": "t"})
+    ds.save_episode()
+    ds.finalize()
+    with pytest.raises(SuiteUnavailable, match="missing camera feature 'observation.images.wrist_image'"):
+        load_suite("spatial", "hub", root=tmp_path)
+
+
+def test_validate_features_names_a_wrong_shape():
+    features = synthetic.features()
+    features[STATE_KEY] = {"dtype": "float32", "shape": (7,)}
+    with pytest.raises(SuiteUnavailable, match=r"'observation.state' has shape \(7,\), expected \(8,\)"):
+        libero.validate_features(features, "t/x")
