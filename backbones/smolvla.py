@@ -247,8 +247,8 @@ def save_pretrained(backbone: SmolVLABackbone, folder) -> Path:
 
 def load_policy(
     path_or_repo_id: str,
-    *,
     stats: dict | None = None,
+    *,
     rename_map: dict[str, str] | None = None,
     camera_keys=IMAGE_KEYS,
     state_dim: int = LIBERO_STATE_DIM,

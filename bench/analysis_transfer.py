@@ -58,6 +58,8 @@ def min_exact_kendall_p(n: int) -> float:
 @dataclass
 class SeedCell:
     suite: str
+    small: str
+    large: str
     small_seed: int
     large_seed: int
     encoders: list[str]
@@ -115,7 +117,7 @@ def _seed_cells(suite: str, small: Ranking, large: Ranking) -> list[SeedCell]:
             w_small = names[int(np.argmin(a))] if pairs else None
             w_large = names[int(np.argmin(b))] if pairs else None
             cells.append(SeedCell(
-                suite=suite, small_seed=s_small, large_seed=s_large, encoders=names,
+                suite=suite, small=small.backbone, large=large.backbone, small_seed=s_small, large_seed=s_large, encoders=names,
                 small_winner=w_small, large_winner=w_large, agreement=rank_agreement(a, b),
                 supports=(w_small != w_large) if len(pairs) >= 2 else None))
     return cells

@@ -155,23 +155,30 @@ def summary(ctx: ReportContext) -> dict:
     })
 
 
+def _figures(ctx: ReportContext, folder: Path) -> list[tuple[str, Path]]:
+    try:
+        from bench.plots import write_plots
+
+        return write_plots(ctx.rankings, ctx.transfers, ctx.records, folder)
+    except Exception:  # noqa: BLE001 - the report stays useful without figures
+        traceback.print_exc(file=sys.stderr)
+        return []
+
+
 def build_report(results_dir: str | Path, out_path: str | Path | None = None, *,
                  extra_sections: Sequence[tuple[str, str]] = (),
-                 n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> Path:
+                 n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0,
+                 plots: bool = True) -> Path:
     """Write REPORT.md (default RESULTS_DIR/REPORT.md) with CSV, JSON and PNGs beside it.
 
-    `extra_sections`: (title, body) markdown pairs appended after the built-in sections."""
+    `extra_sections`: (title, body) markdown pairs appended after the built-in sections.
+    `plots=False` skips the figures (and matplotlib) for a faster text-only report."""
     results = load_results(results_dir)
     out = Path(out_path) if out_path is not None else Path(results_dir) / "REPORT.md"
     out.parent.mkdir(parents=True, exist_ok=True)
     ctx = analyse(results, out, n_resamples=n_resamples, random_seed=random_seed)
-    try:
-        from bench.plots import write_plots
-
-        ctx.plots = write_plots(ctx.rankings, ctx.transfers, ctx.records,
-                                out.parent / f"{out.stem}_plots")
-    except Exception:  # noqa: BLE001 - the report stays useful without figures
-        traceback.print_exc(file=sys.stderr)
+    if plots:
+        ctx.plots = _figures(ctx, out.parent / f"{out.stem}_plots")
     out.write_text(render_markdown(ctx, extra_sections), encoding="utf-8")
     write_csv(results, out.parent / f"{out.stem}_cells.csv")
     (out.parent / f"{out.stem}_summary.json").write_text(
@@ -187,11 +194,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="report path (default: RESULTS_DIR/REPORT.md)")
     parser.add_argument("--resamples", type=int, default=DEFAULT_RESAMPLES,
                         help=f"bootstrap replicates (default {DEFAULT_RESAMPLES})")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     args = parser.parse_args(argv)
     if not args.results_dir.is_dir():
         parser.error(f"results dir {args.results_dir} does not exist; pass the folder that "
                      f"holds cells/ (default location: .graftbench/results)")
-    path = build_report(args.results_dir, args.out, n_resamples=args.resamples)
+    path = build_report(args.results_dir, args.out, n_resamples=args.resamples,
+                        plots=not args.no_plots)
     print(f"wrote {path}")
     return 0
 

@@ -208,13 +208,12 @@ def seed_section(ctx: ReportContext) -> str:
     cells = [c for t in ctx.transfers if t.complete for c in t.seed_cells]
     parts.append("Seed-level cells (one seed of each backbone; supports = winners differ):")
     if cells:
-        small, large = next((t.small, t.large) for t in ctx.transfers if t.complete)
         parts.append(table(
-            [[c.suite, c.small_seed, c.large_seed, len(c.encoders), c.small_winner,
-              c.large_winner, num(c.agreement["tau_b"], 3), num(c.agreement["weighted_tau"], 3),
-              yes_no(c.supports)] for c in cells],
-            ["suite", f"{small} seed", f"{large} seed", "n enc.", f"{small} winner",
-             f"{large} winner", "tau-b", "weighted tau", "supports"]))
+            [[c.suite, f"{c.small} -> {c.large}", c.small_seed, c.large_seed, len(c.encoders),
+              c.small_winner, c.large_winner, num(c.agreement["tau_b"], 3),
+              num(c.agreement["weighted_tau"], 3), yes_no(c.supports)] for c in cells],
+            ["suite", "small -> large", "small seed", "large seed", "n enc.", "small winner",
+             "large winner", "tau-b", "weighted tau", "supports"]))
     else:
         parts.append("_Needs graft cells on both backbones of a suite._")
     return "\n\n".join(parts)
@@ -257,7 +256,7 @@ def controls_section(ctx: ReportContext) -> str:
 
 def plots_section(ctx: ReportContext) -> str:
     if not ctx.plots:
-        return "_No figures: no cells with data to draw._"
+        return "_No figures (plots turned off, or no cells with data to draw)._"
     base = ctx.out_path.parent
     return "\n\n".join(f"![{title}]({path.relative_to(base).as_posix()})"
                        for title, path in ctx.plots)

@@ -218,3 +218,11 @@ def test_control_deltas_against_reference_and_missing_reference():
     assert deltas["smolvla-spatial-pixels-pool1x1-seed0"].delta["raw"] == pytest.approx(0.5)
     zero = deltas["smolvla-spatial-native-zero_image-seed0"]
     assert not zero.reference_found and zero.reference_id == "smolvla-spatial-native-seed0"
+
+
+def test_native_reference_falls_back_to_any_seed_of_the_released_policy():
+    records = [make_record(kind="native", seed=0, level=0.10),
+               make_record(kind="native_wrapped", seed=1, level=0.05, reference=None)]
+    (cd,) = control_deltas(records)
+    assert cd.reference_id == "smolvla-spatial-native-seed0"
+    assert cd.delta["normalized"] == pytest.approx(-0.5)

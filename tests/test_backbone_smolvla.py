@@ -267,6 +267,21 @@ def test_smolvla_base_layout_is_fitted_to_libero(tmp_path):
         fitted.preprocess({k: v for k, v in make_raw().items() if k != CAMERAS[1]})
 
 
+def test_hub_repo_in_the_hf_cache_loads_offline(tiny, tmp_path, monkeypatch):
+    # The real-world path (a hub id resolved from the HF cache), on a hand-made cache entry.
+    from huggingface_hub import constants
+
+    repo_id, commit = "graftbench-test/tiny_smolvla", "0" * 40
+    entry = tmp_path / "hub" / "models--graftbench-test--tiny_smolvla"
+    smolvla.save_pretrained(tiny, entry / "snapshots" / commit)
+    (entry / "refs").mkdir()
+    (entry / "refs" / "main").write_text(commit)
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
+    loaded = smolvla.load_policy(repo_id)
+    ours, theirs = tiny.policy.state_dict(), loaded.policy.state_dict()
+    assert all(torch.equal(ours[k], theirs[k]) for k in ours) and loaded.info == tiny.info
+
+
 def test_missing_hub_repo_offline_fails_fast(monkeypatch):
     from huggingface_hub import constants
 

@@ -130,19 +130,20 @@ def test_half_grid_renders_every_section_and_lists_missing(tmp_path):
 
 def test_one_backbone_and_empty_results_do_not_crash(tmp_path):
     smol = [r for r in full_grid() if r["backbone"] == "smolvla"]
-    out = build_report(write_grid(tmp_path / "one", smol), n_resamples=RESAMPLES)
+    out = build_report(write_grid(tmp_path / "one", smol), n_resamples=RESAMPLES, plots=False)
     assert out == tmp_path / "one" / "REPORT.md"
     text = check_markdown(out)
     assert "needs both backbones" in text and "could not be rendered" not in text
     (tmp_path / "empty").mkdir()
-    text = check_markdown(build_report(tmp_path / "empty", n_resamples=RESAMPLES))
+    text = check_markdown(build_report(tmp_path / "empty", n_resamples=RESAMPLES, plots=False))
     assert "No finished cells" in text and "could not be rendered" not in text
 
 
 def test_window_mismatch_is_reported_not_raised(tmp_path):
     records = [make_record(encoder="siglip"),
                make_record(encoder="dinov2_s", window_ids=list(range(100, 124)))]
-    text = check_markdown(build_report(write_grid(tmp_path, records), n_resamples=RESAMPLES))
+    text = check_markdown(build_report(write_grid(tmp_path, records), n_resamples=RESAMPLES,
+                                       plots=False))
     assert "Not ranked" in text and "other held-out windows" in text
 
 
@@ -157,7 +158,8 @@ def test_load_results_skips_bad_files(tmp_path):
 
 def test_cli_entry_point(tmp_path, capsys):
     write_grid(tmp_path, full_grid()[:8])
-    assert main([str(tmp_path), "--out", str(tmp_path / "R.md"), "--resamples", "50"]) == 0
+    assert main([str(tmp_path), "--out", str(tmp_path / "R.md"), "--resamples", "50",
+                 "--no-plots"]) == 0
     assert (tmp_path / "R.md").is_file() and "wrote" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         main([str(tmp_path / "nope")])

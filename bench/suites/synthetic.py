@@ -156,7 +156,7 @@ def _separated(rng: np.random.Generator, n: int, low: float, high: float, gap: f
 
 
 def _rollout(rng, length: int, pick_xy, place_xy, items_of) -> list[dict]:
-    """Scripted pick-and-place. items_of(held, obj_xy) -> scene items. Frames: list of dicts."""
+    """Scripted pick-and-place frames (LeRobot frame dicts); items_of(obj_xy) -> scene items."""
     eef = np.array([0.0, 0.0, 0.20]) + np.r_[rng.normal(0, 0.02, 2), 0.0]
     q = GRIPPER_OPEN
     grasp_at, release_at = round(0.45 * length), length - 3
