@@ -10,7 +10,7 @@ Places in lerobot/policies/smolvla this adapter relies on (line numbers for 0.6.
 - loss: `SmolVLAPolicy.forward(batch, noise, time, reduction="none")` (~277-332) cuts the padded
   action dims, zeroes `action_is_pad` steps and averages over the valid (step, dim) entries.
 - sampling: `predict_action_chunk(batch, noise)` (~232-241, ~195-230) returns the Euler-integrated
-  chunk cut to the real action dims and still NORMALISED (the post-processor is not applied). It calls
+  chunk cut to the real action dims and still NORMALISED (no post-processor). It calls
   `self.eval()` and fills an action queue; `sample_actions` below restores the mode and the queue.
 """
 
@@ -26,10 +26,11 @@ import torch
 from torch import Tensor
 
 from backbones.base import Backbone, BackboneInfo, BackboneUnavailable, ImageEmbedder
-from backbones.tiny_smolvla import REAL_VLM, TINY_VLM, real_shape_vlm_folder, tiny_vlm_folder, tokens_per_camera
+from backbones.tiny_smolvla import REAL_VLM, real_shape_forward, tiny_config, tokens_per_camera
 from bench.suites.base import ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY
 
 HUB_REPO_ID = "lerobot/smolvla_base"
+VLM_REPO_ID = "HuggingFaceTB/SmolVLM2-500M-Video-Instruct"  # smolvla_base's vlm_model_name
 NATIVE_FEATURE_DOC = (
     "SmolVLM's SigLIP vision tower output, vision_model(pixels).last_hidden_state reshaped to "
     "(B, C, h, w): taken BEFORE the connector's pixel shuffle and Linear to the LM width "
@@ -60,7 +61,7 @@ VENDORED_VLM_DIR = "smolvlm"
 
 
 class SmolVLABackbone(Backbone):
-    """A real SmolVLAPolicy with its own pre/post-processors (rename map lives in the preprocessor)."""
+    """A real SmolVLAPolicy and its own processors (the rename map lives in the preprocessor)."""
 
     def __init__(self, policy, preprocessor, postprocessor, name: str = "smolvla"):
         from lerobot.processor import (
@@ -83,12 +84,12 @@ class SmolVLABackbone(Backbone):
     def preprocess(self, raw: dict) -> dict:
         missing = [k for k in self.camera_keys if k not in raw]
         if missing:
-            raise KeyError(f"raw batch lacks camera(s) {missing}; this SmolVLA reads {list(self.camera_keys)}")
+            raise KeyError(f"raw batch lacks camera(s) {missing}; SmolVLA reads {self.camera_keys}")
         batch = self.preprocessor(dict(raw))
         # SmolVLA silently drops missing cameras beyond `empty_cameras` (prepare_images ~372-376).
         absent = [k for k in self.policy.config.image_features if k not in batch]
         if absent:
-            raise KeyError(f"after renaming with {self.rename_map} the batch lacks policy camera(s) {absent}")
+            raise KeyError(f"renamed by {self.rename_map}, the batch lacks camera(s) {absent}")
         return batch
 
     def normalize_actions(self, actions: Tensor) -> Tensor:
@@ -131,18 +132,21 @@ class SmolVLABackbone(Backbone):
 
     def native_tower_grid(self, image: Tensor) -> Tensor:
         tower = self.policy.model.vlm_with_expert.get_vlm_model().vision_model
-        hidden = tower(pixel_values=image.to(dtype=tower.dtype), patch_attention_mask=None).last_hidden_state
+        pixels = image.to(dtype=tower.dtype)
+        hidden = tower(pixel_values=pixels, patch_attention_mask=None).last_hidden_state
         patch = tower.config.patch_size
         rows, cols = image.shape[-2] // patch, image.shape[-1] // patch
         if rows * cols != hidden.shape[1]:
             raise RuntimeError(f"tower gave {hidden.shape[1]} patches for a {rows}x{cols} grid")
-        return hidden.reshape(hidden.shape[0], rows, cols, hidden.shape[-1]).permute(0, 3, 1, 2).float()
+        grid = hidden.reshape(hidden.shape[0], rows, cols, hidden.shape[-1])
+        return grid.permute(0, 3, 1, 2).float()
 
     # -- loss and sampling ------------------------------------------------------------------
     def loss(self, batch: dict, noise: Tensor, time: Tensor) -> Tensor:
         self._check_noise(batch, noise)
-        if batch[ACTION_KEY].shape[1] != self.info.chunk_size:
-            raise ValueError(f"action chunk has {batch[ACTION_KEY].shape[1]} steps; SmolVLA needs {self.info.chunk_size}")
+        steps = batch[ACTION_KEY].shape[1]
+        if steps != self.info.chunk_size:
+            raise ValueError(f"action chunk of {steps} steps; SmolVLA's is {self.info.chunk_size}")
         per_sample, _ = self.policy.forward(batch, noise=noise, time=time, reduction="none")
         return per_sample
 
@@ -172,7 +176,7 @@ class SmolVLABackbone(Backbone):
 
 
 def info_from_policy(policy, name: str = "smolvla") -> BackboneInfo:
-    """The BackboneInfo a built SmolVLAPolicy implies (token grid from its resize and VLM config)."""
+    """The BackboneInfo a built SmolVLAPolicy implies (grid from its image resize and VLM)."""
     config = policy.config
     vlm_config = policy.model.vlm_with_expert.config
     if config.resize_imgs_with_padding is not None:
@@ -206,12 +210,7 @@ def build_tiny_policy(
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
-    side = TINY_VLM["vision"]["image_size"]
-    config = _libero_config(
-        camera_keys, (3, *image_hw), state_dim, action_dim,
-        vlm_model_name=str(tiny_vlm_folder()), resize_imgs_with_padding=(side, side),
-        chunk_size=chunk_size, n_action_steps=chunk_size, device=device,
-    )
+    config = tiny_config(camera_keys, image_hw, state_dim, action_dim, chunk_size, device)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         policy = SmolVLAPolicy(config)
@@ -220,20 +219,8 @@ def build_tiny_policy(
     return SmolVLABackbone(policy, preprocessor, postprocessor)
 
 
-def _libero_config(camera_keys, image_shape, state_dim, action_dim, **overrides):
-    from lerobot.configs import FeatureType, PolicyFeature
-    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
-
-    inputs = {key: PolicyFeature(FeatureType.VISUAL, tuple(image_shape)) for key in camera_keys}
-    inputs[STATE_KEY] = PolicyFeature(FeatureType.STATE, (state_dim,))
-    outputs = {ACTION_KEY: PolicyFeature(FeatureType.ACTION, (action_dim,))}
-    # num_vlm_layers=0 keeps every text layer of the given VLM (16 of SmolVLM2's 32 is the default).
-    overrides.setdefault("num_vlm_layers", 0)
-    return SmolVLAConfig(input_features=inputs, output_features=outputs, **overrides)
-
-
 def save_pretrained(backbone: SmolVLABackbone, folder) -> Path:
-    """Policy weights + config and both processors into `folder`; load_policy(folder) restores it."""
+    """Policy weights + config and both processors into `folder`; load_policy restores it."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     vlm_source = Path(backbone.policy.config.vlm_model_name)
@@ -277,7 +264,7 @@ def load_policy(
     with _hub_errors_as_unavailable(path_or_repo_id):
         config = PreTrainedConfig.from_pretrained(source)
     if config.type != "smolvla":
-        raise ValueError(f"{path_or_repo_id} holds a '{config.type}' policy; load_policy reads 'smolvla'")
+        raise ValueError(f"{path_or_repo_id} holds a {config.type!r} policy, not 'smolvla'")
     config.load_vlm_weights = False  # the checkpoint carries every VLM weight; keep float32
     if device is not None:
         config.device = device
@@ -288,14 +275,15 @@ def load_policy(
         _require_hub_files(config.vlm_model_name, ("config.json", "tokenizer_config.json"))
 
     if rename_map is None:
-        rename_map = {} if all(k in config.image_features for k in camera_keys) else dict(SMOLVLA_BASE_RENAME)
+        libero_named = all(k in config.image_features for k in camera_keys)
+        rename_map = {} if libero_named else dict(SMOLVLA_BASE_RENAME)
     adapted = _fit_features(config, rename_map, camera_keys, state_dim, action_dim)
     if adapted and stats is None:
         raise ValueError(
             f"{path_or_repo_id}'s saved normaliser covers its own features, not LIBERO's "
             f"(state {state_dim}, action {action_dim}): pass stats=<dataset stats> to load_policy"
         )
-    with _hub_errors_as_unavailable(config.vlm_model_name):
+    with _hub_errors_as_unavailable(path_or_repo_id, config.vlm_model_name):
         policy = SmolVLAPolicy.from_pretrained(source, config=config)
     _check_all_weights_loaded(policy, source)
 
@@ -341,15 +329,15 @@ def _check_all_weights_loaded(policy, source: str) -> None:
     from huggingface_hub import hf_hub_download
     from safetensors import safe_open
 
-    local = Path(source)
-    model_file = local / "model.safetensors" if local.is_dir() else hf_hub_download(source, "model.safetensors")
+    local = Path(source) / "model.safetensors"
+    model_file = local if local.is_file() else hf_hub_download(source, "model.safetensors")
     with safe_open(str(model_file), framework="pt") as handle:
         saved = set(handle.keys())
     state = policy.state_dict()
-    saved_ptrs = {state[k].data_ptr() for k in saved if k in state}
+    saved_ptrs = {state[k].data_ptr() for k in saved if k in state}  # tied weights are saved once
     missing = sorted(k for k in state if k not in saved and state[k].data_ptr() not in saved_ptrs)
     if missing:
-        raise RuntimeError(f"{source} lacks {len(missing)} weights of SmolVLAPolicy, e.g. {missing[:3]}")
+        raise RuntimeError(f"{source} lacks {len(missing)} policy weights, e.g. {missing[:3]}")
 
 
 def _offline() -> bool:
@@ -361,67 +349,53 @@ def _offline() -> bool:
 
 def _require_hub_files(repo_id: str, filenames: tuple[str, ...]) -> None:
     """Offline and not cached: raise BackboneUnavailable at once instead of retrying the network."""
-    from huggingface_hub import constants, try_to_load_from_cache
+    from huggingface_hub import try_to_load_from_cache
 
     if not _offline():
         return  # online: let from_pretrained download it
     absent = [f for f in filenames if not isinstance(try_to_load_from_cache(repo_id, f), str)]
     if absent:
-        raise BackboneUnavailable(_unavailable_message(repo_id, constants.HF_HUB_CACHE))
+        raise BackboneUnavailable(_unavailable_message(repo_id))
 
 
-def _unavailable_message(repo_id: str, cache: str) -> str:
+def _unavailable_message(repo_id: str, vlm_repo_id: str = VLM_REPO_ID) -> str:
+    """One line: what is missing, where it was looked for, and the command that fixes it."""
+    from huggingface_hub import constants
+
+    fetch = " and ".join(f"`hf download {r}`" for r in dict.fromkeys((repo_id, vlm_repo_id)))
     return (
-        f"{repo_id} is not in the Hugging Face cache ({cache}) and the hub is offline: on a networked "
-        f"machine run `hf download {repo_id}` (and `hf download HuggingFaceTB/SmolVLM2-500M-Video-Instruct` "
-        f"for smolvla_base's VLM config and tokenizer) into that cache, or pass a local folder"
+        f"{repo_id} is not in the Hugging Face cache ({constants.HF_HUB_CACHE}) and the hub is "
+        f"offline or unreachable: run {fetch} (SmolVLA also reads its VLM's config and tokenizer) "
+        f"on a networked machine with the same HF_HOME, or pass a local checkpoint folder"
     )
 
 
 @contextlib.contextmanager
-def _hub_errors_as_unavailable(repo_id: str) -> Iterator[None]:
-    from huggingface_hub import constants
-    from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError
+def _hub_errors_as_unavailable(repo_id: str, vlm_repo_id: str = VLM_REPO_ID) -> Iterator[None]:
+    from huggingface_hub.errors import HfHubHTTPError
 
     try:
         yield
-    except (LocalEntryNotFoundError, HfHubHTTPError, FileNotFoundError) as error:
-        if Path(repo_id).is_dir():
+    except (HfHubHTTPError, OSError) as error:  # transformers and LeRobot raise OSError subclasses
+        if Path(repo_id).is_dir() and Path(vlm_repo_id).is_dir():
             raise
-        raise BackboneUnavailable(_unavailable_message(repo_id, constants.HF_HUB_CACHE)) from error
+        raise BackboneUnavailable(_unavailable_message(repo_id, vlm_repo_id)) from error
 
 
 def _find_step(pipeline, step_type):
     found = [step for step in pipeline.steps if isinstance(step, step_type)]
     if len(found) != 1:
-        raise RuntimeError(f"expected one {step_type.__name__} in {pipeline.name}, found {len(found)}")
+        raise RuntimeError(f"{pipeline.name} has {len(found)} {step_type.__name__}, expected one")
     return found[0]
 
 
 def check_real_shapes() -> dict:
-    """smolvla_base's architecture, built offline without weights: token grid and LM width checked.
+    """smolvla_base's architecture built offline without weights; token grid and LM width checked.
 
-    The whole policy is built on the meta device from SmolVLM2-500M's numbers (REAL_VLM); a CPU
-    copy of its vision tower cut to one layer (layers keep shapes) plus the real connector pushes
-    one 512 px image through, since the tower's position ids cannot run on meta tensors.
+    See tiny_smolvla.real_shape_forward: the policy on the meta device from SmolVLM2-500M's
+    numbers, one 512 px image through a one-layer CPU copy of its tower and its real connector.
     """
-    import copy
-
-    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
-    from transformers.models.smolvlm.modeling_smolvlm import SmolVLMConnector, SmolVLMVisionTransformer
-
-    config = _libero_config(IMAGE_KEYS, (3, 256, 256), LIBERO_STATE_DIM, LIBERO_ACTION_DIM,
-                            vlm_model_name=str(real_shape_vlm_folder()), device="cpu",
-                            num_vlm_layers=16)  # SmolVLA's default: 16 of SmolVLM2's 32 layers
-    with torch.device("meta"):
-        policy = SmolVLAPolicy(config)
-    vlm_config = policy.model.vlm_with_expert.get_vlm_model().config
-    one_layer = copy.deepcopy(vlm_config.vision_config)
-    one_layer.num_hidden_layers = 1
-    side = config.resize_imgs_with_padding[0]
-    with torch.random.fork_rng(devices=[]), torch.no_grad():
-        tower_out = SmolVLMVisionTransformer(one_layer)(pixel_values=torch.zeros(1, 3, side, side)).last_hidden_state
-        tokens = SmolVLMConnector(vlm_config)(tower_out)
+    policy, tower_out, tokens = real_shape_forward()
     info = info_from_policy(policy)
     shapes = {
         "tokens_per_camera": tokens.shape[1],
@@ -432,10 +406,11 @@ def check_real_shapes() -> dict:
         "expert_width": policy.model.vlm_with_expert.expert_hidden_size,
         "parameters": sum(p.numel() for p in policy.parameters()),
     }
-    grid = tokens_per_camera(REAL_VLM)
-    expected = {"tokens_per_camera": grid[0] * grid[1], "native_grid": INFO_REAL.native_grid,
-                "lm_width": INFO_REAL.lm_width}
-    wrong = {k: (shapes[k], v) for k, v in expected.items() if shapes[k] != v}
-    if wrong or info.lm_width != INFO_REAL.lm_width or info.chunk_size != INFO_REAL.chunk_size:
+    rows, cols = tokens_per_camera(REAL_VLM)
+    expected = {"tokens_per_camera": rows * cols, "native_grid": INFO_REAL.native_grid,
+                "lm_width": INFO_REAL.lm_width, "chunk": INFO_REAL.chunk_size}
+    got = {**shapes, "chunk": info.chunk_size}
+    wrong = {k: (got[k], v) for k, v in expected.items() if got[k] != v}
+    if wrong:
         raise RuntimeError(f"real SmolVLA shapes (got, expected) disagree with INFO_REAL: {wrong}")
     return shapes

@@ -1,4 +1,4 @@
-"""SmolVLM folders written locally, so SmolVLA can be built with no network.
+"""SmolVLA built with no network: local SmolVLM folders and the configs that point at them.
 
 SmolVLA reads its VLM's config, processor and tokenizer by name (AutoConfig / AutoProcessor in
 lerobot/policies/smolvla/smolvlm_with_expert.py ~99-101, AutoTokenizer in processor_smolvla.py
@@ -22,7 +22,10 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import torch
+
 from bench.paths import cache_dir
+from bench.suites.base import ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY
 
 # Bump when the folder contents change in a way the spec hash below does not see.
 FOLDER_FORMAT = "1"
@@ -62,9 +65,9 @@ TINY_VLM = {
 REAL_VLM = {
     "vision": dict(hidden_size=768, intermediate_size=3072, num_hidden_layers=12,
                    num_attention_heads=12, image_size=512, patch_size=16),
-    "text": dict(hidden_size=960, intermediate_size=2560, num_hidden_layers=32, num_attention_heads=15,
-                 num_key_value_heads=5, head_dim=64, max_position_embeddings=8192,
-                 rope_theta=100000.0),
+    "text": dict(hidden_size=960, intermediate_size=2560, num_hidden_layers=32,
+                 num_attention_heads=15, num_key_value_heads=5, head_dim=64,
+                 max_position_embeddings=8192, rope_theta=100000.0),
     "scale_factor": 4,
     "vocab_size": 49280,  # the real vocabulary size; the tokenizer written here is the small one
 }
@@ -84,6 +87,61 @@ def tiny_vlm_folder() -> Path:
 def real_shape_vlm_folder() -> Path:
     """A folder with SmolVLM2-500M's architecture config (no weights) and the small tokenizer."""
     return _vlm_folder("real_shape_smolvlm", REAL_VLM)
+
+
+def libero_smolvla_config(camera_keys, image_shape, state_dim, action_dim, **overrides):
+    """A SmolVLAConfig whose features are the dataset's own (LIBERO names), other fields given."""
+    from lerobot.configs import FeatureType, PolicyFeature
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+
+    inputs = {key: PolicyFeature(FeatureType.VISUAL, tuple(image_shape)) for key in camera_keys}
+    inputs[STATE_KEY] = PolicyFeature(FeatureType.STATE, (state_dim,))
+    outputs = {ACTION_KEY: PolicyFeature(FeatureType.ACTION, (action_dim,))}
+    # num_vlm_layers=0 keeps every text layer of the VLM (SmolVLA's default keeps 16 of 32).
+    overrides.setdefault("num_vlm_layers", 0)
+    return SmolVLAConfig(input_features=inputs, output_features=outputs, **overrides)
+
+
+def tiny_config(camera_keys=IMAGE_KEYS, image_hw=(64, 64), state_dim=LIBERO_STATE_DIM,
+                action_dim=LIBERO_ACTION_DIM, chunk_size=10, device="cpu"):
+    """The tiny SmolVLA: images padded to the tiny tower's 64 px, chunk `chunk_size`."""
+    side = TINY_VLM["vision"]["image_size"]
+    return libero_smolvla_config(
+        camera_keys, (3, *image_hw), state_dim, action_dim,
+        vlm_model_name=str(tiny_vlm_folder()), resize_imgs_with_padding=(side, side),
+        chunk_size=chunk_size, n_action_steps=chunk_size, device=device,
+    )
+
+
+def real_shape_forward():
+    """smolvla_base's architecture without weights: (policy on meta, tower out, connector out).
+
+    The policy (SmolVLAConfig defaults: 512 px, 16 of 32 text layers, chunk 50) is built on the
+    meta device. The tower's position ids cannot run on meta tensors, so a CPU copy of the tower
+    cut to one layer (layers keep shapes) and the real connector take one 512 px image.
+    """
+    import copy
+
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+    from transformers.models.smolvlm.modeling_smolvlm import (
+        SmolVLMConnector,
+        SmolVLMVisionTransformer,
+    )
+
+    config = libero_smolvla_config(IMAGE_KEYS, (3, 256, 256), LIBERO_STATE_DIM, LIBERO_ACTION_DIM,
+                                   vlm_model_name=str(real_shape_vlm_folder()), device="cpu",
+                                   num_vlm_layers=16)
+    with torch.device("meta"):
+        policy = SmolVLAPolicy(config)
+    vlm_config = policy.model.vlm_with_expert.get_vlm_model().config
+    one_layer = copy.deepcopy(vlm_config.vision_config)
+    one_layer.num_hidden_layers = 1
+    side = config.resize_imgs_with_padding[0]
+    with torch.random.fork_rng(devices=[]), torch.no_grad():
+        tower = SmolVLMVisionTransformer(one_layer)
+        tower_out = tower(pixel_values=torch.zeros(1, 3, side, side)).last_hidden_state
+        tokens = SmolVLMConnector(vlm_config)(tower_out)
+    return policy, tower_out, tokens
 
 
 def _vocabulary() -> dict[str, int]:
@@ -135,7 +193,9 @@ def _write_vlm_files(folder: Path, spec: dict, vocab: dict[str, int]) -> None:
     side = spec["vision"]["image_size"]
     size = {"longest_edge": side}
     processor = SmolVLMProcessor(
-        image_processor=SmolVLMImageProcessor(size=size, max_image_size=size, do_image_splitting=False),
+        image_processor=SmolVLMImageProcessor(
+            size=size, max_image_size=size, do_image_splitting=False
+        ),
         tokenizer=tokenizer,
         video_processor=SmolVLMVideoProcessor(size=size, max_image_size=size),
         image_seq_len=tokens_per_camera(spec)[0] * tokens_per_camera(spec)[1],

@@ -178,11 +178,12 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items) -> None:
     gs: GraftSession = config.stash[SESSION_KEY]
-    gs.selected = [
-        item.callspec.params.get("graft_cell", item.callspec.params.get("control_cell")).id
-        for item in items
-        if hasattr(item, "callspec") and ({"graft_cell", "control_cell"} & set(item.callspec.params))
-    ]
+    gs.selected = []
+    for item in items:
+        params = getattr(getattr(item, "callspec", None), "params", {})
+        cell = params.get("graft_cell", params.get("control_cell"))
+        if isinstance(cell, CellSpec):
+            gs.selected.append(cell.id)
     if gs.selected and not hasattr(config, "workerinput"):
         gs.store.write_grid(gs.selected, gs.profile.name)
 
