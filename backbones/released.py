@@ -9,6 +9,8 @@ when missing.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import os
@@ -46,10 +48,16 @@ def union_stats(suites, train_frames: dict[str, torch.Tensor]) -> dict:
     return stats
 
 
-def release_key(name: str, profile: Profile, suites, chunk_size: int) -> str:
+def architecture_fingerprint(backbone) -> str:
+    """Parameter names and shapes of an (untrained) build: changes with any tiny-size change."""
+    shapes = sorted((n, tuple(p.shape)) for n, p in backbone.policy.state_dict().items())
+    return hashlib.sha256(repr(shapes).encode()).hexdigest()[:12]
+
+
+def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str) -> str:
     p = profile.protocol
     blob = json.dumps({
-        "v": RELEASE_VERSION, "backbone": name, "chunk": chunk_size,
+        "v": RELEASE_VERSION, "backbone": name, "chunk": chunk_size, "arch": arch,
         "suites": sorted(s.fingerprint for s in suites),
         "native_steps": p.native_steps, "native_lr": p.native_lr, "batch": p.batch_size,
         "split_seed": p.split_seed, "heldout": p.heldout_episodes_per_task,
@@ -115,9 +123,28 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
         # Real base checkpoints carry their pre-training stats, not LIBERO's: normalise with the
         # suites' training-episode stats, as LeRobot's fine-tuning does with dataset_stats.
         return module.load_policy(get_entry(name).repo_id, stats=union_stats(suites, train_frames))
-    key = release_key(name, profile, suites, chunk_size)
+    stats = union_stats(suites, train_frames)
+    arch = architecture_fingerprint(
+        module.build_tiny_policy(stats, suites[0].camera_keys, chunk_size=chunk_size, seed=0)
+    )
+    key = release_key(name, profile, suites, chunk_size, arch)
     folder = tiny_release_dir(cache, name, key)
     if not (folder / "graftbench_release.json").exists():
-        print(f"[graftbench] training tiny released {name} -> {folder}", file=sys.stderr)
-        train_tiny_release(name, profile, suites, train_frames, folder, chunk_size, progress)
+        # xdist workers and array tasks sharing a cache: one trains, the others wait and load it.
+        with _exclusive(folder.with_name(folder.name + ".lock")):
+            if not (folder / "graftbench_release.json").exists():
+                print(f"[graftbench] training tiny released {name} -> {folder}", file=sys.stderr)
+                train_tiny_release(name, profile, suites, train_frames, folder, chunk_size, progress)
     return module.load_policy(str(folder))
+
+
+@contextlib.contextmanager
+def _exclusive(lock_path: Path):
+    """An exclusive fcntl lock on `lock_path` for the block (released when the process dies)."""
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock_path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import datetime as dt
 import platform
+import sys
 import warnings
 from pathlib import Path
 
@@ -45,18 +46,25 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--compare-strict", action="store_true",
                 help="a protocol-hash or package-version mismatch with the baseline is an error")
     g.addoption("--degrade-encoder", metavar="NAME:FACTOR",
-                help="TEST-ONLY: plant a regression by mixing encoder NAME's pooled features with "
-                     "another frame's, (1-FACTOR)*x + FACTOR*x[perm], FACTOR in (0, 1]")
+                help="TEST-ONLY: plant a regression: encoder NAME's pooled features become constant "
+                     "(blind) on a fixed fraction FACTOR in (0, 1] of the held-out windows")
 
 
-def degrade_features(features: dict, factor: float) -> dict:
-    """Mix each frame's pooled features with a fixed other frame's. {camera: (N, T, C)} -> same."""
-    from bench.evaluate import derangement
+def degrade_features(features: dict, factor: float, frames, seed: int = 0) -> dict:
+    """Blind a fixed fraction `factor` of `frames` (global frame indices: the held-out windows):
+    their pooled features become constant ones, which the wrapper's LayerNorm turns into zero
+    tokens, so evaluation sees image tokens that training never saw (cf. zero_image "eval").
+    {camera: (N_frames, T, C)} -> same shapes; the input is not modified."""
+    import torch
 
+    frames = torch.as_tensor(frames, dtype=torch.long)
+    order = torch.randperm(len(frames), generator=torch.Generator().manual_seed(seed))
+    blinded = frames[order[: round(factor * len(frames))]]
     out = {}
     for camera, x in features.items():
-        perm = derangement(int(x.shape[0]), seed=0)
-        out[camera] = (1.0 - factor) * x + factor * x[perm]
+        y = x.clone()
+        y[blinded] = 1.0
+        out[camera] = y
     return out
 
 
@@ -102,6 +110,9 @@ class BaselineRun:
             specs = opt("--compare-fail")
             if (specs or self.strict) and not self.compare_name:
                 raise B.BaselineError("--compare-fail / --compare-strict need --compare NAME")
+            if self.degrade and config.getoption("--executor", "local") != "local":
+                raise B.BaselineError("--degrade-encoder acts on this process's workspace: it "
+                                      "needs --executor local")
             if self.degrade and self.save_name:
                 raise B.BaselineError("--degrade-encoder plants a regression: never save it as a "
                                       "baseline (drop --save-baseline)")
@@ -129,10 +140,11 @@ class BaselineRun:
         degraded_now = self.degrade is not None and cell.encoder == self.degrade[0]
         if record is not None and (degraded_now or record.get("degraded")):
             store.cell_path(cell.id).unlink(missing_ok=True)
-        if self.degrade is not None:
+        if degraded_now:
             name, factor = self.degrade
             ws = self.session.workspace()
-            ws.feature_transforms[name] = lambda feats: degrade_features(feats, factor)
+            ws.feature_transforms[name] = lambda feats: degrade_features(
+                feats, factor, ws.split(cell.suite).windows)
 
     def after_cell(self, cell) -> None:
         """Mark degraded records, then fail the case on a cell-scope regression."""
@@ -256,7 +268,7 @@ def pytest_runtest_call(item: pytest.Item):
     if run is None or cell is None:
         return (yield)
     run.before_cell(cell)
-    result = yield  # the body raised: its own failure stands, nothing to compare
+    result = yield  # re-raises when the body failed: that failure stands, nothing is compared
     run.after_cell(cell)
     return result
 
@@ -266,7 +278,12 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     run = _run(session.config)
     if run is None or hasattr(session.config, "workerinput"):
         return
-    run.finish()
+    try:
+        run.finish()
+    except Exception as e:  # a comparison that could not be made must not pass silently
+        sys.stderr.write(f"\n[graftbench] baseline compare/save failed: {type(e).__name__}: {e}\n")
+        session.exitstatus = pytest.ExitCode.INTERNAL_ERROR
+        return
     if run.comparison is not None and run.comparison.flips and session.exitstatus == 0:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
 

@@ -18,6 +18,7 @@ from torch import Tensor
 from backbones.base import Backbone
 from bench.provenance import stable_seed
 from bench.suites.windows import raw_batch
+from bench.train import frozen_autocast
 
 # features_for(window positions, frames) -> {camera: (B, N, C)} for a graft, else None.
 FeaturesFn = Callable[[Tensor, Tensor], "dict[str, Tensor] | None"]
@@ -60,6 +61,7 @@ def score(
     err = {"normalized": [], "raw": []}
     horizon_sum = {"normalized": torch.zeros(chunk), "raw": torch.zeros(chunk)}
     horizon_n = torch.zeros(chunk)
+    device = next(backbone.policy.parameters()).device
     for start in range(0, len(windows), batch_size):
         positions = torch.arange(start, min(start + batch_size, len(windows)))
         frames = windows[positions]
@@ -72,11 +74,12 @@ def score(
         if feed is not None:
             if features_for is not None:
                 feed.bind(features_for(positions, frames))
-            with backbone.image_embedder(feed):
+            with backbone.image_embedder(feed), frozen_autocast(device):
                 pred = backbone.sample_actions(batch, noise)
             feed.assert_consumed()
         else:
-            pred = backbone.sample_actions(batch, noise)
+            with frozen_autocast(device):
+                pred = backbone.sample_actions(batch, noise)
         target_raw = raw["action"]
         valid = ~raw["action_is_pad"]
         pred = pred[..., : target_raw.shape[-1]].float().cpu()

@@ -37,6 +37,19 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
     g.addoption("--features", default="cache", choices=("cache", "loop"),
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
+    _add_executor_options(g)
+
+
+def _add_executor_options(g) -> None:
+    """Where cells run (bench.executors): here, or as one submitit job array."""
+    g.addoption("--executor", default="local", choices=("local", "slurm", "submitit-local"),
+                help="local (default): in this process; slurm: the selected cells as ONE Slurm "
+                     "job array via submitit; submitit-local: the same on this machine")
+    g.addoption("--slurm-partition", help="sbatch --partition")
+    g.addoption("--slurm-time", type=int, default=240, help="minutes per cell task (sbatch --time)")
+    g.addoption("--slurm-gpus-per-task", type=int, default=1, help="sbatch --gpus-per-task")
+    g.addoption("--slurm-array-parallelism", type=int, default=64,
+                help="array tasks running at once (sbatch --array=0-N%%P)")
 
 
 def build_profile(config: pytest.Config):
@@ -110,6 +123,7 @@ class GraftSession:
         self.ran: list[str] = []
         self.resumed: list[str] = []
         self.extra_sections: list[tuple[str, str]] = []
+        self._cell_array = None  # bench.executors.CellArray, when --executor is not local
 
     @property
     def store(self):
@@ -136,6 +150,10 @@ class GraftSession:
             if record is not None:
                 self.resumed.append(cell.id)
                 return record
+        if self.config.getoption("--executor") != "local":
+            record = self._run_submitted(cell)
+            self.ran.append(cell.id)
+            return record
         try:
             record = run_cell(cell, self.workspace(), features_mode=self.features_mode)
         except Exception as e:
@@ -149,6 +167,35 @@ class GraftSession:
         self.ran.append(cell.id)
         return record
 
+    def _run_submitted(self, cell: CellSpec) -> dict:
+        """--executor slurm|submitit-local: the first case submits every selected cell that has
+        no current record as ONE job array; each case then waits for its own task."""
+        from bench.executors import CellArray, CellJob, SlurmOptions, failure_record
+        from bench.paths import cache_dir
+
+        if self._cell_array is None:
+            opt = self.config.getoption
+            slurm = SlurmOptions(
+                partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
+                gpus_per_task=opt("--slurm-gpus-per-task"),
+                array_parallelism=opt("--slurm-array-parallelism"),
+            )
+            self._cell_array = CellArray(opt("--executor"), self.results_dir / "submitit", slurm)
+            items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
+            params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
+            cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
+            todo = [c for c in cells if isinstance(c, CellSpec) and (
+                self.rerun or self.store.current(c.id, self.profile.protocol.hash) is None)]
+            self._cell_array.submit([
+                CellJob(c, self.profile, str(self.results_dir), str(cache_dir()), self.features_mode)
+                for c in todo
+            ])
+        try:
+            return self._cell_array.result(cell.id)
+        except Exception as e:  # the task died before writing its own failure record
+            self.store.write_failure(failure_record(cell, self.profile, e))
+            raise
+
     def finish(self) -> Path | None:
         if not self.selected:
             return None
@@ -159,7 +206,48 @@ class GraftSession:
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "cell: a graftbench grid cell")
+    _configure_scale(config)
     config.stash[SESSION_KEY] = GraftSession(config)
+
+
+def _configure_scale(config: pytest.Config) -> None:
+    """`-n N` implies `--dist loadgroup` (one backbone per worker: a 3.3B model loads once per
+    worker); an xdist worker takes GPU (worker index mod GPU count) when GPUs exist."""
+    numprocesses = getattr(config.option, "numprocesses", None)
+    if numprocesses and config.getoption("--executor") != "local":
+        raise pytest.UsageError(f"-n {numprocesses} with --executor "
+                                f"{config.getoption('--executor')}: pick one (drop -n or the executor)")
+    if numprocesses and getattr(config.option, "dist", "no") in ("no", "load"):
+        config.option.dist = "loadgroup"
+    workerinput = getattr(config, "workerinput", {})
+    if workerinput.get("graftbench_dist") == "loadgroup":
+        config.option.loadgroup = True  # workers re-parse argv, which lacks the implied --dist
+    worker = workerinput.get("workerid")  # "gw0", "gw1", ...
+    if worker:
+        import torch
+
+        if torch.cuda.is_available():
+            torch.cuda.set_device(int(worker[2:]) % torch.cuda.device_count())
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node) -> None:
+    """xdist controller, per worker: pass on the distribution mode (see _configure_scale)."""
+    node.workerinput["graftbench_dist"] = node.config.option.dist
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
+    """xdist controller: it collects nothing itself, so the cells its workers collected (after
+    -k/-m) are the selection that grid.json and the report expect."""
+    gs: GraftSession = node.config.stash[SESSION_KEY]
+    if gs.selected:
+        return  # every worker collects the same items
+    known = {c.id for c in graft_cells(gs.profile) + control_cells(gs.profile)}
+    params = [i.split("@")[0].rsplit("[", 1)[-1].rstrip("]") for i in ids if i.endswith("]") or "@" in i]
+    gs.selected = [p for p in params if p in known]
+    if gs.selected:
+        gs.store.write_grid(gs.selected, gs.profile.name)
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:

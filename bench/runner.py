@@ -93,7 +93,10 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
             """Graft features of `frames` (from `source_frames`' pixels for shuffled images)."""
             src = frames if source_frames is None else source_frames
             if features is not None:
-                return {k: v[src] for k, v in features.items()}
+                picked = {k: v[src] for k, v in features.items()}
+                if device.type == "cuda":  # pinned host memory: the copy overlaps the compute
+                    picked = {k: v.pin_memory().to(device, non_blocking=True) for k, v in picked.items()}
+                return picked
             return encode_pooled(encoder, suite.images(src), grid)
 
         def zero_pooled(n):

@@ -85,7 +85,10 @@ class Workspace:
 
     def encoder(self, name: str):
         if name not in self._encoders:
-            self._encoders[name] = build_encoder(name, self.profile.source)
+            encoder = build_encoder(name, self.profile.source)
+            if self.profile.source == "hub" and torch.cuda.is_available():
+                encoder = encoder.to("cuda")
+            self._encoders[name] = encoder
         return self._encoders[name]
 
     def features(self, encoder_name: str, suite_name: str, grid: tuple[int, int]) -> dict:

@@ -5,3 +5,16 @@ import os
 for _var in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
     os.environ[_var] = "1"
 os.environ.setdefault("GRAFTBENCH_QUIET", "1")
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def tiny_ws(tmp_path_factory):
+    """The tiny profile's workspace (shared caches: released checkpoints, suites, features) with
+    a private results store, shared by the tests that run real cells."""
+    from bench.protocol import TINY
+    from bench.store import ResultStore
+    from bench.workspace import Workspace
+
+    return Workspace(TINY, ResultStore(tmp_path_factory.mktemp("results")), progress=False)

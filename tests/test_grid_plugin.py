@@ -1,0 +1,54 @@
+"""The user's interface, end to end in a subprocess: `pytest bench ...` with options."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from bench.paths import REPO_ROOT
+
+SLICE = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels,blind",
+         "--seeds", "0", "--controls", "native", "--steps", "5"]
+
+
+def run_bench(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "pytest", "bench", "-p", "no:cacheprovider",
+           "--results-dir", str(tmp_path / "results"), "--report", str(tmp_path / "REPORT.md"), *args]
+    env = {**os.environ, "GRAFTBENCH_QUIET": "1"}
+    return subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True, env=env, timeout=900)
+
+
+def test_slice_runs_resumes_and_reports(tmp_path):
+    first = run_bench(tmp_path, *SLICE, "-k", "pixels or native")
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    assert "test_graft[pi05-spatial-pixels-seed0] PASSED" in first.stdout or "3 passed" in first.stdout
+    assert "measured 2, resumed from store 0" in first.stdout  # -k kept pixels + native only
+    cells = sorted(p.name for p in (tmp_path / "results" / "cells").iterdir())
+    assert cells == ["pi05-spatial-native-seed0.json", "pi05-spatial-pixels-seed0.json"]
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "results" / "cells").iterdir()}
+    assert (tmp_path / "REPORT.md").exists()
+
+    again = run_bench(tmp_path, *SLICE, "-k", "pixels or native")
+    assert again.returncode == 0, again.stdout[-3000:]
+    assert "measured 0, resumed from store 2" in again.stdout  # a finished grid recomputes nothing
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
+
+    record = json.loads((tmp_path / "results" / "cells" / "pi05-spatial-pixels-seed0.json").read_text())
+    assert record["protocol"]["steps"] == 5 and record["profile"] == "tiny"
+    grid = json.loads((tmp_path / "results" / "grid.json").read_text())
+    assert sorted(grid["expected"]) == ["pi05-spatial-native-seed0", "pi05-spatial-pixels-seed0"]
+
+
+def test_unknown_names_fail_before_any_work_listing_valid_ones(tmp_path):
+    bad_encoder = run_bench(tmp_path, "--encoders", "dinov3", "--controls", "none")
+    assert bad_encoder.returncode != 0
+    assert "unknown encoder" in (bad_encoder.stdout + bad_encoder.stderr).lower()
+    assert "dinov2_s" in bad_encoder.stdout + bad_encoder.stderr
+    bad_backbone = run_bench(tmp_path, "--backbones", "smolvlm")
+    assert "unknown backbone 'smolvlm' (did you mean 'smolvla'?)" in bad_backbone.stdout + bad_backbone.stderr
+    bad_suite = run_bench(tmp_path, "--suites", "spatail")
+    assert "unknown suite 'spatail'" in bad_suite.stdout + bad_suite.stderr
+    assert not (tmp_path / "results" / "cells").exists() or not any((tmp_path / "results" / "cells").iterdir())

@@ -1,0 +1,137 @@
+"""Known answers on the tiny profile: planted visual signal the harness must find.
+
+The tiny suites make the action depend on what the images show (target position and identity), so
+an encoder that keeps all pixels (`pixels`) must beat one that sees nothing (`blind`), the native
+policy must beat its own zero/shuffled-image controls, and so on. Comparisons are paired over the
+identical held-out windows, with a margin and a sign test, not just a lower mean.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import binomtest
+
+from bench.cells import CellSpec
+from bench.runner import run_cell
+from bench.train import NonFiniteLoss
+
+BACKBONES = ("smolvla", "pi05")
+
+
+def paired(better: dict, worse: dict, margin: float = 0.10) -> tuple[float, float]:
+    """Relative gap of the means and the sign-test p-value (windows where `better` wins)."""
+    a = np.asarray(better["per_window"]["normalized"])
+    b = np.asarray(worse["per_window"]["normalized"])
+    assert better["window_ids"] == worse["window_ids"], "not scored on identical windows"
+    gap = (b.mean() - a.mean()) / b.mean()
+    p = binomtest(int((a < b).sum()), len(a), alternative="greater").pvalue
+    assert gap > margin and p < 0.01, (
+        f"{better['cell_id']} ({a.mean():.4f}) is not clearly better than "
+        f"{worse['cell_id']} ({b.mean():.4f}): gap {gap:+.1%}, sign-test p={p:.3g}"
+    )
+    return gap, p
+
+
+def cell(ws, kind, backbone, encoder=None, variant=None, suite="spatial", seed=0, **kw):
+    return run_cell(CellSpec(kind, backbone, suite, seed, encoder, variant), ws, **kw)
+
+
+@pytest.mark.parametrize("backbone", BACKBONES)
+def test_pixels_beats_blind_and_training_reduces_the_loss(tiny_ws, backbone):
+    pixels = cell(tiny_ws, "graft", backbone, "pixels")
+    blind = cell(tiny_ws, "graft", backbone, "blind")
+    paired(pixels, blind)
+    for record in (pixels, blind):
+        losses = [v for _, v in record["loss_curve"]]
+        assert np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3])
+        assert record["trainable_params"] == record["projector_params"] > 0
+
+
+@pytest.mark.parametrize("backbone", BACKBONES)
+def test_native_policy_uses_vision(tiny_ws, backbone):
+    native = cell(tiny_ws, "native", backbone)
+    zero = cell(tiny_ws, "zero_image", backbone, variant="eval")
+    shuffled = cell(tiny_ws, "shuffled_image", backbone)
+    paired(native, zero)
+    paired(native, shuffled)
+    assert native["trainable_params"] == 0
+
+
+@pytest.mark.parametrize("backbone", BACKBONES)
+def test_image_controls_of_a_graft_are_worse_than_the_graft(tiny_ws, backbone):
+    graft = cell(tiny_ws, "graft", backbone, "pixels")
+    paired(graft, cell(tiny_ws, "shuffled_image", backbone, "pixels"))
+    paired(graft, cell(tiny_ws, "zero_image", backbone, "pixels", "eval"))
+    paired(graft, cell(tiny_ws, "zero_image", backbone, "pixels", "train"))
+
+
+@pytest.mark.parametrize("backbone", BACKBONES)
+def test_one_token_pooling_is_worse_than_the_native_grid(tiny_ws, backbone):
+    graft = cell(tiny_ws, "graft", backbone, "pixels")
+    pooled = cell(tiny_ws, "pooling", backbone, "pixels", "global")
+    assert pooled["grid"] == [1, 1]
+    paired(graft, pooled, margin=0.05)
+
+
+def test_released_tiny_policy_beats_an_untrained_one(tiny_ws):
+    """The native training produced a real policy: clearly better than the same class untrained."""
+    from backbones import adapter_module
+    from backbones.released import union_stats
+    from bench.evaluate import score
+
+    for name in BACKBONES:
+        released = tiny_ws.backbone(name)
+        suites = [tiny_ws.suite(s) for s in tiny_ws.released_suites()]
+        stats = union_stats(suites, {s.name: tiny_ws.split(s.name).train_frames for s in suites})
+        untrained = adapter_module(name).build_tiny_policy(stats, suites[0].camera_keys, chunk_size=10)
+        untrained.freeze()
+        suite, split = tiny_ws.suite("spatial"), tiny_ws.split("spatial")
+        p = tiny_ws.profile.protocol
+        a = score(released, suite, split.windows, p.eval_batch_size, p.eval_noise_seed)
+        b = score(untrained, suite, split.windows, p.eval_batch_size, p.eval_noise_seed)
+        paired({**a, "cell_id": f"released {name}"}, {**b, "cell_id": f"untrained {name}"}, 0.3)
+
+
+def test_lora_trainable_count_is_projector_plus_adapters_exactly(tiny_ws):
+    record = cell(tiny_ws, "lora", "smolvla", "pixels")
+    lm = tiny_ws.backbone("smolvla").language_model()
+    p = tiny_ws.profile.protocol
+    expected = sum(
+        p.lora_rank * (m.in_features + m.out_features)
+        for n, m in lm.named_modules()
+        if isinstance(m, torch.nn.Linear) and n.split(".")[-1] in p.lora_targets
+    )
+    assert expected > 0
+    assert record["lora_params"] == expected
+    assert record["trainable_params"] == record["projector_params"] + expected
+    # The shared backbone was not modified by the LoRA cell.
+    assert not any("lora_" in n for n, _ in lm.named_parameters())
+
+
+def test_cached_and_in_loop_features_give_the_same_mse(tiny_ws):
+    cached = cell(tiny_ws, "graft", "pi05", "dinov2_s", features_mode="cache")
+    loop = cell(tiny_ws, "graft", "pi05", "dinov2_s", features_mode="loop")
+    assert loop["features_mode"] == "loop"
+    np.testing.assert_allclose(loop["mse"]["normalized"], cached["mse"]["normalized"], rtol=1e-4)
+    np.testing.assert_allclose(loop["per_window"]["raw"], cached["per_window"]["raw"], rtol=1e-3, atol=1e-6)
+
+
+def test_same_cell_twice_gives_the_same_mse(tiny_ws):
+    first = cell(tiny_ws, "graft", "smolvla", "siglip", seed=1)
+    again = cell(tiny_ws, "graft", "smolvla", "siglip", seed=1)
+    assert first["mse"] == again["mse"]
+    assert first["per_window"] == again["per_window"]
+    other_seed = cell(tiny_ws, "graft", "smolvla", "siglip", seed=2)
+    assert other_seed["mse"] != first["mse"]
+
+
+def test_nan_features_fail_the_cell_naming_the_step(tiny_ws):
+    tiny_ws.feature_transforms["blind"] = lambda f: {k: v * float("nan") for k, v in f.items()}
+    try:
+        with pytest.raises(NonFiniteLoss, match=r"loss is nan at step 0 of"):
+            cell(tiny_ws, "graft", "pi05", "blind", seed=7)
+    finally:
+        tiny_ws.feature_transforms.clear()
+    assert tiny_ws.store.current("pi05-spatial-blind-seed7", tiny_ws.profile.protocol.hash) is None

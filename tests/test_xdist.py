@@ -1,0 +1,82 @@
+"""`pytest bench -n 2` gives the records and REPORT.md numbers of a serial run.
+
+Two backbones, so each xdist worker gets one (`-n` implies `--dist loadgroup`, cells carry
+`xdist_group(backbone)`); the controller alone writes REPORT.md from the shared results store.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench.paths import REPO_ROOT
+
+SLICE = ["--backbones", "pi05,smolvla", "--suites", "spatial", "--encoders", "pixels,blind",
+         "--seeds", "0", "--controls", "none"]
+
+
+def run_grid(results: Path, *extra: str) -> str:
+    # One torch thread per process in BOTH runs: the thread count must not differ between them.
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1", "HF_HUB_OFFLINE": "1"}
+    cmd = [sys.executable, "-m", "pytest", "bench", "-p", "no:randomly", "-p", "no:cacheprovider",
+           *SLICE, "--results-dir", str(results), "--report", str(results / "REPORT.md"), *extra]
+    done = subprocess.run(cmd, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=600)
+    # 1 = some grid case failed its own checks (e.g. a loss that did not go down): still a run
+    # whose numbers must match; compared below, as are the failing cases.
+    assert done.returncode in (0, 1), done.stdout[-3000:] + done.stderr[-3000:]
+    return done.stdout
+
+
+def failed_cases(out: str) -> set[str]:
+    return set(re.findall(r"^FAILED (\S+)", out, flags=re.M))
+
+
+def numbers(results: Path) -> dict:
+    cells = {p.stem: json.loads(p.read_text()) for p in sorted((results / "cells").glob("*.json"))}
+    return {cid: (r["mse"], r["per_window"], r["loss_curve"]) for cid, r in cells.items()}
+
+
+def report_before_provenance(results: Path) -> str:
+    """REPORT.md up to its provenance section (paths, timings and dates differ by design)."""
+    return (results / "REPORT.md").read_text().split("## Provenance")[0]
+
+
+@pytest.fixture(scope="module")
+def serial_and_parallel(tmp_path_factory):
+    root = tmp_path_factory.mktemp("xdist")
+    serial_out = run_grid(root / "serial")
+    parallel_out = run_grid(root / "parallel", "-n", "2", "-v")
+    return root / "serial", root / "parallel", serial_out, parallel_out
+
+
+def test_parallel_records_equal_serial_records(serial_and_parallel):
+    serial, parallel, _, _ = serial_and_parallel
+    a, b = numbers(serial), numbers(parallel)
+    assert len(a) == 4 and sorted(a) == sorted(b)
+    for cell_id in a:
+        assert a[cell_id] == b[cell_id], f"{cell_id}: -n 2 changed the numbers"
+    assert failed_cases(serial_and_parallel[2]) == failed_cases(serial_and_parallel[3])
+
+
+def test_parallel_report_equals_serial_report(serial_and_parallel):
+    serial, parallel, _, _ = serial_and_parallel
+    assert report_before_provenance(parallel) == report_before_provenance(serial)
+    summary = [json.loads((r / "REPORT_summary.json").read_text()) for r in (serial, parallel)]
+    assert summary[0] == summary[1]
+
+
+def test_one_backbone_per_worker(serial_and_parallel):
+    """-n implies --dist loadgroup: a backbone's cells share a worker, backbones do not."""
+    _, _, _, out = serial_and_parallel
+    workers: dict[str, set[str]] = {}
+    for worker, backbone in re.findall(r"\[(gw\d+)\].*(?:PASSED|FAILED) bench/test_grid.py::test_graft\[(\w+)-", out):
+        workers.setdefault(backbone, set()).add(worker)
+    assert sorted(workers) == ["pi05", "smolvla"], out[-2000:]
+    assert all(len(w) == 1 for w in workers.values()), workers
+    assert workers["pi05"] != workers["smolvla"], workers
