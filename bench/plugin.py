@@ -219,10 +219,7 @@ def _configure_scale(config: pytest.Config) -> None:
                                 f"{config.getoption('--executor')}: pick one (drop -n or the executor)")
     if numprocesses and getattr(config.option, "dist", "no") in ("no", "load"):
         config.option.dist = "loadgroup"
-    workerinput = getattr(config, "workerinput", {})
-    if workerinput.get("graftbench_dist") == "loadgroup":
-        config.option.loadgroup = True  # workers re-parse argv, which lacks the implied --dist
-    worker = workerinput.get("workerid")  # "gw0", "gw1", ...
+    worker = getattr(config, "workerinput", {}).get("workerid")  # "gw0", "gw1", ...
     if worker:
         import torch
 
@@ -230,10 +227,32 @@ def _configure_scale(config: pytest.Config) -> None:
             torch.cuda.set_device(int(worker[2:]) % torch.cuda.device_count())
 
 
-@pytest.hookimpl(optionalhook=True)
-def pytest_configure_node(node) -> None:
-    """xdist controller, per worker: pass on the distribution mode (see _configure_scale)."""
-    node.workerinput["graftbench_dist"] = node.config.option.dist
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """loadgroup by backbone, read from the cell id: each worker holds ONE backbone. With more
+    workers than backbones, a backbone's cells are dealt round-robin into N // B groups so all
+    N workers work. (xdist's own loadgroup reads a nodeid suffix that pytest 9.2 no longer lets
+    it add, pytest-dev/pytest-xdist#1386: it silently spread every backbone over all workers.)"""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    gs: GraftSession = config.stash[SESSION_KEY]
+    backbone_of = {c.id: c.backbone for c in graft_cells(gs.profile) + control_cells(gs.profile)}
+
+    class BackboneScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            cell_id = nodeid.split("@")[0].rsplit("[", 1)[-1].rstrip("]")
+            if cell_id not in backbone_of:
+                return nodeid
+            # gs.selected: the cells the workers collected (pytest_xdist_node_collection_finished)
+            mine = [c for c in gs.selected if backbone_of.get(c) == backbone_of[cell_id]]
+            backbones = {backbone_of[c] for c in gs.selected if c in backbone_of}
+            groups = max(1, self.numnodes // max(1, len(backbones)))
+            position = mine.index(cell_id) if cell_id in mine else 0
+            return f"{backbone_of[cell_id]}:{position % groups}"
+
+    return BackboneScheduling(config, log)
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -264,6 +283,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     )
 
 
+@pytest.hookimpl(trylast=True)  # after -k/-m deselection: grid.json lists what will run
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items) -> None:
     gs: GraftSession = config.stash[SESSION_KEY]
     gs.selected = []

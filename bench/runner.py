@@ -53,6 +53,28 @@ def native_tower_channels(backbone, suite, frames) -> int:
     raise RuntimeError("the backbone never called its image embedder")
 
 
+def probe_frames(train_frames: torch.Tensor, n: int = 64) -> torch.Tensor:
+    """A fixed spread of training frames on which the loss is measured before and after."""
+    return train_frames[:: max(1, len(train_frames) // n)][:n]
+
+
+@torch.no_grad()
+def probe_loss(backbone, feed, next_batch, frames: torch.Tensor, seed: int) -> float:
+    """Mean flow-matching loss on `frames` with fixed noise and time: unlike the noisy training
+    curve, comparable before and after training (did the projector learn anything?)."""
+    info = backbone.info
+    gen = torch.Generator().manual_seed(stable_seed(seed, "probe-loss"))
+    noise = torch.randn((len(frames), info.chunk_size, info.max_action_dim), generator=gen)
+    flow_time = backbone.sample_time(len(frames), gen)
+    raw, features = next_batch(frames)
+    if features is not None:
+        feed.bind(features)
+    with backbone.image_embedder(feed):
+        loss = backbone.loss(backbone.preprocess(raw), noise, flow_time).mean()
+    feed.assert_consumed()
+    return float(loss)
+
+
 def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dict:
     """Measure one cell and write its record. features_mode: "cache" (pooled features computed
     once per frame) or "loop" (the encoder runs inside every step: the naive reference)."""
@@ -124,6 +146,8 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
                 return raw, None
             return raw, zero_pooled(len(frames)) if train_zero else pooled(frames)
 
+        probe = probe_frames(split.train_frames)
+        probe_before = probe_loss(backbone, feed, next_batch, probe, p.split_seed)
         t0 = time.perf_counter()
         params = list(projector.parameters()) + [
             q for q in backbone.policy.parameters() if q.requires_grad
@@ -134,6 +158,8 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
                     feed=feed, label=cell.id, progress=ws.progress)
         timings["train"] = time.perf_counter() - t0
         projector.eval()
+        probe_losses = {"before": probe_before,
+                        "after": probe_loss(backbone, feed, next_batch, probe, p.split_seed)}
 
         if tower is not None:
             features_for = None
@@ -146,6 +172,7 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
         images_for = None
     else:
         timings["features"] = timings["train"] = 0.0
+        probe_losses = None
         features_for = None
         if cell.kind == K.ZERO_IMAGE:
             images_for = lambda pos, frames, imgs: {k: torch.zeros_like(v) for k, v in imgs.items()}  # noqa: E731
@@ -172,6 +199,7 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
         "projector_params": trainable_parameters(projector) if projector else 0,
         "lora_params": lora_params,
         "loss_curve": curve,
+        "probe_loss": probe_losses,
         "encoder_weights": getattr(encoder, "weights_id", None),
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "peak_memory_mb": peak_memory_mb(device), "device": str(device), "hardware": hardware(),

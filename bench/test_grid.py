@@ -16,11 +16,13 @@ def _check_record(record: dict, cell) -> None:
     if cell.trains_projector:
         # Freeze by construction, verified: trainable = projector (+ LoRA adapters).
         assert record["trainable_params"] == record["projector_params"] + record["lora_params"]
-        curve = [loss for _, loss in record["loss_curve"]]
-        assert all(math.isfinite(v) for v in curve)
-        head, tail = curve[: max(1, len(curve) // 4)], curve[-max(1, len(curve) // 4):]
-        assert sum(tail) / len(tail) < sum(head) / len(head), (
-            f"{cell.id}: training did not reduce the loss ({head} -> {tail})"
+        assert all(math.isfinite(v) for _, v in record["loss_curve"])
+        # The training curve is noisy (fresh flow noise each step); the probe loss is measured
+        # on fixed frames, noise and time before and after training.
+        probe = record["probe_loss"]
+        assert probe["after"] < probe["before"], (
+            f"{cell.id}: training did not reduce the probe loss ({probe['before']:.4f} -> "
+            f"{probe['after']:.4f})"
         )
     else:
         assert record["trainable_params"] == 0

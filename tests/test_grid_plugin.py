@@ -24,7 +24,7 @@ def run_bench(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
 def test_slice_runs_resumes_and_reports(tmp_path):
     first = run_bench(tmp_path, *SLICE, "-k", "pixels or native")
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
-    assert "test_graft[pi05-spatial-pixels-seed0] PASSED" in first.stdout or "3 passed" in first.stdout
+    assert "2 passed, 1 deselected" in first.stdout
     assert "measured 2, resumed from store 0" in first.stdout  # -k kept pixels + native only
     cells = sorted(p.name for p in (tmp_path / "results" / "cells").iterdir())
     assert cells == ["pi05-spatial-native-seed0.json", "pi05-spatial-pixels-seed0.json"]
