@@ -60,7 +60,7 @@ def run_cell_job(job: CellJob) -> dict:
     from bench.workspace import Workspace
 
     store = ResultStore(Path(job.results_dir))
-    ws = Workspace(job.profile, store, rerun=True, progress=False, cache=Path(job.cache_dir))
+    ws = Workspace(job.profile, store, progress=False, cache=Path(job.cache_dir))
     try:
         return run_cell(job.cell, ws, features_mode=job.features_mode)
     except Exception as e:

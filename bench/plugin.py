@@ -186,10 +186,9 @@ class GraftSession:
             cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
             todo = [c for c in cells if isinstance(c, CellSpec) and (
                 self.rerun or self.store.current(c.id, self.profile.protocol.hash) is None)]
-            self._cell_array.submit([
-                CellJob(c, self.profile, str(self.results_dir), str(cache_dir()), self.features_mode)
-                for c in todo
-            ])
+            paths = (str(self.results_dir), str(cache_dir()))
+            self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode)
+                                     for c in todo])
         try:
             return self._cell_array.result(cell.id)
         except Exception as e:  # the task died before writing its own failure record
@@ -215,8 +214,9 @@ def _configure_scale(config: pytest.Config) -> None:
     worker); an xdist worker takes GPU (worker index mod GPU count) when GPUs exist."""
     numprocesses = getattr(config.option, "numprocesses", None)
     if numprocesses and config.getoption("--executor") != "local":
-        raise pytest.UsageError(f"-n {numprocesses} with --executor "
-                                f"{config.getoption('--executor')}: pick one (drop -n or the executor)")
+        executor = config.getoption("--executor")
+        raise pytest.UsageError(f"-n {numprocesses} with --executor {executor}: "
+                                "pick one (drop -n or the executor)")
     if numprocesses and getattr(config.option, "dist", "no") in ("no", "load"):
         config.option.dist = "loadgroup"
     worker = getattr(config, "workerinput", {}).get("workerid")  # "gw0", "gw1", ...
@@ -263,7 +263,7 @@ def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
     if gs.selected:
         return  # every worker collects the same items
     known = {c.id for c in graft_cells(gs.profile) + control_cells(gs.profile)}
-    params = [i.split("@")[0].rsplit("[", 1)[-1].rstrip("]") for i in ids if i.endswith("]") or "@" in i]
+    params = [i.split("@")[0].rsplit("[", 1)[-1].rstrip("]") for i in ids]
     gs.selected = [p for p in params if p in known]
     if gs.selected:
         gs.store.write_grid(gs.selected, gs.profile.name)

@@ -160,9 +160,12 @@ def test_eval_windows(world, batch_size, benchmark, record_cost):
     counting = _CountingFeed(feed, calls)
     p = TINY.protocol
 
+    def features_for(positions, frames):
+        return {k: v[frames] for k, v in features.items()}
+
     def run():
         score(world.backbone, world.suite, world.windows, batch_size, p.eval_noise_seed,
-              feed=counting, features_for=lambda pos, frames: {k: v[frames] for k, v in features.items()})
+              feed=counting, features_for=features_for)
 
     calls["embed"] = 0
     run()

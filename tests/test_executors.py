@@ -31,8 +31,8 @@ SLICE = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels,bli
 def run_grid(results: Path, *extra: str) -> subprocess.CompletedProcess:
     """`pytest bench` on the cheap slice in a subprocess, results and report under `results`."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1", "HF_HUB_OFFLINE": "1"}
-    cmd = [sys.executable, "-m", "pytest", "bench", "-q", "-p", "no:randomly", "-p", "no:cacheprovider",
-           *SLICE, "--results-dir", str(results), "--report", str(results / "REPORT.md"), *extra]
+    cmd = [sys.executable, "-m", "pytest", "bench", "-q", "-p", "no:randomly",
+           "-p", "no:cacheprovider", *SLICE, "--results-dir", str(results), "--report", str(results / "REPORT.md"), *extra]
     done = subprocess.run(cmd, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     return done

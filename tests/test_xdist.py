@@ -56,12 +56,15 @@ def serial_and_parallel(tmp_path_factory):
 
 
 def test_parallel_records_equal_serial_records(serial_and_parallel):
-    serial, parallel, _, _ = serial_and_parallel
+    serial, parallel, serial_out, parallel_out = serial_and_parallel
     a, b = numbers(serial), numbers(parallel)
     assert len(a) == 4 and sorted(a) == sorted(b)
     for cell_id in a:
         assert a[cell_id] == b[cell_id], f"{cell_id}: -n 2 changed the numbers"
-    assert failed_cases(serial_and_parallel[2]) == failed_cases(serial_and_parallel[3])
+    assert failed_cases(serial_out) == failed_cases(parallel_out)
+    # The controller collects nothing itself: it takes the selection from its workers.
+    grids = [json.loads((r / "grid.json").read_text())["expected"] for r in (serial, parallel)]
+    assert sorted(grids[0]) == sorted(grids[1]) == sorted(a)
 
 
 def test_parallel_report_equals_serial_report(serial_and_parallel):
@@ -75,7 +78,8 @@ def test_one_backbone_per_worker(serial_and_parallel):
     """-n implies --dist loadgroup: a backbone's cells share a worker, backbones do not."""
     _, _, _, out = serial_and_parallel
     workers: dict[str, set[str]] = {}
-    for worker, backbone in re.findall(r"\[(gw\d+)\].*(?:PASSED|FAILED) bench/test_grid.py::test_graft\[(\w+)-", out):
+    ran_on = r"\[(gw\d+)\].*(?:PASSED|FAILED) bench/test_grid.py::test_graft\[(\w+)-"
+    for worker, backbone in re.findall(ran_on, out):
         workers.setdefault(backbone, set()).add(worker)
     assert sorted(workers) == ["pi05", "smolvla"], out[-2000:]
     assert all(len(w) == 1 for w in workers.values()), workers
