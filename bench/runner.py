@@ -16,7 +16,7 @@ from bench.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
 from bench.suites.windows import raw_batch
-from bench.train import FitConfig, fit
+from bench.train import FitConfig, fit, frozen_autocast
 from bench.workspace import Workspace
 
 SCHEMA = 1
@@ -69,7 +69,8 @@ def probe_loss(backbone, feed, next_batch, frames: torch.Tensor, seed: int) -> f
     raw, features = next_batch(frames)
     if features is not None:
         feed.bind(features)
-    with backbone.image_embedder(feed):
+    device = next(backbone.policy.parameters()).device
+    with backbone.image_embedder(feed), frozen_autocast(device):  # as in training
         loss = backbone.loss(backbone.preprocess(raw), noise, flow_time).mean()
     feed.assert_consumed()
     return float(loss)
