@@ -138,7 +138,7 @@ class GraftSession:
 
         if self._workspace is None:
             quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
-            self._workspace = Workspace(self.profile, self.store, rerun=self.rerun, progress=not quiet)
+            self._workspace = Workspace(self.profile, self.store, progress=not quiet)
         return self._workspace
 
     def run(self, cell: CellSpec) -> dict:

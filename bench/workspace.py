@@ -33,7 +33,6 @@ class Split:
 class Workspace:
     profile: Profile
     store: ResultStore
-    rerun: bool = False
     progress: bool = True
     cache: Path = field(default_factory=cache_dir)
     _suites: dict = field(default_factory=dict)
