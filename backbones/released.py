@@ -69,14 +69,12 @@ def tiny_release_dir(cache: Path, name: str, key: str) -> Path:
     return cache / "released" / f"{name}-{key}"
 
 
-def train_tiny_release(name: str, profile: Profile, suites, train_frames, folder: Path,
+def train_tiny_release(name: str, backbone, profile: Profile, suites, train_frames, folder: Path,
                        chunk_size: int, progress: bool = True) -> None:
-    """Build the tiny policy, train ALL of it with its own loss, save it into `folder`."""
+    """Train ALL of the untrained tiny `backbone` with its own loss, save it into `folder`."""
     from bench.suites.windows import raw_batch
 
     module = adapter_module(name)
-    stats = union_stats(suites, train_frames)
-    backbone = module.build_tiny_policy(stats, suites[0].camera_keys, chunk_size=chunk_size, seed=0)
     policy = backbone.policy
     policy.train()
     for p in policy.parameters():
@@ -123,18 +121,18 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
         # Real base checkpoints carry their pre-training stats, not LIBERO's: normalise with the
         # suites' training-episode stats, as LeRobot's fine-tuning does with dataset_stats.
         return module.load_policy(get_entry(name).repo_id, stats=union_stats(suites, train_frames))
-    stats = union_stats(suites, train_frames)
-    arch = architecture_fingerprint(
-        module.build_tiny_policy(stats, suites[0].camera_keys, chunk_size=chunk_size, seed=0)
-    )
-    key = release_key(name, profile, suites, chunk_size, arch)
+    # The untrained build (seed 0) both keys the cache and, on a miss, is what gets trained.
+    untrained = module.build_tiny_policy(union_stats(suites, train_frames), suites[0].camera_keys,
+                                         chunk_size=chunk_size, seed=0)
+    key = release_key(name, profile, suites, chunk_size, architecture_fingerprint(untrained))
     folder = tiny_release_dir(cache, name, key)
     if not (folder / "graftbench_release.json").exists():
         # xdist workers and array tasks sharing a cache: one trains, the others wait and load it.
         with _exclusive(folder.with_name(folder.name + ".lock")):
             if not (folder / "graftbench_release.json").exists():
                 print(f"[graftbench] training tiny released {name} -> {folder}", file=sys.stderr)
-                train_tiny_release(name, profile, suites, train_frames, folder, chunk_size, progress)
+                train_tiny_release(name, untrained, profile, suites, train_frames, folder,
+                                   chunk_size, progress)
     return module.load_policy(str(folder))
 
 
