@@ -114,8 +114,33 @@ def plot_horizon_curves(records: Sequence[dict], path: Path) -> Path | None:
     return path
 
 
+def plot_closed_loop(closed_loop: Sequence, path: Path) -> Path | None:
+    """One panel per backbone x suite: success rate (Wilson interval) against offline MSE."""
+    panels = [c for c in closed_loop if c.items]
+    if not panels:
+        return None
+    fig, axes = _figure(len(panels))
+    for ax, c in zip(axes, panels):
+        succ = np.array(c.success)
+        lo = np.array([ci[0] for ci in c.success_ci])
+        hi = np.array([ci[1] for ci in c.success_ci])
+        err = np.vstack([np.nan_to_num(succ - lo), np.nan_to_num(hi - succ)])
+        ax.errorbar(c.mse, succ, yerr=err, fmt="o", capsize=3)
+        for x, y, name in zip(c.mse, succ, c.items):
+            ax.annotate(name, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        tau = c.agreement.get("tau_b", float("nan")) if c.agreement else float("nan")
+        ax.set_title(f"{c.backbone} x {c.suite}: tau-b {tau:.2f}", fontsize=9)
+        ax.set_xlabel("offline normalised MSE (lower is better)")
+        ax.set_ylabel("closed-loop success")
+        ax.set_ylim(-0.05, 1.05)
+    fig.suptitle("Closed-loop success vs offline MSE (95% Wilson intervals)", fontsize=9)
+    fig.savefig(path, dpi=110)
+    return path
+
+
 def write_plots(rankings: Sequence[Ranking], transfers: Sequence[Transfer],
-                records: Sequence[dict], out_dir: Path) -> list[tuple[str, Path]]:
+                records: Sequence[dict], out_dir: Path,
+                closed_loop: Sequence = ()) -> list[tuple[str, Path]]:
     """Write every figure that has data into `out_dir`; returns [(title, path)]."""
     out_dir.mkdir(parents=True, exist_ok=True)
     jobs = [
@@ -125,6 +150,8 @@ def write_plots(rankings: Sequence[Ranking], transfers: Sequence[Transfer],
          lambda p: plot_rank_bump(transfers, p)),
         ("Per-horizon error curves", "per_horizon.png",
          lambda p: plot_horizon_curves(records, p)),
+        ("Closed-loop success vs offline MSE", "closed_loop.png",
+         lambda p: plot_closed_loop(closed_loop, p)),
     ]
     written = []
     for title, name, draw in jobs:

@@ -20,12 +20,13 @@ from typing import Callable, NamedTuple, Sequence
 
 from bench.analysis import DEFAULT_RESAMPLES, rank_all
 from bench.analysis_controls import control_deltas, wrapper_neutrality
+from bench.analysis_rollouts import closed_loop_all
 from bench.analysis_transfer import support_counts, transfer_all
 from bench.records import GRAFT, Results, load_results
 from bench.report_provenance import per_task_section, provenance_section
 from bench.report_sections import (
-    ReportContext, answer_lines, caveats, controls_section, plots_section, rankings_section,
-    seed_section, tie_section, transfer_section, wrapper_section,
+    ReportContext, answer_lines, caveats, closed_loop_section, controls_section, plots_section,
+    rankings_section, seed_section, tie_section, transfer_section, wrapper_section,
 )
 
 
@@ -44,6 +45,7 @@ SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
     ("Seed cells", seed_section),
     ("Wrapper neutrality", wrapper_section),
     ("Controls", controls_section),
+    ("Closed loop: success beside offline MSE", closed_loop_section),
     ("Per-task breakdown", per_task_section),
     ("Plots", plots_section),
     ("Provenance", provenance_section),
@@ -63,7 +65,9 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
     return ReportContext(results=results, out_path=out_path, rankings=rankings,
                          transfers=transfers, support=support_counts(transfers),
                          wrapper=wrapper_neutrality(records), controls=control_deltas(records),
-                         n_resamples=n_resamples)
+                         n_resamples=n_resamples,
+                         closed_loop=closed_loop_all(records, n_resamples=n_resamples,
+                                                     random_seed=random_seed))
 
 
 def _guarded(name: str, render: Callable[[ReportContext], str], ctx: ReportContext) -> str:
@@ -149,6 +153,7 @@ def summary(ctx: ReportContext) -> dict:
         "protocol_hashes": sorted({r.get("protocol_hash", "?") for r in ctx.records}),
         "rankings": ctx.rankings, "transfers": ctx.transfers, "support": ctx.support,
         "wrapper_neutrality": ctx.wrapper, "controls": ctx.controls,
+        "closed_loop": ctx.closed_loop,
         "cells": {"finished": len(ctx.records), "failed": [f["cell_id"] for f in res.failed],
                   "missing": res.missing, "skipped": res.skipped},
         "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},
@@ -159,7 +164,8 @@ def _figures(ctx: ReportContext, folder: Path) -> list[tuple[str, Path]]:
     try:
         from bench.plots import write_plots
 
-        return write_plots(ctx.rankings, ctx.transfers, ctx.records, folder)
+        return write_plots(ctx.rankings, ctx.transfers, ctx.records, folder,
+                           closed_loop=ctx.closed_loop)
     except Exception:  # noqa: BLE001 - the report stays useful without figures
         traceback.print_exc(file=sys.stderr)
         return []

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from bench.analysis import CONFIDENCE, PRIMARY, Ranking
 from bench.analysis_controls import ControlDelta, WrapperNeutrality
+from bench.analysis_rollouts import ClosedLoop
 from bench.analysis_transfer import SUPPORT_RULES, Transfer, min_exact_kendall_p
 from bench.records import Results
 from bench.report_format import bullets, half_width, interval, num, pct, table, yes_no
@@ -40,6 +41,7 @@ class ReportContext:
     controls: list[ControlDelta]
     plots: list[tuple[str, Path]] = field(default_factory=list)
     n_resamples: int = 0
+    closed_loop: list[ClosedLoop] = field(default_factory=list)
 
     @property
     def records(self) -> list[dict]:
@@ -252,6 +254,44 @@ def controls_section(ctx: ReportContext) -> str:
     return intro + "\n\n" + table(rows, ["backbone", "suite", "control", "seed", "norm. MSE",
                                          "reference", "reference norm. MSE", "Δ norm.",
                                          "Δ raw"])
+
+
+CLOSED_LOOP_INTRO = (
+    "Cells run with `--rollouts N` are also rolled out in the LIBERO simulator from fixed init "
+    "states, identical for every cell (paired). Success is per episode; its interval is Wilson's "
+    f"({CONFIDENCE:.0%}). Agreement is Kendall tau-b (and top-weighted tau) between the offline-MSE "
+    "ranking and the failure-rate ranking of the rolled-out items (means over seeds): +1 = same "
+    "order. Its interval is a paired bootstrap over held-out windows and rollout episodes. Offline "
+    "MSE is not closed-loop success; with few items and few episodes per task the interval is "
+    "wide, and a tau from 3 items or a success rate from 10 episodes decides little."
+)
+
+
+def closed_loop_section(ctx: ReportContext) -> str:
+    if not ctx.closed_loop:
+        return CLOSED_LOOP_INTRO + "\n\n_No cell was rolled out (run with `--rollouts N` on a " \
+            "simulated suite, see docs/LIBERO_SIM.md)._"
+    parts = [CLOSED_LOOP_INTRO]
+    for cl in ctx.closed_loop:
+        head = f"**{cl.backbone} x {cl.suite}**"
+        rows = [[item, ", ".join(map(str, cl.seeds.get(item, []))), num(mse), f"{succ:.1%}",
+                 interval(ci, 2), n]
+                for item, mse, succ, ci, n in zip(cl.items, cl.mse, cl.success, cl.success_ci,
+                                                  cl.n_episodes)]
+        if rows:
+            head += "\n\n" + table(rows, ["item", "seeds", "norm. MSE", "success",
+                                          f"success {CONFIDENCE:.0%} CI", "episodes"])
+        if cl.missing:
+            head += f"\n\n_No agreement: {cl.missing}._"
+        else:
+            a = cl.agreement
+            head += (f"\n\nAgreement over {a['n']} items: Kendall tau-b {num(a['tau_b'], 2)} "
+                     f"(p={num(a['p_value'], 3)}), {CONFIDENCE:.0%} bootstrap interval "
+                     f"{interval(cl.tau_ci, 2)} ({cl.n_resamples} resamples, "
+                     f"{a.get('resamples_with_a_tie_only', 0)} left out as all-tied); "
+                     f"weighted tau {num(a['weighted_tau'], 2)}.")
+        parts.append(head)
+    return "\n\n".join(parts)
 
 
 def plots_section(ctx: ReportContext) -> str:
