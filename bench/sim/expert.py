@@ -1,0 +1,212 @@
+"""A scripted pick-and-place expert for LIBERO-Spatial and LIBERO-Object, using privileged poses.
+
+The expert reads object positions straight from the MuJoCo state (it is not a vision policy):
+open, move above the object, descend to a grasp point, close, lift, carry above the target,
+descend, release, back off. Actions are what LiberoEnv takes and the LeRobot LIBERO datasets
+store: OSC_POSE deltas in [-1, 1] (position x/y/z, rotation as axis-angle, scaled by the
+controller's 0.05 m / 0.5 rad per unit) and the gripper (-1 open, +1 close).
+
+LIBERO-Spatial: the object is a bowl; the grasp point is its rim (wall at 4.7 cm from the bowl's
+centre, closing across the wall along world y, the Panda fingers' closing axis at LIBERO's
+start pose). LIBERO-Object: a grocery item grasped at its centre, released above the basket.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+POS_SCALE = 0.05  # metres per action unit (OSC_POSE output_max)
+ROT_SCALE = 0.5  # radians per action unit
+OPEN, CLOSE = -1.0, 1.0
+
+
+@dataclass(frozen=True)
+class ExpertParams:
+    """Geometry and gains of the scripted expert (metres, steps)."""
+
+    approach_height: float = 0.10  # above the grasp point before descending
+    carry_height: float = 0.18  # above the target's origin while carrying
+    min_lift: float = 0.06  # at least this far above the grasp point while carrying
+    grasp_depth: float = 0.0  # eef height over the grip reference (rim top / object centre)
+    bowl_rim_radius: float = 0.047  # akita black bowl: wall boxes at 4.7 cm from the centre
+    bowl_rim_top: float = 0.053  # wall top above the bowl body's origin
+    release_height: float = 0.07  # eef above the target's origin when opening (bowl on plate)
+    object_release_height: float = 0.16  # LIBERO-Object: above the basket origin
+    gain: float = 12.0  # action units per metre of position error (then clipped to [-1, 1])
+    rot_gain: float = 1.0  # action units per radian of orientation error
+    tolerance: float = 0.012  # metres: a precise waypoint (grasp point) counts as reached
+    transit_tolerance: float = 0.03  # metres: a transit waypoint (loaded arm sags a little)
+    close_steps: int = 12
+    open_steps: int = 10
+    waypoint_timeout: int = 50  # steps before a waypoint is abandoned (the episode then fails)
+
+
+def _rotation_error(current: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """Axis-angle (3,) rotating `current` (3x3) onto `goal` (3x3), in the world frame."""
+    delta = goal @ current.T
+    cos = np.clip((np.trace(delta) - 1.0) / 2.0, -1.0, 1.0)
+    angle = np.arccos(cos)
+    if angle < 1e-6:
+        return np.zeros(3)
+    axis = np.array([delta[2, 1] - delta[1, 2], delta[0, 2] - delta[2, 0], delta[1, 0] - delta[0, 1]])
+    return axis / (2.0 * np.sin(angle)) * angle
+
+
+class ScriptedExpert:
+    """Waypoint state machine for one LiberoEnv episode; call `reset(env)` after each env reset."""
+
+    def __init__(self, suite: str, params: ExpertParams = ExpertParams()):
+        if suite not in ("spatial", "object"):
+            raise ValueError(f"no scripted expert for suite {suite!r}; choose 'spatial' or 'object'")
+        self.suite = suite
+        self.params = params
+
+    # -- privileged state -------------------------------------------------------------------
+    def _inner(self, env):
+        return env._env.env  # LiberoEnv -> OffScreenRenderEnv -> LIBERO problem env
+
+    def _body_pos(self, env, name: str) -> np.ndarray:
+        inner = self._inner(env)
+        return np.array(inner.sim.data.body_xpos[inner.obj_body_id[name]])
+
+    def _eef(self, env) -> tuple[np.ndarray, np.ndarray]:
+        robot = self._inner(env).robots[0]
+        return np.array(robot.controller.ee_pos), np.array(robot.controller.ee_ori_mat)
+
+    # -- plan -------------------------------------------------------------------------------
+    def reset(self, env) -> None:
+        """Plan waypoints from the current object poses (call after the env was reset)."""
+        p = self.params
+        picked, target = self._inner(env).obj_of_interest[:2]
+        self.picked_name, self.target_name = picked, target
+        _, self.goal_ori = self._eef(env)
+        obj = self._body_pos(env, picked)
+        if self.suite == "spatial":
+            side = self._free_side(env, obj)
+            grip = obj + np.array([0.0, side * p.bowl_rim_radius, p.bowl_rim_top])
+            self.grip_offset = grip - obj
+        else:
+            grip = obj.copy()
+            self.grip_offset = np.zeros(3)
+        self.grip_offset[2] += p.grasp_depth
+        self.phase = 0
+        self.phase_steps = 0
+        self.done = False
+        self.frozen_grip = None
+
+    def _free_side(self, env, obj: np.ndarray) -> float:
+        """+1 or -1: the rim side (along world y) with more room for the fingers.
+
+        Room = horizontal distance to the nearest other object's collision footprint, counting
+        only objects tall enough to meet the fingers; a tie goes to the side nearer y = 0.
+        """
+        p = self.params
+        finger_bottom = obj[2] + p.bowl_rim_top + p.grasp_depth - 0.035  # fingertips below eef
+        obstacles = [fp for fp in self._footprints(env) if fp[2] > finger_bottom]
+
+        def room(side: float) -> float:
+            point = obj[:2] + np.array([0.0, side * p.bowl_rim_radius])
+            return min((np.linalg.norm(centre - point) - radius for centre, radius, _ in obstacles),
+                       default=1.0)
+
+        plus, minus = room(1.0), room(-1.0)
+        if abs(plus - minus) < 0.01:
+            return -1.0 if obj[1] > 0 else 1.0
+        return 1.0 if plus > minus else -1.0
+
+    def _footprints(self, env) -> list[tuple[np.ndarray, float, float]]:
+        """(xy centre, horizontal radius, top z) of every other object's collision geoms."""
+        inner = self._inner(env)
+        model, data = inner.sim.model, inner.sim.data
+        picked = inner.obj_body_id[self.picked_name]
+        out = []
+        for name, body in inner.obj_body_id.items():
+            if body == picked:
+                continue
+            geoms = [g for g in range(model.ngeom) if model.geom_contype[g] != 0
+                     and self._root_of(model, model.geom_bodyid[g]) == body]
+            if not geoms:
+                continue
+            xy = data.geom_xpos[geoms, :2]
+            centre = xy.mean(axis=0)
+            half = [self._half_extents(model, data, g) for g in geoms]
+            radius = max(np.linalg.norm(xy[i] - centre) + np.linalg.norm(half[i][:2])
+                         for i in range(len(geoms)))
+            top = max(data.geom_xpos[g, 2] + half[i][2] for i, g in enumerate(geoms))
+            out.append((centre, float(radius), float(top)))
+        return out
+
+    @staticmethod
+    def _half_extents(model, data, geom: int) -> np.ndarray:
+        """World-axis half extents (3,) of a geom: exact for boxes, bounding sphere otherwise."""
+        if model.geom_type[geom] == 6:  # mjGEOM_BOX
+            rotation = data.geom_xmat[geom].reshape(3, 3)
+            return np.abs(rotation) @ model.geom_size[geom]
+        return np.full(3, model.geom_rbound[geom])
+
+    @staticmethod
+    def _root_of(model, body: int) -> int:
+        """The child of the world body that `body` hangs from (an object's own body id)."""
+        while model.body_parentid[body] != 0:
+            body = model.body_parentid[body]
+        return body
+
+    def _waypoints(self, env) -> list[tuple[np.ndarray, float, str]]:
+        """(eef target, gripper command, kind) for each phase, from the current poses."""
+        p = self.params
+        if self.phase == 0 or self.frozen_grip is None:
+            # The grasp point follows the object until the descent begins, then stays fixed.
+            self.frozen_grip = self._body_pos(env, self.picked_name) + self.grip_offset
+        grip = self.frozen_grip
+        target = self._body_pos(env, self.target_name)
+        up = np.array([0.0, 0.0, 1.0])
+        if self.suite == "spatial":
+            place = target + np.array([0.0, self.grip_offset[1], 0.0]) + up * p.release_height
+        else:
+            place = target + up * p.object_release_height
+        carry_z = max(target[2] + p.carry_height, grip[2] + p.min_lift)
+        carry = np.array([place[0], place[1], carry_z])
+        lift = np.array([grip[0], grip[1], carry_z])
+        return [
+            (grip + up * p.approach_height, OPEN, "transit"),
+            (grip, OPEN, "move"),
+            (grip, CLOSE, "grip"),
+            (lift, CLOSE, "transit"),
+            (carry, CLOSE, "transit"),
+            (place, CLOSE, "transit"),
+            (place, OPEN, "release"),
+            (place + up * p.approach_height, OPEN, "transit"),
+        ]
+
+    def __call__(self, env) -> np.ndarray:
+        """The next action (7,) float32 for `env` in its current state."""
+        p = self.params
+        pos, ori = self._eef(env)
+        waypoints = self._waypoints(env)
+        if self.phase >= len(waypoints):
+            self.done = True
+            target, gripper, kind = waypoints[-1]
+        else:
+            target, gripper, kind = waypoints[self.phase]
+        action = np.zeros(7, dtype=np.float32)
+        action[:3] = np.clip(p.gain * (target - pos), -1.0, 1.0)
+        action[3:6] = np.clip(p.rot_gain * _rotation_error(ori, self.goal_ori) / ROT_SCALE, -1.0, 1.0)
+        action[6] = gripper
+        self._advance(kind, np.linalg.norm(target - pos))
+        return action
+
+    def _advance(self, kind: str, error: float) -> None:
+        p = self.params
+        self.phase_steps += 1
+        if kind == "grip":
+            finished = self.phase_steps >= p.close_steps
+        elif kind == "release":
+            finished = self.phase_steps >= p.open_steps
+        else:
+            tolerance = p.transit_tolerance if kind == "transit" else p.tolerance
+            finished = error < tolerance or self.phase_steps >= p.waypoint_timeout
+        if finished and not self.done:
+            self.phase += 1
+            self.phase_steps = 0
