@@ -210,3 +210,46 @@ class ScriptedExpert:
         if finished and not self.done:
             self.phase += 1
             self.phase_steps = 0
+
+
+class ExpertPolicy:
+    """The scripted expert as a rollout `act`: (raw obs) -> (B, 1, 7) raw actions.
+
+    Privileged: it ignores the observation and reads the simulator, so run_rollouts hands it the
+    envs after each reset (`on_reset`). For known-answer tests of the rollout path only.
+    """
+
+    def __init__(self, suite: str, params: ExpertParams = ExpertParams()):
+        self.suite, self.params = suite, params
+        self.envs: list = []
+        self.experts: list[ScriptedExpert] = []
+
+    def on_reset(self, envs: list) -> None:
+        self.envs = list(envs)
+        self.experts = [ScriptedExpert(self.suite, self.params) for _ in self.envs]
+        for expert, env in zip(self.experts, self.envs):
+            expert.reset(env)
+
+    def __call__(self, raw: dict):
+        import torch
+
+        actions = [expert(env) for expert, env in zip(self.experts, self.envs)]
+        return torch.from_numpy(np.stack(actions)).float().unsqueeze(1)
+
+
+class ReplayPolicy:
+    """Replays a recorded action sequence (T, 7) one step per call: (B=1, 1, 7)."""
+
+    def __init__(self, actions: np.ndarray):
+        self.actions = np.asarray(actions, dtype=np.float32)
+        self.t = 0
+
+    def on_reset(self, envs: list) -> None:
+        self.t = 0
+
+    def __call__(self, raw: dict):
+        import torch
+
+        index = min(self.t, len(self.actions) - 1)
+        self.t += 1
+        return torch.from_numpy(self.actions[index]).view(1, 1, 7)

@@ -1,0 +1,309 @@
+"""Scripted demonstrations in real LIBERO scenes, written as a LeRobotDataset v3.
+
+For each task, the scripted expert (bench.sim.expert) runs from LIBERO's official init states in
+order (0, 1, 2, ...) until `episodes_per_task` episodes succeeded or `max_attempts` were tried;
+only successful episodes are kept. Each kept frame is what a policy sees (bench.sim.env.observe:
+LeRobot's preprocess_observation + LIBERO env processor, images turned 180 degrees) and the
+action the expert took there, so the data matches LeRobot's public LIBERO datasets: cameras
+observation.images.image / observation.images.wrist_image stored as "image" (H, W, 3) uint8,
+observation.state (8: eef xyz, eef axis-angle, 2 gripper joints), action (7: OSC_POSE delta,
+gripper -1 open / +1 close), 20 fps, one LIBERO instruction per episode.
+
+Resumable: every attempt is logged to `<work>/attempts.jsonl` and every kept episode staged as
+an .npz before the dataset is written, so an interrupted run continues where it stopped.
+Deterministic: each attempt's env seed derives from (seed, task, init state) only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+import time
+import uuid
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bench.paths import cache_dir
+from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY
+
+GENERATOR_VERSION = "1"  # bump when a change here (or in the expert) changes generated data
+EXPERT_SUCCESS_FILE = "expert_success.json"
+SUITE_FILE = "graftbench_suite.json"
+
+
+@dataclass(frozen=True)
+class DemoSpec:
+    """What to generate. Defaults: a small suite that builds in minutes on 2 CPU cores."""
+
+    suite: str = "spatial"
+    tasks: tuple[int, ...] = (0, 1, 2, 3)  # LIBERO task ids
+    episodes_per_task: int = 3  # successful episodes kept per task
+    max_attempts: int = 8  # init states tried per task (0, 1, ...) before giving up
+    seed: int = 0
+    max_steps: int = 280  # LeRobot's LIBERO-Spatial / -Object episode limit
+    image_size: int = 128  # public LeRobot LIBERO datasets: 256
+
+    def key(self) -> str:
+        """12 hex chars naming the content (generator version + every field)."""
+        blob = json.dumps({"version": GENERATOR_VERSION, **asdict(self)}, sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()[:12]
+
+
+DEFAULT_SPECS = {"spatial": DemoSpec("spatial"), "object": DemoSpec("object")}
+
+
+def repo_id(suite: str) -> str:
+    return f"graftbench/sim_libero_{suite}"
+
+
+def features(image_size: int) -> dict:
+    """LeRobot feature spec: LIBERO's names, images (H, W, C) stored as "image" (not video)."""
+    image = {"dtype": "image", "shape": (image_size, image_size, 3),
+             "names": ["height", "width", "channel"]}
+    return {
+        IMAGE_KEYS[0]: dict(image),
+        IMAGE_KEYS[1]: dict(image),
+        STATE_KEY: {"dtype": "float32", "shape": (8,), "names": ["x", "y", "z", "ax", "ay", "az",
+                                                                 "gripper_left", "gripper_right"]},
+        ACTION_KEY: {"dtype": "float32", "shape": (7,), "names": ["dx", "dy", "dz", "dax", "day",
+                                                                  "daz", "gripper"]},
+    }
+
+
+def episode_seed(seed: int, task: int, init_state: int) -> int:
+    """The env seed of one attempt: a function of (seed, task, init state) only."""
+    digest = hashlib.sha256(f"demo:{seed}:{task}:{init_state}".encode()).digest()
+    return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+@dataclass
+class Episode:
+    """One expert attempt: per-frame arrays (T, ...) and its outcome."""
+
+    task: int
+    init_state: int
+    success: bool
+    image: np.ndarray  # (T, H, W, 3) uint8, dataset orientation
+    wrist_image: np.ndarray  # (T, H, W, 3) uint8
+    state: np.ndarray  # (T, 8) float32
+    action: np.ndarray  # (T, 7) float32
+    seconds: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def steps(self) -> int:
+        return int(self.action.shape[0])
+
+
+def run_expert_episode(env, suite: str, task: int, init_state: int, seed: int,
+                       max_steps: int, description: str) -> Episode:
+    """Run the scripted expert once from `init_state`, recording every observed frame."""
+    from bench.sim import env as sim_env
+    from bench.sim.expert import ScriptedExpert
+
+    start = time.perf_counter()
+    obs = sim_env.reset_to(env, init_state, episode_seed(seed, task, init_state))
+    expert = ScriptedExpert(suite)
+    expert.reset(env)
+    images, wrists, states, actions = [], [], [], []
+    success = False
+    for _ in range(max_steps):
+        raw = sim_env.observe([obs], [description])
+        action = expert(env)
+        images.append(sim_env.to_uint8_hwc(raw[IMAGE_KEYS[0]][0]))
+        wrists.append(sim_env.to_uint8_hwc(raw[IMAGE_KEYS[1]][0]))
+        states.append(raw[STATE_KEY][0].numpy())
+        actions.append(action.astype(np.float32))
+        obs, _, terminated, _, info = env.step(action.astype(np.float64))
+        if info.get("is_success", False):
+            success = True
+            break
+    return Episode(task, init_state, success, np.stack(images), np.stack(wrists),
+                   np.stack(states).astype(np.float32), np.stack(actions).astype(np.float32),
+                   seconds=time.perf_counter() - start)
+
+
+class _Work:
+    """The resumable part: attempts log and staged episodes of one DemoSpec."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        (folder / "episodes").mkdir(parents=True, exist_ok=True)
+        self.log = folder / "attempts.jsonl"
+
+    def attempts(self) -> dict[tuple[int, int], dict]:
+        if not self.log.is_file():
+            return {}
+        rows = [json.loads(line) for line in self.log.read_text().splitlines() if line.strip()]
+        return {(r["task"], r["init_state"]): r for r in rows}
+
+    def episode_path(self, task: int, init_state: int) -> Path:
+        return self.folder / "episodes" / f"task{task:02d}_init{init_state:02d}.npz"
+
+    def record(self, episode: Episode) -> None:
+        if episode.success:  # stage first, then log: a logged success always has its data
+            path = self.episode_path(episode.task, episode.init_state)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+            np.savez_compressed(tmp, image=episode.image, wrist_image=episode.wrist_image,
+                                state=episode.state, action=episode.action)
+            tmp.replace(path)
+        row = {"task": episode.task, "init_state": episode.init_state,
+               "success": episode.success, "steps": episode.steps,
+               "seconds": round(episode.seconds, 2)}
+        with self.log.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+
+    def load(self, task: int, init_state: int) -> dict[str, np.ndarray]:
+        with np.load(self.episode_path(task, init_state)) as data:
+            return {k: data[k] for k in data.files}
+
+
+def run_attempts(spec: DemoSpec, work: _Work, progress: bool = True) -> dict[tuple[int, int], dict]:
+    """Run (or resume) the expert attempts of `spec`; returns the attempts log by (task, init)."""
+    import torch
+
+    from bench.sim import env as sim_env
+
+    torch.set_num_threads(1)
+    render = sim_env.RenderSettings(image_size=spec.image_size)
+    descriptions = sim_env.task_descriptions(spec.suite)
+    done = work.attempts()
+    for task in spec.tasks:
+        env = None
+        kept = sum(1 for (t, _), r in done.items() if t == task and r["success"])
+        for init_state in range(spec.max_attempts):
+            if kept >= spec.episodes_per_task:
+                break
+            if (task, init_state) in done:
+                continue
+            if env is None:
+                env = sim_env.make_env(spec.suite, task, render, max_steps=spec.max_steps)
+            episode = run_expert_episode(env, spec.suite, task, init_state, spec.seed,
+                                         spec.max_steps, descriptions[task])
+            work.record(episode)
+            done[(task, init_state)] = {"success": episode.success, "steps": episode.steps}
+            kept += int(episode.success)
+            if progress:
+                print(f"[sim demos] {spec.suite} task {task} init {init_state}: "
+                      f"{'success' if episode.success else 'failure'} in {episode.steps} steps "
+                      f"({episode.seconds:.1f} s); kept {kept}/{spec.episodes_per_task}",
+                      file=sys.stderr, flush=True)
+        if env is not None:
+            env.close()
+    return work.attempts()
+
+
+def expert_success(spec: DemoSpec, attempts: dict[tuple[int, int], dict]) -> dict:
+    """Per-task expert success over the attempts made (what generation measured)."""
+    per_task = {}
+    for task in spec.tasks:
+        rows = [r for (t, _), r in sorted(attempts.items()) if t == task]
+        wins = [r for r in rows if r["success"]]
+        per_task[str(task)] = {
+            "attempts": len(rows), "successes": len(wins),
+            "success_rate": len(wins) / len(rows) if rows else None,
+            "init_states_kept": [r["init_state"] for r in wins][: spec.episodes_per_task],
+            "median_steps_success": float(np.median([r["steps"] for r in wins])) if wins else None,
+            "mean_seconds": float(np.mean([r.get("seconds", 0.0) for r in rows])) if rows else None,
+        }
+    return per_task
+
+
+def write_dataset(spec: DemoSpec, work: _Work, attempts: dict, root: Path) -> Path:
+    """Write the kept episodes of `spec` as a LeRobotDataset at `root` (must not exist)."""
+    import datasets
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from bench.sim import env as sim_env
+
+    descriptions = sim_env.task_descriptions(spec.suite)
+    per_task = expert_success(spec, attempts)
+    bars = datasets.is_progress_bar_enabled()
+    datasets.disable_progress_bars()
+    try:
+        ds = LeRobotDataset.create(repo_id(spec.suite), fps=sim_env.CONTROL_HZ,
+                                   features=features(spec.image_size), root=root,
+                                   robot_type="panda", use_videos=False)
+        for task in spec.tasks:
+            for init_state in per_task[str(task)]["init_states_kept"]:
+                data = work.load(task, init_state)
+                for i in range(data["action"].shape[0]):
+                    ds.add_frame({IMAGE_KEYS[0]: data["image"][i],
+                                  IMAGE_KEYS[1]: data["wrist_image"][i],
+                                  STATE_KEY: data["state"][i], ACTION_KEY: data["action"][i],
+                                  "task": descriptions[task]})
+                ds.save_episode()
+        ds.finalize()
+    finally:
+        if bars:
+            datasets.enable_progress_bars()
+    shutil.rmtree(root / "images", ignore_errors=True)  # PNG staging, now inside the parquet
+    episodes = [{"task": task, "init_state": init}
+                for task in spec.tasks for init in per_task[str(task)]["init_states_kept"]]
+    (root / SUITE_FILE).write_text(json.dumps({
+        "name": spec.suite, "source": "sim", "generator_version": GENERATOR_VERSION,
+        **asdict(spec), "render": sim_env.RenderSettings(image_size=spec.image_size).as_dict(),
+        "libero_task_ids": list(spec.tasks), "episodes": episodes,
+    }, indent=1))
+    (root / EXPERT_SUCCESS_FILE).write_text(json.dumps(per_task, indent=1))
+    return root
+
+
+def generate(spec: DemoSpec, root: str | Path | None = None, progress: bool = True) -> Path:
+    """Generate (or resume, or reuse) the demonstration suite of `spec`; returns its folder."""
+    final = Path(root) if root is not None else suite_path(spec)
+    if (final / "meta" / "info.json").is_file():
+        return final
+    work = _Work(final.parent / f"{final.name}.work")
+    attempts = run_attempts(spec, work, progress)
+    short = {t: r["successes"] for t, r in expert_success(spec, attempts).items()
+             if r["successes"] < spec.episodes_per_task}
+    if short and progress:
+        print(f"[sim demos] fewer than {spec.episodes_per_task} successes for tasks {short} "
+              f"within {spec.max_attempts} attempts", file=sys.stderr)
+    tmp = final.parent / f".tmp-{final.name}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    try:
+        write_dataset(spec, work, attempts, tmp)
+        try:
+            os.rename(tmp, final)
+        except OSError:  # another process finished first: keep theirs
+            if not (final / "meta" / "info.json").is_file():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final
+
+
+def suite_path(spec: DemoSpec) -> Path:
+    """Where the dataset of `spec` lives (cache dir, keyed on its content)."""
+    return cache_dir() / "sim_suites" / f"{spec.suite}-{spec.key()}"
+
+
+def main(argv: list[str] | None = None) -> None:
+    """python -m bench.sim.demos [--suite spatial] [--tasks 0,1,2,3] [--episodes 3] ..."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    d = DemoSpec()
+    parser.add_argument("--suite", default=d.suite, choices=["spatial", "object"])
+    parser.add_argument("--tasks", default=",".join(map(str, d.tasks)))
+    parser.add_argument("--episodes", type=int, default=d.episodes_per_task)
+    parser.add_argument("--max-attempts", type=int, default=d.max_attempts)
+    parser.add_argument("--seed", type=int, default=d.seed)
+    parser.add_argument("--image-size", type=int, default=d.image_size)
+    parser.add_argument("--root", default=None, help="output folder (default: the cache)")
+    args = parser.parse_args(argv)
+    spec = DemoSpec(args.suite, tuple(int(t) for t in args.tasks.split(",")), args.episodes,
+                    args.max_attempts, args.seed, d.max_steps, args.image_size)
+    path = generate(spec, args.root)
+    print(path)
+    print((path / EXPERT_SUCCESS_FILE).read_text())
+
+
+if __name__ == "__main__":
+    main()
