@@ -26,6 +26,11 @@ from bench.analysis_transfer import rank_agreement
 DEFAULT_RESAMPLES = 1000
 
 
+def rolled_out(record: dict) -> bool:
+    """The record carries closed-loop episodes (not absent, not skipped)."""
+    return bool((record.get("rollouts") or {}).get("episodes"))
+
+
 def item_label(record: dict) -> str:
     """What a cell is, seeds aside: 'dinov2_s', 'native', 'pixels zero_image/eval'."""
     kind, encoder, variant = record["kind"], record.get("encoder"), record.get("variant")
@@ -82,7 +87,7 @@ def closed_loop(records: Sequence[dict], backbone: str, suite: str, *,
     """Agreement of offline MSE and success over the rolled-out cells of backbone x suite."""
     out = ClosedLoop(backbone, suite, n_resamples=n_resamples)
     rolled = [r for r in records if r["backbone"] == backbone and r["suite"] == suite
-              and r.get("rollouts")]
+              and rolled_out(r)]
     if not rolled:
         out.missing = "no cell with rollouts (run with --rollouts N on a simulated suite)"
         return out
@@ -131,5 +136,5 @@ def closed_loop(records: Sequence[dict], backbone: str, suite: str, *,
 
 def closed_loop_all(records: Sequence[dict], **kwargs) -> list[ClosedLoop]:
     """One ClosedLoop per backbone x suite that has at least one rolled-out cell."""
-    pairs = sorted({(r["backbone"], r["suite"]) for r in records if r.get("rollouts")})
+    pairs = sorted({(r["backbone"], r["suite"]) for r in records if rolled_out(r)})
     return [closed_loop(records, b, s, **kwargs) for b, s in pairs]

@@ -35,6 +35,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--results-dir", help="results store (default .graftbench/results/<profile>)")
     g.addoption("--report", help="where REPORT.md goes (default: REPORT.md at the repo root)")
     g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
+    g.addoption("--rollouts", type=int, default=0, metavar="N",
+                help="also roll every cell out in the LIBERO simulator, N episodes per task "
+                     "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
     g.addoption("--features", default="cache", choices=("cache", "loop"),
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
     _add_executor_options(g)
@@ -117,6 +120,9 @@ class GraftSession:
         self.report_path = Path(report) if report else REPO_ROOT / "REPORT.md"
         self.rerun = bool(config.getoption("--rerun"))
         self.features_mode = config.getoption("--features")
+        self.rollouts = int(config.getoption("--rollouts") or 0)
+        if self.rollouts < 0:
+            raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
         self._workspace = None
         self._store = None
         self.selected: list[str] = []
@@ -138,15 +144,19 @@ class GraftSession:
 
         if self._workspace is None:
             quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
-            self._workspace = Workspace(self.profile, self.store, progress=not quiet)
+            self._workspace = Workspace(self.profile, self.store, progress=not quiet,
+                                        rollouts=self.rollouts)
         return self._workspace
 
     def run(self, cell: CellSpec) -> dict:
         """The stored record when current (resume), else measure the cell now."""
+        from bench.closed_loop import has_rollouts
         from bench.runner import run_cell
 
         if not self.rerun:
             record = self.store.current(cell.id, self.profile.protocol.hash)
+            if record is not None and self.rollouts and not has_rollouts(record, self.rollouts):
+                record = None  # offline part is current, closed loop is not: measure again
             if record is not None:
                 self.resumed.append(cell.id)
                 return record

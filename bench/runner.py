@@ -15,6 +15,7 @@ from bench.graft import GraftFeed, Projector, assert_only_trainable, trainable_p
 from bench.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
+from bench.closed_loop import cell_rollouts
 from bench.suites.windows import raw_batch
 from bench.train import FitConfig, fit, frozen_autocast
 from bench.workspace import Workspace
@@ -186,6 +187,12 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
     scores = score(backbone, suite, split.windows, p.eval_batch_size, p.eval_noise_seed,
                    feed=feed, features_for=features_for, images_for=images_for)
     timings["eval"] = time.perf_counter() - t0
+    rollouts = None
+    if ws.rollouts:
+        t0 = time.perf_counter()
+        rollouts = cell_rollouts(cell, suite, backbone, ws.rollouts, feed=feed, encoder=encoder,
+                                 grid=grid, progress=ws.progress)
+        timings["rollouts"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
 
     ref = cell.reference
@@ -207,6 +214,8 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
         "versions": versions(), "git_commit": git_commit(),
         "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
     }
+    if rollouts is not None:
+        record["rollouts"] = rollouts
     ws.store.write(record)
     return record
 

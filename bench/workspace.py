@@ -34,6 +34,8 @@ class Workspace:
     profile: Profile
     store: ResultStore
     progress: bool = True
+    # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
+    rollouts: int = 0
     cache: Path = field(default_factory=cache_dir)
     _suites: dict = field(default_factory=dict)
     _splits: dict = field(default_factory=dict)
