@@ -31,7 +31,7 @@ import numpy as np
 from bench.paths import cache_dir
 from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 
-GENERATOR_VERSION = "1"  # bump when a change here (or in the expert) changes generated data
+GENERATOR_VERSION = "2"  # bump when a change here (or in the expert) changes generated data
 EXPERT_SUCCESS_FILE = "expert_success.json"
 SUITE_FILE = "graftbench_suite.json"
 
@@ -54,7 +54,8 @@ class DemoSpec:
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
-DEFAULT_SPECS = {"spatial": DemoSpec("spatial"), "object": DemoSpec("object")}
+# Suites the "sim" source serves (LIBERO-Object's expert is not validated yet: spatial only).
+DEFAULT_SPECS = {"spatial": DemoSpec("spatial")}
 
 
 def repo_id(suite: str) -> str:
@@ -282,6 +283,26 @@ def generate(spec: DemoSpec, root: str | Path | None = None, progress: bool = Tr
 def suite_path(spec: DemoSpec) -> Path:
     """Where the dataset of `spec` lives (cache dir, keyed on its content)."""
     return cache_dir() / "sim_suites" / f"{spec.suite}-{spec.key()}"
+
+
+def sim_suite(name: str, root: str | Path | None = None) -> Path:
+    """Folder of the generated "sim" suite `name` (generated on first use; needs the extra)."""
+    from bench.suites.base import SuiteUnavailable
+
+    if name not in DEFAULT_SPECS:
+        raise ValueError(f"suite {name!r} has no simulated version; choose one of "
+                         f"{sorted(DEFAULT_SPECS)}")
+    spec = DEFAULT_SPECS[name]
+    path = Path(root) if root is not None else suite_path(spec)
+    if (path / "meta" / "info.json").is_file():
+        return path
+    from bench.sim import env as sim_env
+
+    if not sim_env.libero_available():
+        raise SuiteUnavailable(f"sim suite {name!r} is not generated at {path} and the LIBERO "
+                               f"simulator is missing; {sim_env.INSTALL_HINT}, then "
+                               f"`.venv/bin/python -m bench.sim.demos --suite {name}`")
+    return generate(spec, path)
 
 
 def main(argv: list[str] | None = None) -> None:

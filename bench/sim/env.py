@@ -180,7 +180,14 @@ def num_init_states(env) -> int:
 
 
 def reset_to(env, init_state: int, seed: int) -> dict:
-    """Reset `env` to official init state `init_state` (seeded); LiberoEnv's raw observation."""
+    """Reset `env` to official init state `init_state` (seeded); LiberoEnv's raw observation.
+
+    Deterministic whatever ran before: the Panda gripper's command integrator
+    (gripper.current_action) survives soft resets, so the settle steps would start from the
+    previous episode's last command; it is zeroed here, as in a freshly built env.
+    """
+    for robot in env._env.robots:
+        robot.gripper.current_action = np.zeros(robot.gripper.dof)
     env.init_state_id = int(init_state)
     obs, _ = env.reset(seed=int(seed))
     return obs

@@ -2,7 +2,9 @@
 
 source "tiny": a small suite generated offline (bench.suites.synthetic), cached on disk.
 source "hub": the real LIBERO dataset from a local root or the Hugging Face cache
-(bench.suites.libero). Either way the data is read back through `LeRobotDataset`.
+(bench.suites.libero). source "sim": scripted demonstrations in real LIBERO scenes, generated
+once with the `libero` extra (bench.sim.demos) and cached. Either way the data is read back
+through `LeRobotDataset`.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from bench.suites.base import (
     SuiteUnavailable,
 )
 
-SOURCES = ("tiny", "hub")
+SOURCES = ("tiny", "hub", "sim")
 FINGERPRINT_IMAGE_SAMPLES = 32  # hub suites: frames whose image bytes enter the fingerprint
 
 
@@ -41,7 +43,7 @@ SUITES: dict[str, SuiteSpec] = {
 
 
 def load_suite(name: str, source: str, root: str | Path | None = None) -> Suite:
-    """Load suite `name` from `source` ("tiny" | "hub"); `root`: optional local LIBERO folder."""
+    """Load suite `name` from `source` ("tiny" | "hub" | "sim"); `root`: optional local folder."""
     if name not in SUITES:
         raise ValueError(f"unknown suite {name!r}; valid names: {sorted(SUITES)}")
     if source == "tiny":
@@ -57,6 +59,15 @@ def load_suite(name: str, source: str, root: str | Path | None = None) -> Suite:
         return suite_from_dataset(name, ds, images_in_memory=True)
     if source == "hub":
         return suite_from_dataset(name, libero.open_dataset(name, root), images_in_memory=False)
+    if source == "sim":
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        from bench.sim import demos
+
+        path = demos.sim_suite(name, root)
+        ds = LeRobotDataset(demos.repo_id(name), root=path)
+        libero.validate_features(ds.features, demos.repo_id(name))
+        return suite_from_dataset(name, ds, images_in_memory=True)
     raise ValueError(f"unknown suite source {source!r}; choose one of {list(SOURCES)}")
 
 

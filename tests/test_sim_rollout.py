@@ -1,0 +1,68 @@
+"""Closed-loop rollouts: known answers through the rollout path (expert, zero actions), pairing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from bench.sim import env as sim_env
+from bench.sim.rollout import RolloutSpec, rollout_env_seed, rollout_init_state, wilson_interval
+
+
+def test_wilson_interval_known_answers():
+    lo, hi = wilson_interval(0, 1)
+    assert lo == 0.0 and hi == pytest.approx(1.96**2 / (1 + 1.96**2), abs=1e-3)
+    lo, hi = wilson_interval(5, 10)
+    assert lo == pytest.approx(0.2366, abs=1e-3) and hi == pytest.approx(0.7634, abs=1e-3)
+
+
+def test_init_states_and_seeds_depend_on_the_spec_only():
+    assert [rollout_init_state(e, 50) for e in range(3)] == [49, 48, 47]
+    assert rollout_env_seed(0, 1, 2) == rollout_env_seed(0, 1, 2) != rollout_env_seed(1, 1, 2)
+    with pytest.raises(ValueError, match="suite"):
+        RolloutSpec("goal", (0,), 1, 0, 10, 1)
+
+
+needs_libero = pytest.mark.skipif(not sim_env.libero_available(),
+                                  reason="libero extra not installed (bash scripts/install_libero.sh)")
+SMALL = sim_env.RenderSettings(image_size=64)
+
+
+@needs_libero
+def test_scripted_expert_as_policy_succeeds():
+    from bench.sim.expert import ExpertPolicy
+    from bench.sim.rollout import run_rollouts
+
+    spec = RolloutSpec("spatial", tasks=(0,), episodes_per_task=1, seed=0, max_steps=200,
+                       n_action_steps=1)
+    result = run_rollouts(ExpertPolicy("spatial"), spec, progress=False, render=SMALL)
+    assert result["success_rate"] == 1.0
+    (episode,) = result["episodes"]
+    assert episode["success"] and episode["init_state"] == 49 and episode["steps"] < 200
+    assert result["per_task"]["0"]["successes"] == 1
+    assert result["settings"]["render"]["image_size"] == 64
+
+
+@needs_libero
+def test_zero_action_policy_never_succeeds_and_sees_dataset_conventions():
+    from bench.sim.rollout import run_rollouts
+
+    seen = []
+
+    def zero_act(raw: dict) -> torch.Tensor:
+        seen.append(raw)
+        return torch.zeros(len(raw["task"]), 10, 7)
+
+    spec = RolloutSpec("spatial", tasks=(0,), episodes_per_task=1, seed=0, max_steps=40,
+                       n_action_steps=10)
+    result = run_rollouts(zero_act, spec, progress=False, render=SMALL)
+    assert result["success_rate"] == 0.0 and result["episodes"][0]["steps"] == 40
+    assert len(seen) == 4  # 40 steps / 10 executed per chunk
+    raw = seen[0]
+    assert raw["observation.images.image"].shape == (1, 3, 64, 64)
+    assert raw["observation.images.wrist_image"].dtype == torch.float32
+    assert 0.0 <= float(raw["observation.images.image"].min()) <= 1.0
+    assert raw["observation.state"].shape == (1, 8)
+    assert raw["task"] == [sim_env.task_descriptions("spatial")[0]]
+    assert np.isfinite(raw["observation.state"].numpy()).all()
