@@ -33,7 +33,8 @@ class ExpertParams:
     bowl_rim_radius: float = 0.047  # akita black bowl: wall boxes at 4.7 cm from the centre
     bowl_rim_top: float = 0.053  # wall top above the bowl body's origin
     release_height: float = 0.07  # eef above the target's origin when opening (bowl on plate)
-    object_release_height: float = 0.16  # LIBERO-Object: above the basket origin
+    object_grip_below_top: float = 0.03  # LIBERO-Object: eef this far under the item's top
+    object_drop_margin: float = 0.03  # LIBERO-Object: item bottom above the basket rim on release
     gain: float = 12.0  # action units per metre of position error (then clipped to [-1, 1])
     rot_gain: float = 1.0  # action units per radian of orientation error
     tolerance: float = 0.012  # metres: a precise waypoint (grasp point) counts as reached
@@ -86,10 +87,18 @@ class ScriptedExpert:
         if self.suite == "spatial":
             side = self._free_side(env, obj)
             grip = obj + np.array([0.0, side * p.bowl_rim_radius, p.bowl_rim_top])
-            self.grip_offset = grip - obj
         else:
-            grip = obj.copy()
-            self.grip_offset = np.zeros(3)
+            # Grocery item: its collision box centre in xy, a few cm under its top (not below
+            # 2.8 cm over its bottom: the fingertips reach ~2 cm under the eef).
+            lo, hi = self._aabb(env, picked)
+            grip = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2,
+                             max(hi[2] - p.object_grip_below_top, lo[2] + 0.028)])
+            basket_lo, basket_hi = self._aabb(env, target)
+            # Release with the item's bottom a little above the basket's rim, over its centre.
+            self.object_place = np.array([(basket_lo[0] + basket_hi[0]) / 2,
+                                          (basket_lo[1] + basket_hi[1]) / 2,
+                                          basket_hi[2] + (grip[2] - lo[2]) + p.object_drop_margin])
+        self.grip_offset = grip - obj
         self.grip_offset[2] += p.grasp_depth
         self.phase = 0
         self.phase_steps = 0
@@ -115,6 +124,16 @@ class ScriptedExpert:
         if abs(plus - minus) < 0.01:
             return -1.0 if obj[1] > 0 else 1.0
         return 1.0 if plus > minus else -1.0
+
+    def _aabb(self, env, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned box (lo (3,), hi (3,)) around an object's collision geoms."""
+        inner = self._inner(env)
+        model, data = inner.sim.model, inner.sim.data
+        body = inner.obj_body_id[name]
+        geoms = [g for g in range(model.ngeom) if model.geom_contype[g] != 0
+                 and self._root_of(model, model.geom_bodyid[g]) == body]
+        half = np.array([self._half_extents(model, data, g) for g in geoms])
+        return (data.geom_xpos[geoms] - half).min(axis=0), (data.geom_xpos[geoms] + half).max(axis=0)
 
     def _footprints(self, env) -> list[tuple[np.ndarray, float, float]]:
         """(xy centre, horizontal radius, top z) of every other object's collision geoms."""
@@ -165,8 +184,8 @@ class ScriptedExpert:
         if self.suite == "spatial":
             place = target + np.array([0.0, self.grip_offset[1], 0.0]) + up * p.release_height
         else:
-            place = target + up * p.object_release_height
-        carry_z = max(target[2] + p.carry_height, grip[2] + p.min_lift)
+            place = self.object_place
+        carry_z = max(target[2] + p.carry_height, grip[2] + p.min_lift, place[2] + 0.05)
         carry = np.array([place[0], place[1], carry_z])
         lift = np.array([grip[0], grip[1], carry_z])
         return [
