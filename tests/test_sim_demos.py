@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from bench.sim import env as sim_env
 
@@ -100,3 +101,13 @@ def test_generation_is_deterministic(dataset, tmp_path):
     first, second = _columns(dataset, keys), _columns(again, keys)
     for key in keys:
         np.testing.assert_array_equal(first[key], second[key], err_msg=key)
+
+
+def test_load_suite_sim_source_reads_the_generated_dataset(demo_root, dataset):
+    from bench.suites import load_suite
+
+    suite = load_suite("spatial", "sim", root=demo_root)
+    assert suite.repo_id == demos.repo_id("spatial") and suite.fps == sim_env.CONTROL_HZ
+    assert suite.num_frames == dataset.num_frames and suite.state.shape[1] == 8
+    images = suite.images(torch.arange(2))
+    assert images[IMAGE_KEYS[0]].shape == (2, 3, 64, 64)

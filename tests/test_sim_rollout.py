@@ -24,6 +24,14 @@ def test_init_states_and_seeds_depend_on_the_spec_only():
         RolloutSpec("goal", (0,), 1, 0, 10, 1)
 
 
+def test_sim_suite_without_the_extra_fails_in_one_line(monkeypatch, tmp_path):
+    from bench.suites import SuiteUnavailable, load_suite
+
+    monkeypatch.setattr(sim_env, "libero_available", lambda: False)
+    with pytest.raises(SuiteUnavailable, match="install_libero.sh"):
+        load_suite("spatial", "sim", root=tmp_path / "absent")
+
+
 needs_libero = pytest.mark.skipif(not sim_env.libero_available(),
                                   reason="libero extra not installed (bash scripts/install_libero.sh)")
 SMALL = sim_env.RenderSettings(image_size=64)

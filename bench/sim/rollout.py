@@ -106,7 +106,17 @@ def run_rollouts(act: ActFn, spec: RolloutSpec, progress: bool = True,
     "task": list[str]}; B = 1 here (one env stepped at a time: 2 cores gain nothing from more).
     """
     render = render or sim_env.RenderSettings()
-    torch.set_num_threads(1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # 2 shared cores: one thread each for sim and policy is faster
+    try:
+        episodes, seconds = _run_all(act, spec, progress, render)
+    finally:
+        torch.set_num_threads(threads)
+    return summarise(episodes, spec, render, seconds)
+
+
+def _run_all(act: ActFn, spec: RolloutSpec, progress: bool,
+             render: sim_env.RenderSettings) -> tuple[list[dict], float]:
     descriptions = sim_env.task_descriptions(spec.suite)
     episodes = []
     start = time.perf_counter()
@@ -126,7 +136,7 @@ def run_rollouts(act: ActFn, spec: RolloutSpec, progress: bool = True,
                           file=sys.stderr, flush=True)
         finally:
             env.close()
-    return summarise(episodes, spec, render, time.perf_counter() - start)
+    return episodes, time.perf_counter() - start
 
 
 def replay(actions: np.ndarray, suite: str, task: int, init_state: int, env_seed: int,
