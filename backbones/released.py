@@ -22,6 +22,8 @@ import torch
 
 from backbones import adapter_module, get_entry
 from bench.protocol import Profile
+from bench.provenance import stable_seed
+from bench.suites.base import STATE_KEY
 from bench.train import FitConfig, fit
 
 RELEASE_VERSION = "1"
@@ -60,6 +62,7 @@ def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str)
         "v": RELEASE_VERSION, "backbone": name, "chunk": chunk_size, "arch": arch,
         "suites": sorted(s.fingerprint for s in suites),
         "native_steps": p.native_steps, "native_lr": p.native_lr, "batch": p.batch_size,
+        "state_dropout": [p.native_state_dropout, p.native_state_dropout_warmup],
         "split_seed": p.split_seed, "heldout": p.heldout_episodes_per_task,
     }, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
@@ -67,6 +70,15 @@ def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str)
 
 def tiny_release_dir(cache: Path, name: str, key: str) -> Path:
     return cache / "released" / f"{name}-{key}"
+
+
+def drop_states(states: torch.Tensor, rate: float, mean: torch.Tensor,
+                generator: torch.Generator) -> torch.Tensor:
+    """(B, S) states with each row replaced by `mean` with probability `rate`."""
+    if rate <= 0:
+        return states
+    drop = torch.rand(states.shape[0], generator=generator) < rate
+    return torch.where(drop[:, None], mean.to(states.dtype), states)
 
 
 def train_tiny_release(name: str, backbone, profile: Profile, suites, train_frames, folder: Path,
@@ -85,6 +97,11 @@ def train_tiny_release(name: str, backbone, profile: Profile, suites, train_fram
         for i, s in enumerate(suites)
     ])
 
+    p = profile.protocol
+    state_mean = torch.cat([s.state[train_frames[s.name]] for s in suites]).mean(0)
+    dropout = torch.Generator().manual_seed(stable_seed("native-state-dropout", name))
+    calls = [0]
+
     def next_batch(rows):
         raws = [raw_batch(suites[i], rows[rows[:, 0] == i][:, 1], chunk_size, with_images=True)
                 for i in range(len(suites)) if (rows[:, 0] == i).any()]
@@ -92,9 +109,11 @@ def train_tiny_release(name: str, backbone, profile: Profile, suites, train_fram
         for key in raws[0]:
             vals = [r[key] for r in raws]
             merged[key] = sum(vals, []) if isinstance(vals[0], list) else torch.cat(vals)
+        calls[0] += 1  # one call per optimiser step (the probe never runs here)
+        rate = 1.0 if calls[0] <= p.native_state_dropout_warmup else p.native_state_dropout
+        merged[STATE_KEY] = drop_states(merged[STATE_KEY], rate, state_mean, dropout)
         return merged, None
 
-    p = profile.protocol
     cfg = FitConfig(steps=p.native_steps, batch_size=p.batch_size, lr=p.native_lr,
                     weight_decay=0.0, warmup_steps=max(1, p.native_steps // 20), grad_clip=1.0,
                     log_every=max(1, p.native_steps // 20))

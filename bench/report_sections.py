@@ -88,9 +88,13 @@ def caveats(ctx: ReportContext) -> str:
     hashes = sorted({r.get("protocol_hash", "?") for r in ctx.records})
     protocol = ctx.records[0].get("protocol", {}) if ctx.records else {}
     wrapper = [f"{b} x {s}: {ctx.wrapper_text(b, s)}" for b, s in sorted(ctx.wrapper)]
+    rolled = sum(1 for cl in ctx.closed_loop for n in cl.n_episodes if n)
     lines = [
-        "**Offline action MSE is not closed-loop task success.** No simulator rollouts were run; "
-        "this is a pre-commitment diagnostic for choosing an encoder, not a deployment claim.",
+        "**Offline action MSE is not closed-loop task success.** "
+        + (f"Rollouts in the LIBERO simulator were run for {rolled} rolled-out item(s): see "
+           "'Closed loop' for how far the two rankings agree; elsewhere this is "
+           if rolled else "No simulator rollouts were run; this is ")
+        + "a pre-commitment diagnostic for choosing an encoder, not a deployment claim.",
         "**Conclusions are conditional on the fixed wrapper** (adaptive average pool to the "
         "native token grid, LayerNorm without affine, one trainable Linear). Its neutrality "
         "delta (native-wrapped vs native) is shown beside every ranking: "

@@ -47,7 +47,7 @@ class Workspace:
 
     def suite(self, name: str):
         if name not in self._suites:
-            self._suites[name] = load_suite(name, self.profile.source)
+            self._suites[name] = load_suite(name, self.profile.data_source)
         return self._suites[name]
 
     def split(self, name: str) -> Split:
@@ -82,7 +82,7 @@ class Workspace:
     def released_suites(self) -> tuple[str, ...]:
         # The tiny release is trained on both tiny suites whatever -k selects, so its cache key
         # (and every number measured on it) does not depend on the selection.
-        return ("spatial", "object") if self.profile.source == "tiny" else self.profile.suites
+        return ("spatial", "object") if self.profile.data_source == "tiny" else self.profile.suites
 
     def encoder(self, name: str):
         if name not in self._encoders:
