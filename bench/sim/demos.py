@@ -31,7 +31,7 @@ import numpy as np
 from bench.paths import cache_dir
 from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 
-GENERATOR_VERSION = "2"  # bump when a change here (or in the expert) changes generated data
+GENERATOR_VERSION = "3"  # bump when a change here (or in the expert) changes generated data
 EXPERT_SUCCESS_FILE = "expert_success.json"
 SUITE_FILE = "graftbench_suite.json"
 
@@ -54,8 +54,10 @@ class DemoSpec:
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
-# Suites the "sim" source serves (LIBERO-Object's expert is not validated yet: spatial only).
-DEFAULT_SPECS = {"spatial": DemoSpec("spatial")}
+# The suites the "sim" source serves: four tasks each where the expert measured 10/10 (spatial)
+# or 5/5 (object) from init states 0.. (docs/LIBERO_SIM.md).
+DEFAULT_SPECS = {"spatial": DemoSpec("spatial", tasks=(0, 1, 2, 3)),
+                 "object": DemoSpec("object", tasks=(0, 2, 3, 4))}
 
 
 def repo_id(suite: str) -> str:

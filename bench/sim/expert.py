@@ -32,11 +32,13 @@ class ExpertParams:
     grasp_depth: float = 0.0  # eef height over the grip reference (rim top / object centre)
     bowl_rim_radius: float = 0.047  # akita black bowl: wall boxes at 4.7 cm from the centre
     bowl_rim_top: float = 0.053  # wall top above the bowl body's origin
+    rim_room: float = 0.03  # metres of free space a rim grasp point needs around it
     release_height: float = 0.07  # eef above the target's origin when opening (bowl on plate)
     object_grip_below_top: float = 0.03  # LIBERO-Object: eef this far under the item's top
     object_drop_margin: float = 0.03  # LIBERO-Object: item bottom above the basket rim on release
     gain: float = 12.0  # action units per metre of position error (then clipped to [-1, 1])
     rot_gain: float = 1.0  # action units per radian of orientation error
+    rot_tolerance: float = 0.05  # radians: the gripper must be turned this well before grasping
     tolerance: float = 0.012  # metres: a precise waypoint (grasp point) counts as reached
     transit_tolerance: float = 0.03  # metres: a transit waypoint (loaded arm sags a little)
     close_steps: int = 12
@@ -85,8 +87,11 @@ class ScriptedExpert:
         _, self.goal_ori = self._eef(env)
         obj = self._body_pos(env, picked)
         if self.suite == "spatial":
-            side = self._free_side(env, obj)
-            grip = obj + np.array([0.0, side * p.bowl_rim_radius, p.bowl_rim_top])
+            offset, yaw = self._rim_grasp(env, obj)
+            grip = obj + np.array([offset[0], offset[1], p.bowl_rim_top])
+            turn = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0],
+                             [0.0, 0.0, 1.0]])
+            self.goal_ori = turn @ self.goal_ori
         else:
             # Grocery item: its collision box centre in xy, a few cm under its top (not below
             # 2.8 cm over its bottom: the fingertips reach ~2 cm under the eef).
@@ -105,35 +110,34 @@ class ScriptedExpert:
         self.done = False
         self.frozen_grip = None
 
-    def _free_side(self, env, obj: np.ndarray) -> float:
-        """+1 or -1: the rim side (along world y) with more room for the fingers.
+    def _rim_grasp(self, env, obj: np.ndarray) -> tuple[np.ndarray, float]:
+        """(xy offset of the grasp point from the bowl centre, gripper yaw in radians).
 
-        Room = horizontal distance to the nearest other object's collision footprint, counting
-        only objects tall enough to meet the fingers; a tie goes to the side nearer y = 0.
+        Four rim points: +-y with the start orientation (fingers close along world y) and +-x
+        with the gripper turned 90 degrees. Room = horizontal distance to the nearest taller
+        neighbour's collision footprint; among points with enough room, the one nearest the
+        robot base wins (the far side can be out of comfortable reach), else the roomiest.
         """
         p = self.params
         finger_bottom = obj[2] + p.bowl_rim_top + p.grasp_depth - 0.035  # fingertips below eef
         obstacles = [fp for fp in self._footprints(env) if fp[2] > finger_bottom]
+        base = np.array(self._inner(env).robots[0].base_pos)[:2]
+        r = p.bowl_rim_radius
+        candidates = [(np.array([0.0, r]), 0.0), (np.array([0.0, -r]), 0.0),
+                      (np.array([r, 0.0]), np.pi / 2), (np.array([-r, 0.0]), np.pi / 2)]
 
-        def room(side: float) -> float:
-            point = obj[:2] + np.array([0.0, side * p.bowl_rim_radius])
+        def room(offset: np.ndarray) -> float:
+            point = obj[:2] + offset
             return min((np.linalg.norm(centre - point) - radius for centre, radius, _ in obstacles),
                        default=1.0)
 
-        plus, minus = room(1.0), room(-1.0)
-        if abs(plus - minus) < 0.01:
-            return -1.0 if obj[1] > 0 else 1.0
-        return 1.0 if plus > minus else -1.0
-
-    def _aabb(self, env, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """World axis-aligned box (lo (3,), hi (3,)) around an object's collision geoms."""
-        inner = self._inner(env)
-        model, data = inner.sim.model, inner.sim.data
-        body = inner.obj_body_id[name]
-        geoms = [g for g in range(model.ngeom) if model.geom_contype[g] != 0
-                 and self._root_of(model, model.geom_bodyid[g]) == body]
-        half = np.array([self._half_extents(model, data, g) for g in geoms])
-        return (data.geom_xpos[geoms] - half).min(axis=0), (data.geom_xpos[geoms] + half).max(axis=0)
+        rooms = [room(offset) for offset, _ in candidates]
+        roomy = [i for i, value in enumerate(rooms) if value >= p.rim_room]
+        if roomy:
+            best = min(roomy, key=lambda i: np.linalg.norm(obj[:2] + candidates[i][0] - base))
+        else:
+            best = int(np.argmax(rooms))
+        return candidates[best]
 
     def _footprints(self, env) -> list[tuple[np.ndarray, float, float]]:
         """(xy centre, horizontal radius, top z) of every other object's collision geoms."""
@@ -156,6 +160,16 @@ class ScriptedExpert:
             top = max(data.geom_xpos[g, 2] + half[i][2] for i, g in enumerate(geoms))
             out.append((centre, float(radius), float(top)))
         return out
+
+    def _aabb(self, env, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned box (lo (3,), hi (3,)) around an object's collision geoms."""
+        inner = self._inner(env)
+        model, data = inner.sim.model, inner.sim.data
+        body = inner.obj_body_id[name]
+        geoms = [g for g in range(model.ngeom) if model.geom_contype[g] != 0
+                 and self._root_of(model, model.geom_bodyid[g]) == body]
+        half = np.array([self._half_extents(model, data, g) for g in geoms])
+        return (data.geom_xpos[geoms] - half).min(axis=0), (data.geom_xpos[geoms] + half).max(axis=0)
 
     @staticmethod
     def _half_extents(model, data, geom: int) -> np.ndarray:
@@ -182,7 +196,8 @@ class ScriptedExpert:
         target = self._body_pos(env, self.target_name)
         up = np.array([0.0, 0.0, 1.0])
         if self.suite == "spatial":
-            place = target + np.array([0.0, self.grip_offset[1], 0.0]) + up * p.release_height
+            place = target + np.array([self.grip_offset[0], self.grip_offset[1], 0.0]) \
+                + up * p.release_height
         else:
             place = self.object_place
         carry_z = max(target[2] + p.carry_height, grip[2] + p.min_lift, place[2] + 0.05)
@@ -211,12 +226,13 @@ class ScriptedExpert:
             target, gripper, kind = waypoints[self.phase]
         action = np.zeros(7, dtype=np.float32)
         action[:3] = np.clip(p.gain * (target - pos), -1.0, 1.0)
-        action[3:6] = np.clip(p.rot_gain * _rotation_error(ori, self.goal_ori) / ROT_SCALE, -1.0, 1.0)
+        rotation_error = _rotation_error(ori, self.goal_ori)
+        action[3:6] = np.clip(p.rot_gain * rotation_error / ROT_SCALE, -1.0, 1.0)
         action[6] = gripper
-        self._advance(kind, np.linalg.norm(target - pos))
+        self._advance(kind, np.linalg.norm(target - pos), float(np.linalg.norm(rotation_error)))
         return action
 
-    def _advance(self, kind: str, error: float) -> None:
+    def _advance(self, kind: str, error: float, rotation_error: float) -> None:
         p = self.params
         self.phase_steps += 1
         if kind == "grip":
@@ -225,7 +241,8 @@ class ScriptedExpert:
             finished = self.phase_steps >= p.open_steps
         else:
             tolerance = p.transit_tolerance if kind == "transit" else p.tolerance
-            finished = error < tolerance or self.phase_steps >= p.waypoint_timeout
+            aligned = self.phase >= 2 or rotation_error < p.rot_tolerance  # turned before grasping
+            finished = (error < tolerance and aligned) or self.phase_steps >= p.waypoint_timeout
         if finished and not self.done:
             self.phase += 1
             self.phase_steps = 0
