@@ -308,21 +308,29 @@ def sim_suite(name: str, root: str | Path | None = None) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """python -m bench.sim.demos [--suite spatial] [--tasks 0,1,2,3] [--episodes 3] ..."""
+    """python -m bench.sim.demos [--suite spatial|object] [--tasks 0,1,2,3] [--episodes 3] ..."""
     import argparse
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    d = DemoSpec()
-    parser.add_argument("--suite", default=d.suite, choices=["spatial", "object"])
-    parser.add_argument("--tasks", default=",".join(map(str, d.tasks)))
-    parser.add_argument("--episodes", type=int, default=d.episodes_per_task)
-    parser.add_argument("--max-attempts", type=int, default=d.max_attempts)
-    parser.add_argument("--seed", type=int, default=d.seed)
-    parser.add_argument("--image-size", type=int, default=d.image_size)
+    parser.add_argument("--suite", default="spatial", choices=["spatial", "object"])
+    parser.add_argument("--tasks", default=None, help="LIBERO task ids, e.g. 0,1,2 "
+                        "(default: the suite's DEFAULT_SPECS entry)")
+    parser.add_argument("--episodes", type=int, default=None)
+    parser.add_argument("--max-attempts", type=int, default=None)
+    parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument("--image-size", type=int, default=None)
     parser.add_argument("--root", default=None, help="output folder (default: the cache)")
     args = parser.parse_args(argv)
-    spec = DemoSpec(args.suite, tuple(int(t) for t in args.tasks.split(",")), args.episodes,
-                    args.max_attempts, args.seed, d.max_steps, args.image_size)
+    base = DEFAULT_SPECS[args.suite]
+    spec = DemoSpec(
+        args.suite,
+        tuple(int(t) for t in args.tasks.split(",")) if args.tasks else base.tasks,
+        base.episodes_per_task if args.episodes is None else args.episodes,
+        base.max_attempts if args.max_attempts is None else args.max_attempts,
+        base.seed if args.seed is None else args.seed,
+        base.max_steps,
+        base.image_size if args.image_size is None else args.image_size,
+    )
     path = generate(spec, args.root)
     print(path)
     print((path / EXPERT_SUCCESS_FILE).read_text())
