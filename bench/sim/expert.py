@@ -6,9 +6,11 @@ descend, release, back off. Actions are what LiberoEnv takes and the LeRobot LIB
 store: OSC_POSE deltas in [-1, 1] (position x/y/z, rotation as axis-angle, scaled by the
 controller's 0.05 m / 0.5 rad per unit) and the gripper (-1 open, +1 close).
 
-LIBERO-Spatial: the object is a bowl; the grasp point is its rim (wall at 4.7 cm from the bowl's
-centre, closing across the wall along world y, the Panda fingers' closing axis at LIBERO's
-start pose). LIBERO-Object: a grocery item grasped at its centre, released above the basket.
+LIBERO-Spatial: the object is a bowl; the grasp point is a point of its rim (wall at 4.7 cm from
+the bowl's centre), fingers closing across the wall: +-y with LIBERO's start orientation or +-x
+with the gripper turned 90 degrees, whichever has room and is nearest the robot.
+LIBERO-Object: a grocery item grasped at its collision-box centre, dropped into the basket.
+Measured success per task: docs/LIBERO_SIM.md.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ class ExpertParams:
     release_height: float = 0.07  # eef above the target's origin when opening (bowl on plate)
     object_grip_below_top: float = 0.03  # LIBERO-Object: eef this far under the item's top
     object_drop_margin: float = 0.03  # LIBERO-Object: item bottom above the basket rim on release
-    gain: float = 12.0  # action units per metre of position error (then clipped to [-1, 1])
+    gain: float = 12.0  # action units per metre of position error, clipped to [-1, 1] (x POS_SCALE)
     rot_gain: float = 1.0  # action units per radian of orientation error
     rot_tolerance: float = 0.05  # radians: the gripper must be turned this well before grasping
     tolerance: float = 0.012  # metres: a precise waypoint (grasp point) counts as reached
