@@ -111,3 +111,5 @@ def test_load_suite_sim_source_reads_the_generated_dataset(demo_root, dataset):
     assert suite.num_frames == dataset.num_frames and suite.state.shape[1] == 8
     images = suite.images(torch.arange(2))
     assert images[IMAGE_KEYS[0]].shape == (2, 3, 64, 64)
+    assert demos.libero_task_ids(suite.root) == [0]
+    assert demos.render_settings(suite.root) == sim_env.RenderSettings(image_size=64)

@@ -287,6 +287,23 @@ def suite_path(spec: DemoSpec) -> Path:
     return cache_dir() / "sim_suites" / f"{spec.suite}-{spec.key()}"
 
 
+def suite_info(root: str | Path) -> dict:
+    """graftbench_suite.json of a generated suite (spec, render settings, LIBERO task ids)."""
+    return json.loads((Path(root) / SUITE_FILE).read_text())
+
+
+def libero_task_ids(root: str | Path) -> list[int]:
+    """LIBERO task id of each dataset task_index of a generated suite (index = task_index)."""
+    return [int(t) for t in suite_info(root)["libero_task_ids"]]
+
+
+def render_settings(root: str | Path):
+    """The RenderSettings a generated suite was rendered with (use the same for rollouts)."""
+    from bench.sim.env import RenderSettings
+
+    return RenderSettings(**suite_info(root)["render"])
+
+
 def sim_suite(name: str, root: str | Path | None = None) -> Path:
     """Folder of the generated "sim" suite `name` (generated on first use; needs the extra)."""
     from bench.suites.base import SuiteUnavailable
