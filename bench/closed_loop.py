@@ -139,4 +139,18 @@ def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, e
 
     spec = rollout_spec(suite, episodes_per_task, backbone.info.chunk_size)
     act = cell_act(cell, backbone, noise_seed=spec.seed, feed=feed, encoder=encoder, grid=grid)
-    return {**run_rollouts(act, spec, progress=progress), "spec": asdict(spec)}
+    out = run_rollouts(act, spec, progress=progress, render=suite_render(suite))
+    return {**out, "spec": asdict(spec)}
+
+
+def suite_render(suite):
+    """Render settings matching the suite's frames: a generated sim suite's own, else LIBERO's
+    defaults at the dataset's image size (the policy must see images like its training data)."""
+    from pathlib import Path
+
+    from bench.sim import demos
+    from bench.sim.env import RenderSettings
+
+    if (Path(suite.root) / demos.SUITE_FILE).is_file() and "render" in demos.suite_info(suite.root):
+        return demos.render_settings(suite.root)
+    return RenderSettings(image_size=suite.image_shape[-1])

@@ -46,6 +46,7 @@ class CellJob:
     results_dir: str
     cache_dir: str
     features_mode: str = "cache"
+    rollouts: int = 0  # closed-loop episodes per task (--rollouts)
 
 
 def run_cell_job(job: CellJob) -> dict:
@@ -60,7 +61,8 @@ def run_cell_job(job: CellJob) -> dict:
     from bench.workspace import Workspace
 
     store = ResultStore(Path(job.results_dir))
-    ws = Workspace(job.profile, store, progress=False, cache=Path(job.cache_dir))
+    ws = Workspace(job.profile, store, progress=False, cache=Path(job.cache_dir),
+                   rollouts=job.rollouts)
     try:
         return run_cell(job.cell, ws, features_mode=job.features_mode)
     except Exception as e:

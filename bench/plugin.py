@@ -107,6 +107,18 @@ def _offline_env(offline: bool) -> None:
         sys.modules["huggingface_hub.constants"].HF_HUB_OFFLINE = True
 
 
+def _check_rollouts_possible(profile) -> None:
+    """--rollouts needs LIBERO scenes behind the suites and the simulator installed."""
+    if profile.data_source == "tiny":
+        raise pytest.UsageError(
+            f"--rollouts: profile {profile.name!r} uses generated synthetic suites, which have no "
+            "simulator; use --profile sim (scripted demos in LIBERO scenes) or --profile paper")
+    from bench.sim.env import INSTALL_HINT, libero_available
+
+    if not libero_available():
+        raise pytest.UsageError(f"--rollouts needs the LIBERO simulator; {INSTALL_HINT}")
+
+
 class GraftSession:
     """State of one pytest run of the grid: profile, store, workspace, what ran."""
 
@@ -123,6 +135,8 @@ class GraftSession:
         self.rollouts = int(config.getoption("--rollouts") or 0)
         if self.rollouts < 0:
             raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
+        if self.rollouts:
+            _check_rollouts_possible(self.profile)
         self._workspace = None
         self._store = None
         self.selected: list[str] = []
@@ -150,13 +164,10 @@ class GraftSession:
 
     def run(self, cell: CellSpec) -> dict:
         """The stored record when current (resume), else measure the cell now."""
-        from bench.closed_loop import has_rollouts
         from bench.runner import run_cell
 
         if not self.rerun:
-            record = self.store.current(cell.id, self.profile.protocol.hash)
-            if record is not None and self.rollouts and not has_rollouts(record, self.rollouts):
-                record = None  # offline part is current, closed loop is not: measure again
+            record = self._current(cell)
             if record is not None:
                 self.resumed.append(cell.id)
                 return record
@@ -177,6 +188,16 @@ class GraftSession:
         self.ran.append(cell.id)
         return record
 
+    def _current(self, cell: CellSpec) -> dict | None:
+        """The stored record of `cell` if it is current: same protocol hash and, with
+        --rollouts, closed-loop episodes of the requested size."""
+        from bench.closed_loop import has_rollouts
+
+        record = self.store.current(cell.id, self.profile.protocol.hash)
+        if record is not None and self.rollouts and not has_rollouts(record, self.rollouts):
+            return None  # the offline part is current, the closed loop is not: measure again
+        return record
+
     def _run_submitted(self, cell: CellSpec) -> dict:
         """--executor slurm|submitit-local: the first case submits every selected cell that has
         no current record as ONE job array; each case then waits for its own task."""
@@ -195,10 +216,10 @@ class GraftSession:
             params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
             cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
             todo = [c for c in cells if isinstance(c, CellSpec) and (
-                self.rerun or self.store.current(c.id, self.profile.protocol.hash) is None)]
+                self.rerun or not self._current(c))]
             paths = (str(self.results_dir), str(cache_dir()))
-            self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode)
-                                     for c in todo])
+            self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
+                                             self.rollouts) for c in todo])
         try:
             return self._cell_array.result(cell.id)
         except Exception as e:  # the task died before writing its own failure record

@@ -52,3 +52,12 @@ def test_unknown_names_fail_before_any_work_listing_valid_ones(tmp_path):
     bad_suite = run_bench(tmp_path, "--suites", "spatail")
     assert "unknown suite 'spatail'" in bad_suite.stdout + bad_suite.stderr
     assert not (tmp_path / "results" / "cells").exists() or not any((tmp_path / "results" / "cells").iterdir())
+
+
+def test_rollouts_on_synthetic_suites_fail_before_any_work(tmp_path):
+    out = run_bench(tmp_path, *SLICE, "--rollouts", "2")
+    assert out.returncode != 0
+    text = out.stdout + out.stderr
+    assert "--rollouts: profile 'tiny' uses generated synthetic suites" in text
+    assert "--profile sim" in text
+    assert not (tmp_path / "results" / "cells").exists()
