@@ -31,7 +31,7 @@ import numpy as np
 from bench.paths import cache_dir
 from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 
-GENERATOR_VERSION = "3"  # bump when a change here (or in the expert) changes generated data
+GENERATOR_VERSION = "4"  # bump when a change here (or in the expert) changes generated data
 EXPERT_SUCCESS_FILE = "expert_success.json"
 SUITE_FILE = "graftbench_suite.json"
 

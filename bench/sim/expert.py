@@ -7,8 +7,8 @@ store: OSC_POSE deltas in [-1, 1] (position x/y/z, rotation as axis-angle, scale
 controller's 0.05 m / 0.5 rad per unit) and the gripper (-1 open, +1 close).
 
 LIBERO-Spatial: the object is a bowl; the grasp point is a point of its rim (wall at 4.7 cm from
-the bowl's centre), fingers closing across the wall: +-y with LIBERO's start orientation or +-x
-with the gripper turned 90 degrees, whichever has room and is nearest the robot.
+the bowl's centre) at +-y, where the Panda fingers close across the wall with LIBERO's start
+orientation; the side with more room from taller neighbours.
 LIBERO-Object: a grocery item grasped at its collision-box centre, dropped into the basket.
 Measured success per task: docs/LIBERO_SIM.md.
 """
@@ -34,13 +34,12 @@ class ExpertParams:
     grasp_depth: float = 0.0  # eef height over the grip reference (rim top / object centre)
     bowl_rim_radius: float = 0.047  # akita black bowl: wall boxes at 4.7 cm from the centre
     bowl_rim_top: float = 0.053  # wall top above the bowl body's origin
-    rim_room: float = 0.03  # metres of free space a rim grasp point needs around it
     release_height: float = 0.07  # eef above the target's origin when opening (bowl on plate)
     object_grip_below_top: float = 0.03  # LIBERO-Object: eef this far under the item's top
     object_drop_margin: float = 0.03  # LIBERO-Object: item bottom above the basket rim on release
     gain: float = 12.0  # action units per metre of position error, clipped to [-1, 1] (x POS_SCALE)
     rot_gain: float = 1.0  # action units per radian of orientation error
-    rot_tolerance: float = 0.05  # radians: the gripper must be turned this well before grasping
+    rot_tolerance: float = 0.05  # radians: orientation held this well before grasping
     tolerance: float = 0.012  # metres: a precise waypoint (grasp point) counts as reached
     transit_tolerance: float = 0.03  # metres: a transit waypoint (loaded arm sags a little)
     close_steps: int = 12
@@ -89,11 +88,8 @@ class ScriptedExpert:
         _, self.goal_ori = self._eef(env)
         obj = self._body_pos(env, picked)
         if self.suite == "spatial":
-            offset, yaw = self._rim_grasp(env, obj)
-            grip = obj + np.array([offset[0], offset[1], p.bowl_rim_top])
-            turn = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0],
-                             [0.0, 0.0, 1.0]])
-            self.goal_ori = turn @ self.goal_ori
+            side = self._rim_side(env, obj)
+            grip = obj + np.array([0.0, side * p.bowl_rim_radius, p.bowl_rim_top])
         else:
             # Grocery item: its collision box centre in xy, a few cm under its top (not below
             # 2.8 cm over its bottom: the fingertips reach ~2 cm under the eef).
@@ -112,34 +108,26 @@ class ScriptedExpert:
         self.done = False
         self.frozen_grip = None
 
-    def _rim_grasp(self, env, obj: np.ndarray) -> tuple[np.ndarray, float]:
-        """(xy offset of the grasp point from the bowl centre, gripper yaw in radians).
+    def _rim_side(self, env, obj: np.ndarray) -> float:
+        """+1 or -1: the rim point (along world y) with more room for the fingers.
 
-        Four rim points: +-y with the start orientation (fingers close along world y) and +-x
-        with the gripper turned 90 degrees. Room = horizontal distance to the nearest taller
-        neighbour's collision footprint; among points with enough room, the one nearest the
-        robot base wins (the far side can be out of comfortable reach), else the roomiest.
+        Room = horizontal distance to the nearest taller neighbour's collision footprint; a near
+        tie goes to the side nearer y = 0. (Turning the gripper 90 degrees to grasp at +-x was
+        tried: it fixed LIBERO-Spatial task 8 but broke tasks 0 and 2, so it is not used.)
         """
         p = self.params
         finger_bottom = obj[2] + p.bowl_rim_top + p.grasp_depth - 0.035  # fingertips below eef
         obstacles = [fp for fp in self._footprints(env) if fp[2] > finger_bottom]
-        base = np.array(self._inner(env).robots[0].base_pos)[:2]
-        r = p.bowl_rim_radius
-        candidates = [(np.array([0.0, r]), 0.0), (np.array([0.0, -r]), 0.0),
-                      (np.array([r, 0.0]), np.pi / 2), (np.array([-r, 0.0]), np.pi / 2)]
 
-        def room(offset: np.ndarray) -> float:
-            point = obj[:2] + offset
+        def room(side: float) -> float:
+            point = obj[:2] + np.array([0.0, side * p.bowl_rim_radius])
             return min((np.linalg.norm(centre - point) - radius for centre, radius, _ in obstacles),
                        default=1.0)
 
-        rooms = [room(offset) for offset, _ in candidates]
-        roomy = [i for i, value in enumerate(rooms) if value >= p.rim_room]
-        if roomy:
-            best = min(roomy, key=lambda i: np.linalg.norm(obj[:2] + candidates[i][0] - base))
-        else:
-            best = int(np.argmax(rooms))
-        return candidates[best]
+        plus, minus = room(1.0), room(-1.0)
+        if abs(plus - minus) < 0.01:
+            return -1.0 if obj[1] > 0 else 1.0
+        return 1.0 if plus > minus else -1.0
 
     def _footprints(self, env) -> list[tuple[np.ndarray, float, float]]:
         """(xy centre, horizontal radius, top z) of every other object's collision geoms."""
@@ -243,7 +231,7 @@ class ScriptedExpert:
             finished = self.phase_steps >= p.open_steps
         else:
             tolerance = p.transit_tolerance if kind == "transit" else p.tolerance
-            aligned = self.phase >= 2 or rotation_error < p.rot_tolerance  # turned before grasping
+            aligned = self.phase >= 2 or rotation_error < p.rot_tolerance  # upright before grasping
             finished = (error < tolerance and aligned) or self.phase_steps >= p.waypoint_timeout
         if finished and not self.done:
             self.phase += 1
