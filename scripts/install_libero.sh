@@ -16,7 +16,10 @@ done
 if [ "${#missing[@]}" -gt 0 ]; then
     if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
         echo "[install_libero] apt-get install ${missing[*]}"
-        apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
+        # Not fatal: EGL alone renders (MUJOCO_GL=egl); a machine without an apt mirror goes on.
+        { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+            "${missing[@]}" >/dev/null; } || echo "[install_libero] warning: apt-get could not" \
+            "install ${missing[*]}; headless rendering may fail" >&2
     else
         echo "[install_libero] warning: missing Debian packages ${missing[*]} (need root + apt-get);" \
              "headless rendering may fail" >&2
