@@ -18,7 +18,7 @@ from torch import Tensor
 
 from bench.provenance import stable_seed
 from bench.suites.base import LIBERO_ACTION_DIM, STATE_KEY
-from bench.train import frozen_autocast
+from bench.evaluate import sample_grafted
 
 ImagesFn = Callable[[dict[str, Tensor]], dict[str, Tensor]]
 
@@ -60,16 +60,9 @@ def make_act(backbone, *, noise_seed: int, feed=None, features_from_images: Imag
                "action_is_pad": torch.zeros((n, info.chunk_size), dtype=torch.bool)}
         batch = backbone.preprocess(raw)
         noise = observation_noise(raw_obs, info.chunk_size, info.max_action_dim, noise_seed)
-        noise = noise.to(device)
-        if feed is not None:
-            if features_from_images is not None:
-                feed.bind(features_from_images(images))
-            with backbone.image_embedder(feed), frozen_autocast(device):
-                pred = backbone.sample_actions(batch, noise)
-            feed.assert_consumed()
-        else:
-            with frozen_autocast(device):
-                pred = backbone.sample_actions(batch, noise)
+        features = features_from_images(images) if feed is not None and features_from_images \
+            else None
+        pred = sample_grafted(backbone, batch, noise.to(device), feed, features)
         pred = pred[..., :LIBERO_ACTION_DIM].float()
         return backbone.unnormalize_actions(pred).float().cpu()
 

@@ -45,6 +45,22 @@ def masked_sq_error(pred: Tensor, target: Tensor, valid: Tensor) -> tuple[Tensor
 
 
 @torch.no_grad()
+def sample_grafted(backbone: Backbone, batch: dict, noise: Tensor, feed=None,
+                   features: dict | None = None) -> Tensor:
+    """The backbone's sampler, with `feed` spliced in at the graft point when given (bound to
+    `features` first unless the feed runs a tower itself); (B, chunk, A) normalised."""
+    device = noise.device
+    if feed is None:
+        with frozen_autocast(device):
+            return backbone.sample_actions(batch, noise)
+    if features is not None:
+        feed.bind(features)
+    with backbone.image_embedder(feed), frozen_autocast(device):
+        pred = backbone.sample_actions(batch, noise)
+    feed.assert_consumed()
+    return pred
+
+
 def score(
     backbone: Backbone,
     suite,
@@ -71,15 +87,8 @@ def score(
             raw.update(images)
         batch = backbone.preprocess(raw)
         noise = window_noise(frames, chunk, info.max_action_dim, noise_seed)
-        if feed is not None:
-            if features_for is not None:
-                feed.bind(features_for(positions, frames))
-            with backbone.image_embedder(feed), frozen_autocast(device):
-                pred = backbone.sample_actions(batch, noise)
-            feed.assert_consumed()
-        else:
-            with frozen_autocast(device):
-                pred = backbone.sample_actions(batch, noise)
+        features = features_for(positions, frames) if feed is not None and features_for else None
+        pred = sample_grafted(backbone, batch, noise.to(device), feed, features)
         target_raw = raw["action"]
         valid = ~raw["action_is_pad"]
         pred = pred[..., : target_raw.shape[-1]].float().cpu()

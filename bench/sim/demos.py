@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.paths import cache_dir
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY
+from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 GENERATOR_VERSION = "4"  # bump when a change here (or in the expert) changes generated data
 EXPERT_SUCCESS_FILE = "expert_success.json"
@@ -66,16 +66,7 @@ def repo_id(suite: str) -> str:
 
 def features(image_size: int) -> dict:
     """LeRobot feature spec: LIBERO's names, images (H, W, C) stored as "image" (not video)."""
-    image = {"dtype": "image", "shape": (image_size, image_size, 3),
-             "names": ["height", "width", "channel"]}
-    return {
-        IMAGE_KEYS[0]: dict(image),
-        IMAGE_KEYS[1]: dict(image),
-        STATE_KEY: {"dtype": "float32", "shape": (8,), "names": ["x", "y", "z", "ax", "ay", "az",
-                                                                 "gripper_left", "gripper_right"]},
-        ACTION_KEY: {"dtype": "float32", "shape": (7,), "names": ["dx", "dy", "dz", "dax", "day",
-                                                                  "daz", "gripper"]},
-    }
+    return libero_features(image_size)
 
 
 def episode_seed(seed: int, task: int, init_state: int) -> int:

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.paths import cache_dir
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY
+from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 # Bump when a change to this file changes generated data: it is part of the cache key.
 GENERATOR_VERSION = "2"
@@ -67,16 +67,7 @@ SUITE_PARAMS = {
 
 def features() -> dict:
     """LeRobot feature spec of a generated suite (LIBERO names; images (H, W, C) like LIBERO)."""
-    image = {"dtype": "image", "shape": (IMAGE_SIZE, IMAGE_SIZE, 3),
-             "names": ["height", "width", "channel"]}
-    return {
-        IMAGE_KEYS[0]: dict(image),
-        IMAGE_KEYS[1]: dict(image),
-        STATE_KEY: {"dtype": "float32", "shape": (8,), "names": ["x", "y", "z", "ax", "ay", "az",
-                                                                 "gripper_left", "gripper_right"]},
-        ACTION_KEY: {"dtype": "float32", "shape": (7,), "names": ["dx", "dy", "dz", "dax", "day",
-                                                                  "daz", "gripper"]},
-    }
+    return libero_features(IMAGE_SIZE)
 
 
 def world_to_pixel(xy: np.ndarray) -> np.ndarray:
