@@ -287,6 +287,9 @@ def closed_loop_section(ctx: ReportContext) -> str:
                                           f"success {CONFIDENCE:.0%} CI", "episodes"])
         if cl.missing:
             head += f"\n\n_No agreement: {cl.missing}._"
+        elif len(set(cl.success)) == 1:
+            head += (f"\n\nEvery item has the same success rate ({cl.success[0]:.1%}): the "
+                     "closed-loop ranking is one tie, so there is no rank agreement to measure.")
         else:
             a = cl.agreement
             head += (f"\n\nAgreement over {a['n']} items: Kendall tau-b {num(a['tau_b'], 2)} "

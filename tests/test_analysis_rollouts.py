@@ -86,3 +86,14 @@ def test_report_has_the_closed_loop_table_and_plot(tmp_path):
     assert "Kendall tau-b 1 (p=0.333)" in section and "100 resamples" in section
     assert re.search(r"\| a +\| 0, 1 +\| 0.1 +\| 90.0% +\| \[0.77, 0.96\] +\| 40 ", section)
     assert (tmp_path / "REPORT_plots" / "closed_loop.png").exists()
+
+
+def test_report_says_when_every_item_has_the_same_success(tmp_path):
+    from bench.records import save_record
+
+    for r in cells({"a": (0.10, 0.0), "b": (0.20, 0.0)}):
+        save_record(tmp_path / "res", r)
+    text = build_report(tmp_path / "res", tmp_path / "REPORT.md", n_resamples=50,
+                        plots=False).read_text()
+    assert "Every item has the same success rate (0.0%)" in text
+    assert "Rollouts in the LIBERO simulator were run for 2 rolled-out item(s)" in text
