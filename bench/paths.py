@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
+import shutil
+import uuid
 from pathlib import Path
+from typing import Callable
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -17,3 +20,21 @@ def cache_dir() -> Path:
 
 def default_results_dir() -> Path:
     return REPO_ROOT / ".graftbench" / "results"
+
+
+def build_dataset_dir(final: Path, build: Callable[[Path], object]) -> Path:
+    """`build(tmp)` writes a dataset folder into a private temp folder beside `final`, which is
+    then renamed to `final`: a crash never leaves a half dataset there, and when another
+    process finished first its folder is kept. Returns `final`."""
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final.parent / f".tmp-{final.name}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    try:
+        build(tmp)
+        try:
+            os.rename(tmp, final)
+        except OSError:  # another process finished first: keep theirs
+            if not (final / "meta" / "info.json").is_file():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final

@@ -22,13 +22,12 @@ import os
 import shutil
 import sys
 import time
-import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from bench.paths import cache_dir
+from bench.paths import build_dataset_dir, cache_dir
 from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 GENERATOR_VERSION = "4"  # bump when a change here (or in the expert) changes generated data
@@ -260,17 +259,7 @@ def generate(spec: DemoSpec, root: str | Path | None = None, progress: bool = Tr
     if short and progress:
         print(f"[sim demos] fewer than {spec.episodes_per_task} successes for tasks {short} "
               f"within {spec.max_attempts} attempts", file=sys.stderr)
-    tmp = final.parent / f".tmp-{final.name}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    try:
-        write_dataset(spec, work, attempts, tmp)
-        try:
-            os.rename(tmp, final)
-        except OSError:  # another process finished first: keep theirs
-            if not (final / "meta" / "info.json").is_file():
-                raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return final
+    return build_dataset_dir(final, lambda tmp: write_dataset(spec, work, attempts, tmp))
 
 
 def suite_path(spec: DemoSpec) -> Path:

@@ -22,14 +22,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
-import uuid
 from pathlib import Path
 
 import numpy as np
 
-from bench.paths import cache_dir
+from bench.paths import build_dataset_dir, cache_dir
 from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 # Bump when a change to this file changes generated data: it is part of the cache key.
@@ -276,16 +274,4 @@ def tiny_suite_path(name: str, seed: int = 0) -> Path:
     final = parent / f"{name}-{content_key(name, seed, **params)}"
     if (final / "meta" / "info.json").exists():
         return final
-    parent.mkdir(parents=True, exist_ok=True)
-    # Build in a private temp folder and rename: a crash never leaves a half suite at `final`.
-    tmp = parent / f".tmp-{final.name}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    try:
-        generate_suite(name, tmp, seed)
-        try:
-            os.rename(tmp, final)
-        except OSError:  # another process finished first: keep theirs
-            if not (final / "meta" / "info.json").exists():
-                raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return final
+    return build_dataset_dir(final, lambda tmp: generate_suite(name, tmp, seed))
