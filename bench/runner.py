@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import time
+from dataclasses import dataclass
 
 import torch
 
@@ -77,6 +78,28 @@ def probe_loss(backbone, feed, next_batch, frames: torch.Tensor, seed: int) -> f
     return float(loss)
 
 
+@dataclass(frozen=True)
+class TrainedProjector:
+    """A trained projector kept for the session, with what its training recorded."""
+
+    state: dict
+    curve: list
+    probe_losses: dict
+    cell_id: str
+
+
+def shared_projector_key(cell: CellSpec, features_mode: str) -> tuple | None:
+    """Key of the projector a cell trains when its graft trains exactly the same one: the graft
+    itself, its shuffled_image control and its zero_image[eval] control (same seed, data, grid;
+    only evaluation differs). None for every other cell."""
+    same_training = cell.kind == K.GRAFT or (cell.encoder is not None and (
+        cell.kind == K.SHUFFLED_IMAGE or (cell.kind == K.ZERO_IMAGE and cell.variant == "eval")))
+    if not same_training or features_mode != "cache":
+        return None
+    graft = cell if cell.kind == K.GRAFT else cell.reference
+    return (graft.id, features_mode)
+
+
 def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dict:
     """Measure one cell and write its record. features_mode: "cache" (pooled features computed
     once per frame) or "loop" (the encoder runs inside every step: the naive reference)."""
@@ -94,7 +117,7 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
     grid = pooling_grid(info.native_grid, cell.variant if cell.kind == K.POOLING else None)
     perm = derangement(len(split.windows), p.split_seed)
 
-    feed = projector = None
+    feed = projector = projector_from = None
     encoder = None
     curve: list[list[float]] = []
     lora_params = 0
@@ -148,20 +171,33 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
                 return raw, None
             return raw, zero_pooled(len(frames)) if train_zero else pooled(frames)
 
-        probe = probe_frames(split.train_frames)
-        probe_before = probe_loss(backbone, feed, next_batch, probe, p.split_seed)
+        # A test or --degrade-encoder transform changes the features: never share across it.
+        share = (shared_projector_key(cell, features_mode)
+                 if cell.encoder not in ws.feature_transforms else None)
+        trained = ws.trained_projectors.get(share) if cell.kind != K.GRAFT else None
         t0 = time.perf_counter()
-        params = list(projector.parameters()) + [
-            q for q in backbone.policy.parameters() if q.requires_grad
-        ]
-        fit_cfg = FitConfig(p.steps, p.batch_size, p.lr, p.weight_decay, p.warmup_steps,
-                            p.grad_clip, p.loss_log_every)
-        curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
-                    feed=feed, label=cell.id, progress=ws.progress)
+        if trained is not None:
+            # The same seed, data and code train the identical projector: take the graft's.
+            projector.load_state_dict(trained.state)
+            curve, probe_losses, projector_from = trained.curve, trained.probe_losses, trained.cell_id
+        else:
+            probe = probe_frames(split.train_frames)
+            probe_before = probe_loss(backbone, feed, next_batch, probe, p.split_seed)
+            params = list(projector.parameters()) + [
+                q for q in backbone.policy.parameters() if q.requires_grad
+            ]
+            fit_cfg = FitConfig(p.steps, p.batch_size, p.lr, p.weight_decay, p.warmup_steps,
+                                p.grad_clip, p.loss_log_every)
+            curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
+                        feed=feed, label=cell.id, progress=ws.progress)
+            probe_losses = {"before": probe_before,
+                            "after": probe_loss(backbone, feed, next_batch, probe, p.split_seed)}
+            if share is not None:
+                ws.trained_projectors[share] = TrainedProjector(
+                    {k: v.detach().cpu().clone() for k, v in projector.state_dict().items()},
+                    curve, probe_losses, cell.id)
         timings["train"] = time.perf_counter() - t0
         projector.eval()
-        probe_losses = {"before": probe_before,
-                        "after": probe_loss(backbone, feed, next_batch, probe, p.split_seed)}
 
         if tower is not None:
             features_for = None
@@ -206,6 +242,7 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
         "trainable_params": trainable_parameters(projector, backbone.policy) if projector else 0,
         "projector_params": trainable_parameters(projector) if projector else 0,
         "lora_params": lora_params,
+        "projector_from": projector_from,
         "loss_curve": curve,
         "probe_loss": probe_losses,
         "encoder_weights": getattr(encoder, "weights_id", None),

@@ -42,6 +42,8 @@ class Workspace:
     _backbones: dict = field(default_factory=dict)
     _encoders: dict = field(default_factory=dict)
     _features: FeatureCache | None = None
+    # graft cell id -> runner.TrainedProjector: its shuffled/zero-at-eval controls reuse it.
+    trained_projectors: dict = field(default_factory=dict)
     # Test-only hook: name -> function(features dict) -> features dict (planted regressions).
     feature_transforms: dict = field(default_factory=dict)
 

@@ -1,0 +1,59 @@
+"""A graft's shuffled_image and zero_image[eval] controls reuse the graft's trained projector
+within a session, and score exactly what retraining it would have given."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.cells import CellSpec
+from bench.protocol import TINY, with_overrides
+from bench.runner import run_cell, shared_projector_key
+from bench.store import ResultStore
+from bench.workspace import Workspace
+
+PROFILE = with_overrides(TINY, steps=12)
+
+
+def workspace(tmp_path, name):
+    return Workspace(PROFILE, ResultStore(tmp_path / name), progress=False)
+
+
+def test_which_cells_share_the_graft_projector():
+    graft = CellSpec("graft", "pi05", "spatial", 0, "pixels")
+    sharing = [CellSpec("shuffled_image", "pi05", "spatial", 0, "pixels"),
+               CellSpec("zero_image", "pi05", "spatial", 0, "pixels", "eval")]
+    own = [CellSpec("zero_image", "pi05", "spatial", 0, "pixels", "train"),
+           CellSpec("pooling", "pi05", "spatial", 0, "pixels", "global"),
+           CellSpec("lora", "pi05", "spatial", 0, "pixels"),
+           CellSpec("native_wrapped", "pi05", "spatial", 0),
+           CellSpec("shuffled_image", "pi05", "spatial", 0),
+           CellSpec("graft", "pi05", "spatial", 1, "pixels")]
+    key = shared_projector_key(graft, "cache")
+    assert key is not None
+    assert all(shared_projector_key(c, "cache") == key for c in sharing)
+    assert all(shared_projector_key(c, "cache") != key for c in own)
+    assert shared_projector_key(graft, "loop") is None
+
+
+@pytest.mark.parametrize("backbone", ["smolvla", "pi05"])
+def test_controls_reuse_the_graft_projector_and_score_as_if_retrained(tmp_path, backbone):
+    graft = CellSpec("graft", backbone, "spatial", 0, "pixels")
+    shuffled = CellSpec("shuffled_image", backbone, "spatial", 0, "pixels")
+    zero_eval = CellSpec("zero_image", backbone, "spatial", 0, "pixels", "eval")
+
+    shared = workspace(tmp_path, "shared")
+    g = run_cell(graft, shared)
+    reused = [run_cell(c, shared) for c in (shuffled, zero_eval)]
+    assert g["projector_from"] is None
+    for record in reused:
+        assert record["projector_from"] == graft.id
+        assert record["loss_curve"] == g["loss_curve"]
+        assert record["probe_loss"] == g["probe_loss"]
+        assert record["mse"] != g["mse"]  # evaluated on other inputs than the graft
+
+    # Alone in a fresh session each control trains its own projector: same numbers.
+    for spec, record in zip((shuffled, zero_eval), reused):
+        alone = run_cell(spec, workspace(tmp_path, f"alone-{spec.kind}"))
+        assert alone["projector_from"] is None
+        assert alone["mse"] == record["mse"]
+        assert alone["per_window"] == record["per_window"]
