@@ -154,7 +154,9 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
             torch.manual_seed(stable_seed(cell.seed, "projector-init"))
             projector = Projector(channels, info.lm_width).to(device)
         if cell.kind == K.LORA:
-            lora_params = _add_lora(backbone, p)
+            with torch.random.fork_rng():  # peft draws lora_A's init from the global generator
+                torch.manual_seed(stable_seed(cell.seed, "lora-init"))
+                lora_params = _add_lora(backbone, p)
         expected = trainable_parameters(projector) + lora_params
         frozen = [backbone.policy] + ([encoder] if encoder is not None else [])
         assert_only_trainable(expected, projector, *frozen,
