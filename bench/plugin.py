@@ -263,7 +263,7 @@ def _configure_scale(config: pytest.Config) -> None:
 def worker_threads(workers: int) -> int:
     """Torch threads for one of `workers` xdist workers: the CPUs split between them, unless
     OMP_NUM_THREADS says otherwise. Each worker keeping torch's default (all CPUs) made `-n 2` on
-    2 cores 2.5x SLOWER than one process (18 tiny cells: 174 s alone, >400 s with -n 2)."""
+    2 cores 4.6x SLOWER than one process (18 tiny cells: 180 s alone, 828 s with -n 2)."""
     if os.environ.get("OMP_NUM_THREADS"):
         return max(1, int(os.environ["OMP_NUM_THREADS"]))
     return max(1, len(os.sched_getaffinity(0)) // max(1, workers))

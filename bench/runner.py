@@ -5,8 +5,10 @@ from __future__ import annotations
 import datetime as dt
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
+from safetensors.torch import load_file, save_file
 
 from bench import cells as K
 from bench.cells import CellSpec
@@ -80,9 +82,10 @@ def probe_loss(backbone, feed, next_batch, frames: torch.Tensor, seed: int) -> f
 
 @dataclass(frozen=True)
 class TrainedProjector:
-    """A trained projector kept for the session, with what its training recorded."""
+    """A trained projector kept for the session (its weights on disk: a paper grid trains hundreds
+    of projectors of up to ~10 MB each), with what its training recorded."""
 
-    state: dict
+    path: Path
     curve: list
     probe_losses: dict
     cell_id: str
@@ -180,7 +183,7 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
         t0 = time.perf_counter()
         if trained is not None:
             # The same seed, data and code train the identical projector: take the graft's.
-            projector.load_state_dict(trained.state)
+            projector.load_state_dict(load_file(trained.path, device=str(device)))
             curve, probe_losses, projector_from = trained.curve, trained.probe_losses, trained.cell_id
         else:
             probe = probe_frames(split.train_frames)
@@ -195,9 +198,10 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
             probe_losses = {"before": probe_before,
                             "after": probe_loss(backbone, feed, next_batch, probe, p.split_seed)}
             if share is not None:
-                ws.trained_projectors[share] = TrainedProjector(
-                    {k: v.detach().cpu().clone() for k, v in projector.state_dict().items()},
-                    curve, probe_losses, cell.id)
+                path = ws.session_dir() / f"projector-{cell.id}.safetensors"
+                save_file({k: v.detach().cpu().contiguous() for k, v in projector.state_dict().items()},
+                          path)
+                ws.trained_projectors[share] = TrainedProjector(path, curve, probe_losses, cell.id)
         timings["train"] = time.perf_counter() - t0
         projector.eval()
 

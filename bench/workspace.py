@@ -4,6 +4,7 @@ pooled-feature caches. Built lazily, once per pytest session (or per worker unde
 from __future__ import annotations
 
 import copy
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,8 +45,15 @@ class Workspace:
     _features: FeatureCache | None = None
     # graft cell id -> runner.TrainedProjector: its shuffled/zero-at-eval controls reuse it.
     trained_projectors: dict = field(default_factory=dict)
+    _session_dir: tempfile.TemporaryDirectory | None = None
     # Test-only hook: name -> function(features dict) -> features dict (planted regressions).
     feature_transforms: dict = field(default_factory=dict)
+
+    def session_dir(self) -> Path:
+        """A private folder that lives as long as this workspace (removed at exit)."""
+        if self._session_dir is None:
+            self._session_dir = tempfile.TemporaryDirectory(prefix="graftbench-session-")
+        return Path(self._session_dir.name)
 
     def suite(self, name: str):
         if name not in self._suites:
