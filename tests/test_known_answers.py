@@ -23,7 +23,7 @@ BACKBONES = ("smolvla", "pi05")
 # Protocol.native_state_dropout), but a blind graft (constant tokens) comes within a few percent
 # of the pixels graft (spatial seed 0, 200 steps: 0.369 vs 0.380). Neither tiny policy learns the
 # planted xy readout well, and SmolVLA's mean/std action normalisation puts most of its MSE on x and
-# y. The 14 variants measured are in docs/TINY_SMOLVLA.md.
+# y. The 15 variants measured are in docs/TINY_SMOLVLA.md.
 # Strict xfail: these start failing the day the tiny SmolVLA takes grafts.
 SMOLVLA_GRAFT_GAP = pytest.mark.xfail(
     strict=True, reason="tiny SmolVLA barely uses grafted image tokens (see module comment)"
