@@ -37,9 +37,11 @@ class ResultStore:
         try:
             (self.root / "cells").mkdir(parents=True, exist_ok=True)
             (self.root / "failed").mkdir(parents=True, exist_ok=True)
-            probe = self.root / ".write-probe"
-            probe.write_text("ok")
-            probe.unlink()
+            # A private probe file: xdist workers open the same store at the same moment, and a
+            # shared name let one worker's unlink break another's (a false "not writable").
+            fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=self.root)
+            os.close(fd)
+            os.unlink(probe)
         except OSError as e:
             raise ResultsDirError(
                 f"results dir {self.root} is not writable ({e.strerror}); "

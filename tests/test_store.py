@@ -42,3 +42,16 @@ def test_results_dir_that_is_a_file_is_a_clear_error(tmp_path):
     blocker.write_text("not a folder")
     with pytest.raises(ResultsDirError, match=r"not writable.*--results-dir"):
         ResultStore(blocker)
+
+
+def test_stores_opened_at_once_on_one_folder_do_not_trip_each_other(tmp_path):
+    """xdist workers and the controller open the same results dir at the same moment."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def open_many(_):
+        for _ in range(200):
+            ResultStore(tmp_path / "shared")
+
+    with ThreadPoolExecutor(8) as pool:
+        list(pool.map(open_many, range(8)))  # re-raises a ResultsDirError from any thread
+    assert not list((tmp_path / "shared").glob(".write-probe*"))
