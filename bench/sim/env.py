@@ -92,7 +92,7 @@ def write_libero_config(config_dir: Path | None = None) -> Path:
     path = config_dir / "config.yaml"
     text = yaml.safe_dump(config, sort_keys=True)
     if not path.is_file() or path.read_text() != text:
-        tmp = path.with_suffix(".tmp")
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")  # parallel workers may write it at once
         tmp.write_text(text)
         tmp.replace(path)
     return config_dir
