@@ -1,6 +1,12 @@
 """Known-answer encoders for validity tests: `pixels` keeps all visual information, `blind` none.
 
 Both take images at their native size (no resize); `input_size` in their specs is nominal.
+
+`pixels` subtracts each image's mean colour before patchifying. Raw pixels left the pooled,
+LayerNormed grid dominated by the table colour every window shares, and 200-400 projector steps
+then learned little beyond a constant (tiny pi0.5, slot world, spatial seed 0: pixels 1.7% better
+than blind raw, 12.2% centred). Only the global mean colour is dropped (constant up to the objects
+in the tiny world); everything else the image shows is kept exactly.
 """
 
 from __future__ import annotations
@@ -20,12 +26,13 @@ class _KnownEncoder(Encoder):
     """No weights: the same module whatever the source; always in eval mode like any encoder."""
 
     channels: int
+    # No weights; names the definition, so the feature cache never mixes two definitions.
+    weights_id = "none"
 
     def __init__(self, spec: EncoderSpec, source: str = "tiny"):
         super().__init__()
         self.spec = spec
         self.input_size = spec.input_size
-        self.weights_id = "none"
         self.eval()
 
     def train(self, mode: bool = True) -> "_KnownEncoder":
@@ -33,16 +40,20 @@ class _KnownEncoder(Encoder):
 
 
 class PixelsEncoder(_KnownEncoder):
-    """Raw pixels, patchified: (B, 3, H, W) -> (B, 3*8*8, H/8, W/8); channel = c*64 + dy*8 + dx."""
+    """Mean-centred pixels, patchified: (B, 3, H, W) -> (B, 3*8*8, H/8, W/8), channel
+    c*64 + dy*8 + dx = pixel minus the image's mean of colour c."""
 
     channels = 3 * PIXEL_PATCH * PIXEL_PATCH
+    weights_id = "none:centred"
 
     def forward(self, images: Tensor) -> Tensor:
         b, c, h, w = images.shape
         if c != 3 or h % PIXEL_PATCH or w % PIXEL_PATCH:
             raise ValueError(f"pixels encoder needs (B, 3, H, W) with H, W multiples of "
                              f"{PIXEL_PATCH}; got {tuple(images.shape)}")
-        patches = F.unfold(images.float(), kernel_size=PIXEL_PATCH, stride=PIXEL_PATCH)
+        images = images.float()
+        centred = images - images.mean(dim=(2, 3), keepdim=True)
+        patches = F.unfold(centred, kernel_size=PIXEL_PATCH, stride=PIXEL_PATCH)
         return patches.reshape(b, self.channels, h // PIXEL_PATCH, w // PIXEL_PATCH)
 
 
@@ -58,8 +69,8 @@ class BlindEncoder(_KnownEncoder):
 
 register(EncoderSpec(
     name="pixels", timm_name=None, input_size=64, layout="map",
-    description="known answer: raw 8x8 pixel patches, 192 ch, (H/8)x(W/8) grid; all visual "
-                "information, no learning"), PixelsEncoder)
+    description="known answer: mean-centred 8x8 pixel patches, 192 ch, (H/8)x(W/8) grid; all "
+                "visual information but the mean colour, no learning"), PixelsEncoder)
 
 register(EncoderSpec(
     name="blind", timm_name=None, input_size=64, layout="map",

@@ -116,10 +116,14 @@ def test_cache_recomputes_for_new_grid_and_write_is_atomic(tmp_path):
     fine = cache.pooled_features(enc, suite, (2, 2), progress=False)
     assert enc.calls == 2 * len(CAMERAS)
     assert coarse[CAMERAS[0]].shape == (3, 1, 192) and fine[CAMERAS[0]].shape == (3, 4, 192)
-    # pixels + (1, 1) pooling: the per-colour mean of each 8x8 patch position = image mean.
+    # pixels (mean-centred) + (1, 1) pooling: averaged over patch positions, zero per colour;
+    # (2, 2) pooling: each quadrant's mean colour minus the image's.
     image = suite.images(torch.tensor([1]))[CAMERAS[1]][0]
-    assert torch.allclose(coarse[CAMERAS[1]][1, 0].reshape(3, 64).mean(1), image.mean((1, 2)),
+    assert torch.allclose(coarse[CAMERAS[1]][1, 0].reshape(3, 64).mean(1), torch.zeros(3),
                           atol=1e-6)
+    rows, cols = image.shape[1] // 2, image.shape[2] // 2
+    top_left = image[:, :rows, :cols].mean((1, 2)) - image.mean((1, 2))
+    assert torch.allclose(fine[CAMERAS[1]][1, 0].reshape(3, 64).mean(1), top_left, atol=1e-6)
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".safetensors"] * 2  # no tmp left
 
 

@@ -18,17 +18,6 @@ from bench.runner import run_cell
 from bench.train import NonFiniteLoss
 
 BACKBONES = ("smolvla", "pi05")
-# Known gap, measured: the tiny SmolVLA's frozen LM makes little use of GRAFTED image tokens.
-# Its native policy does use its own images (trained with state dropout, see
-# Protocol.native_state_dropout), but a blind graft (constant tokens) comes within a few percent
-# of the pixels graft (spatial seed 0, 200 steps: 0.369 vs 0.380). Neither tiny policy learns the
-# planted xy readout well, and SmolVLA's mean/std action normalisation puts most of its MSE on x and
-# y. The 15 variants measured are in docs/TINY_SMOLVLA.md.
-# Strict xfail: these start failing the day the tiny SmolVLA takes grafts.
-SMOLVLA_GRAFT_GAP = pytest.mark.xfail(
-    strict=True, reason="tiny SmolVLA barely uses grafted image tokens (see module comment)"
-)
-GRAFT_BACKBONES = (pytest.param("smolvla", marks=SMOLVLA_GRAFT_GAP), "pi05")
 
 
 def paired(better: dict, worse: dict, margin: float = 0.05) -> tuple[float, float]:
@@ -50,7 +39,7 @@ def cell(ws, kind, backbone, encoder=None, variant=None, suite="spatial", seed=0
     return run_cell(CellSpec(kind, backbone, suite, seed, encoder, variant), ws, **kw)
 
 
-@pytest.mark.parametrize("backbone", GRAFT_BACKBONES)
+@pytest.mark.parametrize("backbone", BACKBONES)
 def test_pixels_beats_blind_and_training_reduces_the_loss(tiny_ws, backbone):
     pixels = cell(tiny_ws, "graft", backbone, "pixels")
     blind = cell(tiny_ws, "graft", backbone, "blind")
@@ -70,7 +59,7 @@ def test_native_policy_uses_vision(tiny_ws, backbone):
     assert native["trainable_params"] == 0
 
 
-@pytest.mark.parametrize("backbone", GRAFT_BACKBONES)
+@pytest.mark.parametrize("backbone", BACKBONES)
 def test_image_controls_of_a_graft_are_worse_than_the_graft(tiny_ws, backbone):
     graft = cell(tiny_ws, "graft", backbone, "pixels")
     paired(graft, cell(tiny_ws, "shuffled_image", backbone, "pixels"))

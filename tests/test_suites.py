@@ -76,12 +76,14 @@ def test_tiny_suite_is_a_libero_format_lerobot_dataset(spatial):
         assert tuple(ds[0][camera].shape) == (3, 64, 64)
     assert tuple(ds.features[STATE_KEY]["shape"]) == (8,)
     assert tuple(ds.features["action"]["shape"]) == (7,)
-    assert ds.fps == 10 and ds.num_episodes == 40 and len(ds.meta.tasks) == 4
+    assert ds.fps == 10 and len(ds.meta.tasks) == 4
+    assert ds.num_episodes == 4 * synthetic.SUITE_PARAMS["spatial"]["episodes_per_task"]
     assert ds[0]["task"] == spatial.tasks[int(ds[0]["task_index"])]
     # The Suite mirrors the dataset.
     assert spatial.state.shape == (spatial.num_frames, 8) and spatial.action.shape[1] == 7
     lengths = torch.bincount(spatial.episode_index)
-    assert lengths.min() >= 30 and lengths.max() <= 40
+    params = synthetic.SUITE_PARAMS["spatial"]
+    assert lengths.min() >= params["min_len"] and lengths.max() < params["max_len"]  # all finish
     images = spatial.images(torch.tensor([0, 5, spatial.num_frames - 1]))
     for camera in IMAGE_KEYS:
         assert images[camera].shape == (3, 3, 64, 64) and images[camera].dtype == torch.float32
@@ -148,6 +150,38 @@ def test_spatial_action_points_at_the_target_drawn_in_the_image(spatial):
     assert _r2(np.c_[eef_xy, target], action_xy) > 0.8
 
 
+def _slot_of(colrow: np.ndarray, z: float) -> np.ndarray:
+    """World xyz of the spatial slot nearest a drawn centroid (col, row), at height z."""
+    xy = synthetic.pixel_to_world(colrow)
+    slot = synthetic.SPATIAL_SLOTS[np.argmin(np.linalg.norm(synthetic.SPATIAL_SLOTS - xy, axis=1))]
+    assert np.linalg.norm(slot - xy) < 0.01, "object not drawn at a slot"
+    return np.r_[slot, z]
+
+
+def test_grasp_and_release_happen_where_the_image_shows_the_goal(spatial):
+    """The expert is event-driven: the gripper closes on reaching the block drawn in frame 0 and
+    opens on reaching the destination, at frame indices that vary (no hidden clock)."""
+    first = _first_frames(spatial)
+    images = (spatial.images(first)[IMAGE_KEYS[0]] * 255).round().byte().permute(0, 2, 3, 1).numpy()
+    grasp_frames = []
+    for image, f0 in zip(images, first.tolist()):
+        task = spatial.tasks[spatial.task_index[f0]]
+        frames = torch.nonzero(spatial.episode_index == spatial.episode_index[f0]).flatten()
+        closing = frames[spatial.action[frames, 6] > 0]
+        grasp, release = int(closing[0]), int(closing[-1]) + 1
+        assert torch.equal(closing, torch.arange(grasp, release)), "one grasp, one release"
+        block = _slot_of(_centroid(image, "red" if "red" in task else "blue"), 0.03)
+        dest = _slot_of(_centroid(image, "plate" if "plate" in task else "bowl"), 0.08)
+        eef = spatial.state[:, :3].numpy()  # the eef before each frame's action, 2 mm noise
+        noise = 0.006
+        assert np.linalg.norm(eef[grasp] - block) < synthetic.REACH_TOL + noise
+        assert np.linalg.norm(eef[grasp - 1] - block) > synthetic.REACH_TOL - noise
+        assert np.linalg.norm(eef[release] - dest) < synthetic.REACH_TOL + noise
+        assert np.linalg.norm(eef[release - 1] - dest) > synthetic.REACH_TOL - noise
+        grasp_frames.append(grasp - f0)
+    assert len(set(grasp_frames)) >= 4
+
+
 def _r2(x: np.ndarray, y: np.ndarray) -> float:
     """R^2 of the least-squares linear fit y ~ [x, 1] (all output columns pooled)."""
     design = np.c_[x, np.ones(len(x))]
@@ -186,8 +220,9 @@ def test_heldout_split_is_whole_episodes_per_task_from_the_split_seed_only(spati
     np.random.seed(99)  # a cell seed must not move the split
     assert heldout_split(spatial, 1234, 2) == (train, heldout)
     assert heldout_split(spatial, 1235, 2)[1] != heldout
-    with pytest.raises(ValueError, match="10 episodes"):
-        heldout_split(spatial, 1234, per_task=10)
+    per_task = synthetic.SUITE_PARAMS["spatial"]["episodes_per_task"]
+    with pytest.raises(ValueError, match=f"{per_task} episodes"):
+        heldout_split(spatial, 1234, per_task=per_task)
 
 
 def test_eval_windows_every_stride_frames_from_frame_zero():

@@ -6,11 +6,22 @@ proportional controller through two phases: reach the object, then carry it to a
 The positions of object and destination are drawn in the image and are NOT in the state (state
 holds only the eef pose and gripper), so predicting the action needs vision:
 
-- spatial: a red and a blue block plus a plate and a bowl, all at random positions. The task
-  string names which block goes where (2 colours x 2 destinations = 4 tasks).
-- object: one object of 4 types (red disk, green square, blue triangle, yellow cross) at a random
-  position; 4 identical baskets in the corners. Task k sends object type i to basket (i + k) % 4,
-  so identity (read from the image) and the task string together decide the destination.
+- spatial: a red and a blue block, a plate and a bowl, one in each corner slot (a random
+  permutation). The task string names which block goes where (2 colours x 2 destinations = 4
+  tasks).
+- object: one object of 4 types (red disk, green square, blue triangle, yellow cross) in one of
+  four inner slots; 4 identical baskets in the corners. Task k sends object type i to basket
+  (i + k) % 4, so identity (read from the image) and the task string together decide the
+  destination.
+
+Why slots, large objects and an event-driven expert (generator 5; docs/TINY_SMOLVLA.md has the
+numbers): the tiny policies' few image tokens (SmolVLA 2x2 per camera, pi0.5 4x4) each see one
+slot whole, so what a token shows is one of a few categories and a single Linear from pooled
+features can reach the native policy's code; and the gripper closes / opens when the eef reaches
+its goal (not at a hidden time), so the action is a function of state and images and the part a
+blind policy cannot know is the visual part. Under generator 2 (random positions, small objects,
+a clock-driven grasp) the tiny SmolVLA's native policy beat a blind graft by 4% and no graft
+could do better than blind.
 
 Feature names, dtypes and shapes follow LeRobot's LIBERO datasets (images stored as PNG "image"
 features, not video: decoding video needs system FFmpeg). State is LIBERO's 8 dims (eef xyz,
@@ -31,13 +42,15 @@ from bench.paths import build_dataset_dir, cache_dir
 from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 # Bump when a change to this file changes generated data: it is part of the cache key.
-GENERATOR_VERSION = "2"
+GENERATOR_VERSION = "5"
 IMAGE_SIZE = 64
 FPS = 10
 WORLD_HALF = 0.25  # world xy in [-0.25, 0.25] m covers the agent view
 STEP = 0.06  # eef displacement (m) per unit action per frame
 GAIN_RANGE = 0.25  # distance (m) at which the proportional action saturates at 1
 GRIPPER_OPEN = 0.04
+REACH_TOL = 0.02  # m: the eef grasps / releases within this distance of its goal
+RELEASE_FRAMES = 3
 
 TABLE = (150, 128, 104)
 SPATIAL_TASKS = [
@@ -56,10 +69,17 @@ OBJECT_TASKS = (
 )
 # Basket corners, clockwise from top-left (row grows downwards: y = -0.19 is the top).
 BASKETS = np.array([[-0.19, -0.19], [0.19, -0.19], [0.19, 0.19], [-0.19, 0.19]])
+# Slots: pixel 8 / 56 (spatial, corners) and 24 / 40 (object, inner) are token centres of the
+# tiny pi0.5's 4x4 grid, each inside one quadrant of the tiny SmolVLA's 2x2 grid.
+SPATIAL_SLOTS = 0.1875 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+OBJECT_SLOTS = SPATIAL_SLOTS / 3
+# Offset of an object within its slot, uniform in +-SLOT_JITTER (m). 0: the slot alone decides
+# the position, so a token shows one of a few categories (generator 3 used 0.03).
+SLOT_JITTER = 0.0
 
 SUITE_PARAMS = {
-    "spatial": dict(episodes_per_task=10, min_len=30, max_len=40),
-    "object": dict(episodes_per_task=10, min_len=30, max_len=40),
+    "spatial": dict(episodes_per_task=16, min_len=20, max_len=50),
+    "object": dict(episodes_per_task=16, min_len=20, max_len=50),
 }
 
 
@@ -135,27 +155,32 @@ def _render(items: list[tuple[str, np.ndarray, tuple, float]], eef: np.ndarray, 
 
 
 # -- scripted episodes ------------------------------------------------------------------------
-def _separated(rng: np.random.Generator, n: int, low: float, high: float, gap: float) -> np.ndarray:
-    """n xy positions uniform in [low, high]^2, pairwise at least `gap` apart (rejection)."""
-    while True:
-        xy = rng.uniform(low, high, size=(n, 2))
-        d = np.linalg.norm(xy[:, None] - xy[None], axis=-1) + np.eye(n)
-        if d.min() >= gap:
-            return xy
+def _rollout(rng, min_len: int, max_len: int, pick_xy, place_xy, items_of) -> list[dict]:
+    """Scripted pick-and-place frames (LeRobot frame dicts); items_of(obj_xy) -> scene items.
 
-
-def _rollout(rng, length: int, pick_xy, place_xy, items_of) -> list[dict]:
-    """Scripted pick-and-place frames (LeRobot frame dicts); items_of(obj_xy) -> scene items."""
+    Event-driven: the gripper closes when the eef reaches the object and opens when it reaches
+    the destination (both within REACH_TOL), so the action is a function of what the state and
+    the images show, not of a hidden clock. The episode ends RELEASE_FRAMES after the release
+    (held there until min_len), or at max_len."""
     # The eef starts anywhere over the table: a start near a fixed point would let the state
     # alone reveal the goal direction after a few frames (the policy could ignore the images).
     eef = np.r_[rng.uniform(-0.2, 0.2, 2), 0.20]
     q = GRIPPER_OPEN
-    grasp_at, release_at = round(0.45 * length), length - 3
+    pick, place = np.r_[pick_xy, 0.03], np.r_[place_xy, 0.08]
     obj_xy = np.array(pick_xy, dtype=float)
+    phase, released_for = "reach", 0
     frames = []
-    for t in range(length):
-        carrying = grasp_at <= t < release_at
-        goal = np.r_[pick_xy, 0.03] if t < grasp_at else np.r_[place_xy, 0.08]
+    for t in range(max_len):
+        if phase == "reach" and np.linalg.norm(pick - eef) < REACH_TOL:
+            phase = "carry"
+        elif phase == "carry" and np.linalg.norm(place - eef) < REACH_TOL:
+            phase = "release"
+        if phase == "release":
+            released_for += 1
+            if released_for > RELEASE_FRAMES and t >= min_len:
+                break
+        carrying = phase == "carry"
+        goal = pick if phase == "reach" else place
         if carrying:
             obj_xy = eef[:2].copy()
         agent, wrist = _render(items_of(obj_xy), eef, q, rng)
@@ -170,10 +195,12 @@ def _rollout(rng, length: int, pick_xy, place_xy, items_of) -> list[dict]:
     return frames
 
 
-def spatial_episode(rng: np.random.Generator, task: int, length: int) -> tuple[str, list[dict]]:
+def spatial_episode(rng: np.random.Generator, task: int, min_len: int,
+                    max_len: int) -> tuple[str, list[dict]]:
     """One spatial episode: (task string, frames)."""
     colour, dest = SPATIAL_TASKS[task]
-    red, blue, plate, bowl = _separated(rng, 4, -0.2, 0.2, 0.09)
+    slots = SPATIAL_SLOTS[rng.permutation(4)]
+    red, blue, plate, bowl = slots + rng.uniform(-SLOT_JITTER, SLOT_JITTER, (4, 2))
     blocks = {"red": red, "blue": blue}
     pick, place = blocks[colour], {"plate": plate, "bowl": bowl}[dest]
 
@@ -181,12 +208,12 @@ def spatial_episode(rng: np.random.Generator, task: int, length: int) -> tuple[s
 
     def items_of(obj_xy):
         held = {colour: obj_xy, other: blocks[other]}
-        return [("disk", plate, COLOURS["plate"], 5.5), ("ring", bowl, COLOURS["bowl"], 5.5),
-                ("square", held["red"], COLOURS["red"], 3.0),
-                ("square", held["blue"], COLOURS["blue"], 3.0)]
+        return [("disk", plate, COLOURS["plate"], 7.0), ("disk", bowl, COLOURS["bowl"], 7.0),
+                ("square", held["red"], COLOURS["red"], 6.0),
+                ("square", held["blue"], COLOURS["blue"], 6.0)]
 
     text = f"pick up the {colour} block and place it {'on' if dest == 'plate' else 'in'} the {dest}"
-    return text, _rollout(rng, length, pick, place, items_of)
+    return text, _rollout(rng, min_len, max_len, pick, place, items_of)
 
 
 def object_destination(object_type: int, task: int) -> int:
@@ -195,17 +222,17 @@ def object_destination(object_type: int, task: int) -> int:
 
 
 def object_episode(rng: np.random.Generator, task: int, object_type: int,
-                   length: int) -> tuple[str, list[dict]]:
+                   min_len: int, max_len: int) -> tuple[str, list[dict]]:
     """One object episode: (task string, frames)."""
-    pick = rng.uniform(-0.12, 0.12, size=2)
+    pick = OBJECT_SLOTS[rng.integers(4)] + rng.uniform(-SLOT_JITTER, SLOT_JITTER, 2)
     place = BASKETS[object_destination(object_type, task)]
     colour, shape = OBJECT_TYPES[object_type].split()
 
     def items_of(obj_xy):
         baskets = [("ring", b, COLOURS["basket"], 6.0) for b in BASKETS]
-        return baskets + [(shape, obj_xy, COLOURS[colour], 3.5)]
+        return baskets + [(shape, obj_xy, COLOURS[colour], 6.0)]
 
-    return OBJECT_TASKS[task], _rollout(rng, length, pick, place, items_of)
+    return OBJECT_TASKS[task], _rollout(rng, min_len, max_len, pick, place, items_of)
 
 
 def episodes(name: str, seed: int, episodes_per_task: int, min_len: int, max_len: int):
@@ -216,11 +243,10 @@ def episodes(name: str, seed: int, episodes_per_task: int, min_len: int, max_len
     for task in range(4):
         types = rng.permutation(np.arange(episodes_per_task) % 4)
         for k in range(episodes_per_task):
-            length = int(rng.integers(min_len, max_len + 1))
             if name == "spatial":
-                yield spatial_episode(rng, task, length)
+                yield spatial_episode(rng, task, min_len, max_len)
             else:
-                yield object_episode(rng, task, int(types[k]), length)
+                yield object_episode(rng, task, int(types[k]), min_len, max_len)
 
 
 # -- on-disk suites ---------------------------------------------------------------------------
