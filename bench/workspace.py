@@ -19,7 +19,7 @@ from bench.suites import load_suite
 from bench.suites.windows import episode_frames, eval_windows, heldout_split
 from encoders import build_encoder
 
-TINY_CHUNK = 10  # tiny policies predict 10-step chunks (episodes are ~30-40 frames)
+TINY_CHUNK = 10  # tiny policies predict 10-step chunks (episodes are ~20-30 frames)
 
 
 @dataclass
