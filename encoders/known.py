@@ -3,8 +3,8 @@
 Both take images at their native size (no resize); `input_size` in their specs is nominal.
 
 `pixels` subtracts each image's mean colour before patchifying. Raw pixels left the pooled,
-LayerNormed grid dominated by the table colour every window shares, and 200-400 projector steps
-then learned little beyond a constant (tiny pi0.5, slot world, spatial seed 0: pixels 1.7% better
+LayerNormed grid dominated by the table colour every window shares, and 200 projector steps then
+learned little beyond a constant (tiny pi0.5, slot world, spatial seed 0: pixels 1.7% better
 than blind raw, 12.2% centred). Only the global mean colour is dropped (constant up to the objects
 in the tiny world); everything else the image shows is kept exactly.
 """
