@@ -163,6 +163,8 @@ def test_grasp_and_release_happen_where_the_image_shows_the_goal(spatial):
     opens on reaching the destination, at frame indices that vary (no hidden clock)."""
     first = _first_frames(spatial)
     images = (spatial.images(first)[IMAGE_KEYS[0]] * 255).round().byte().permute(0, 2, 3, 1).numpy()
+    eef = spatial.state[:, :3].numpy()  # the eef before each frame's action, 2 mm noise
+    noise = 0.006
     grasp_frames = []
     for image, f0 in zip(images, first.tolist()):
         task = spatial.tasks[spatial.task_index[f0]]
@@ -172,8 +174,6 @@ def test_grasp_and_release_happen_where_the_image_shows_the_goal(spatial):
         assert torch.equal(closing, torch.arange(grasp, release)), "one grasp, one release"
         block = _slot_of(_centroid(image, "red" if "red" in task else "blue"), 0.03)
         dest = _slot_of(_centroid(image, "plate" if "plate" in task else "bowl"), 0.08)
-        eef = spatial.state[:, :3].numpy()  # the eef before each frame's action, 2 mm noise
-        noise = 0.006
         assert np.linalg.norm(eef[grasp] - block) < synthetic.REACH_TOL + noise
         assert np.linalg.norm(eef[grasp - 1] - block) > synthetic.REACH_TOL - noise
         assert np.linalg.norm(eef[release] - dest) < synthetic.REACH_TOL + noise
