@@ -18,6 +18,20 @@ class BackboneEntry:
     module: str  # import path of the adapter module
     repo_id: str  # the released checkpoint in the real world
     description: str
+    # Hub commit the paper profile loads (None: whatever the cache's main is; the record still
+    # carries the resolved sha).
+    revision: str | None = None
+    # Whose normalisation stats: "dataset" (the suite's training episodes, as LeRobot's
+    # fine-tuning does; base releases, whose saved stats are not LIBERO's) or "checkpoint" (the
+    # release's own saved stats: LIBERO-trained releases, which must keep the normaliser they
+    # were trained with).
+    stats: str = "dataset"
+    # Is this the study's choice (base releases) or an option beside it.
+    study: bool = True
+
+    def __post_init__(self) -> None:
+        if self.stats not in ("dataset", "checkpoint"):
+            raise ValueError(f"backbone {self.name!r}: stats={self.stats!r}, not 'dataset' or 'checkpoint'")
 
 
 BACKBONES: dict[str, BackboneEntry] = {}
@@ -29,10 +43,22 @@ def register(entry: BackboneEntry) -> None:
     BACKBONES[entry.name] = entry
 
 
+# Revisions: docs/HUB_FACTS.md (the commit most projects pin / the main seen, 2026).
 register(BackboneEntry("smolvla", "backbones.smolvla", "lerobot/smolvla_base",
-                       "SmolVLA-450M (SmolVLM2 LM, width 960, 64 image tokens per camera)"))
+                       "SmolVLA-450M (SmolVLM2 LM, width 960, 64 image tokens per camera)",
+                       revision="c83c3163b8ca9b7e67c509fffd9121e66cb96205"))
 register(BackboneEntry("pi05", "backbones.pi05", "lerobot/pi05_base",
-                       "pi0.5-3.3B (PaliGemma/Gemma-2B, width 2048, 256 image tokens per camera)"))
+                       "pi0.5-3.3B (PaliGemma/Gemma-2B, width 2048, 256 image tokens per camera)",
+                       revision="b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba"))
+# LIBERO-trained releases: a native reference that acts on LIBERO (not the study's choice).
+register(BackboneEntry("smolvla_libero", "backbones.smolvla", "HuggingFaceVLA/smolvla_libero",
+                       "SmolVLA-450M fine-tuned on LIBERO (its own saved stats)",
+                       revision="6721902bc4d61e50a3bfdb11dfb4cb626f05d102", stats="checkpoint",
+                       study=False))
+register(BackboneEntry("pi05_libero", "backbones.pi05", "lerobot/pi05_libero_finetuned",
+                       "pi0.5-3.3B fine-tuned on LIBERO (its own saved stats)",
+                       revision="dbf8a3f794a9c4297b44f40b752712f50073d945", stats="checkpoint",
+                       study=False))
 
 
 def get_entry(name: str) -> BackboneEntry:

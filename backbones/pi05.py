@@ -29,6 +29,7 @@ from backbones.tiny_pi05 import (
     tiny_pi05_patches,
     tiny_vocabulary,
 )
+from backbones import hub
 from bench.paths import cache_dir
 
 REAL_REPO_ID = "lerobot/pi05_base"
@@ -57,17 +58,13 @@ INFO_REAL = BackboneInfo(
     native_feature_doc=NATIVE_FEATURE_DOC,
 )
 
-# Assumption (stated, not verified against the checkpoint here): lerobot/pi05_base names its
-# cameras base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb (openpi's DROID-style keys). Public
-# LeRobot LIBERO scripts map LIBERO's agent-view camera to base_0_rgb and its wrist camera to
-# left_wrist_0_rgb; the unmapped right_wrist slot would be fed as a -1 image with mask False
-# (modeling_pi05.py:1009-1014). We drop unmapped cameras from the config instead: masked tokens
-# neither attend nor shift position ids (cumsum of pad masks, :584), so outputs are unchanged
-# (bit-identical on the tiny build, see tests), and every embed_image call is one suite camera.
-LIBERO_TO_PI05_BASE = {
-    "observation.images.image": "observation.images.base_0_rgb",
-    "observation.images.wrist_image": "observation.images.left_wrist_0_rgb",
-}
+# Cameras: lerobot/pi05_base names its cameras base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb
+# (docs/HUB_FACTS.md); LIBERO's agent view feeds base_0_rgb and its wrist left_wrist_0_rgb
+# (backbones.hub.CAMERA_LAYOUTS). The unmapped right_wrist slot would be fed as a -1 image with
+# mask False (modeling_pi05.py:1009-1014). We drop unmapped cameras from the config instead:
+# masked tokens neither attend nor shift position ids (cumsum of pad masks, :584), so outputs are
+# unchanged (bit-identical on the tiny build, see tests), and every embed_image call is one suite
+# camera.
 
 
 class PI05Backbone(Backbone):
@@ -269,80 +266,95 @@ def save_pretrained(backbone: PI05Backbone, folder: str | os.PathLike) -> Path:
     return folder
 
 
-def load_policy(path_or_repo_id: str, stats: dict | None = None) -> PI05Backbone:
-    """A saved folder (tiny or real) or a hub repo id from the HF cache; `stats` replace saved ones."""
+def load_policy(path_or_repo_id: str, stats: dict | None = None, *, revision: str | None = None,
+                device: str | None = None) -> PI05Backbone:
+    """A saved folder (tiny or real) or a hub repo id from the HF cache, on `device` (default: the
+    checkpoint's own for a folder, CUDA when available for a hub id). `stats` (dataset stats)
+    replace the saved ones; without them the checkpoint's own saved stats are used, and must cover
+    the state and action."""
     require_pinned_lerobot()
     folder = Path(path_or_repo_id).expanduser()
     if folder.is_dir():
-        return _load(str(folder), stats, marker_dir=folder)
+        return _load(str(folder), stats, marker_dir=folder, revision=None, device=device)
     if path_or_repo_id.startswith(("/", ".", "~")) or path_or_repo_id.count("/") != 1:
         raise FileNotFoundError(
             f"no pi0.5 checkpoint folder at {path_or_repo_id!r} (and it is not an owner/name hub id)"
         )
-    _require_cached(path_or_repo_id)
-    return _load(path_or_repo_id, stats, marker_dir=None)
+    _require_cached(path_or_repo_id, revision)
+    return _load(path_or_repo_id, stats, marker_dir=None, revision=revision,
+                 device=device or hub.default_device())
 
 
-def _load(source: str, stats: dict | None, marker_dir: Path | None) -> PI05Backbone:
+def _read_marker(source: str, marker_dir: Path | None, revision: str | None) -> dict:
+    """graftbench's marker: a saved folder's (tiny arch, cameras, rename map) or, for a hub repo,
+    only its tiny arch (the offline hub-cache world; a real release has no marker)."""
+    if marker_dir is not None:
+        path = marker_dir / MARKER_FILE
+        return json.loads(path.read_text()) if path.is_file() else {}
+    path = hub.cached_file(source, MARKER_FILE, revision)
+    return {"tiny_arch": json.loads(path.read_text()).get("tiny_arch")} if path else {}
+
+
+def _load(source: str, stats: dict | None, marker_dir: Path | None, revision: str | None,
+          device: str | None) -> PI05Backbone:
     from lerobot.configs import PreTrainedConfig
     from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.processor.normalize_processor import hotswap_stats
 
-    marker_path = marker_dir / MARKER_FILE if marker_dir else None
-    marker = json.loads(marker_path.read_text()) if marker_path and marker_path.is_file() else {}
+    marker = _read_marker(source, marker_dir, revision)
     arch = TinyPI05Arch.from_dict(marker["tiny_arch"]) if marker.get("tiny_arch") else None
-    config = PreTrainedConfig.from_pretrained(source)
-    if marker:
+    with _hub_errors_as_unavailable(source, revision):
+        config = PreTrainedConfig.from_pretrained(source, revision=revision)
+    if device is not None:
+        config.device = device
+    if marker.get("camera_keys"):
         rename_map, camera_keys = marker["rename_map"], tuple(marker["camera_keys"])
     else:
         rename_map, camera_keys = _adapt_real_config(config, stats)
-    tokenizer_dir = marker_dir / TOKENIZER_SUBDIR if arch else None
+    # A saved tiny folder carries its tokenizer; a hub repo reads google/paligemma-3b-pt-224's.
+    tokenizer_dir = marker_dir / TOKENIZER_SUBDIR if arch and marker_dir else None
     patches = tiny_pi05_patches(arch, tokenizer_dir) if arch else contextlib.nullcontext()
-    with patches:
-        policy = _policy_from_pretrained(source, config)
-        has_saved_processors = marker_dir is not None or _cached(source, "policy_preprocessor.json")
-        if has_saved_processors:
-            overrides = {"tokenizer_processor": {"tokenizer_name": str(tokenizer_dir)}} if arch else {}
+    with patches, _hub_errors_as_unavailable(source, revision):
+        policy = _policy_from_pretrained(source, config, revision)
+        policy.to(config.device)
+        if marker_dir is not None or hub.cached_file(source, "policy_preprocessor.json", revision):
+            pre_over, post_over = hub.saved_processor_overrides(
+                policy.config, config.device, stats, rename_map)
+            if tokenizer_dir is not None:
+                pre_over["tokenizer_processor"] = {"tokenizer_name": str(tokenizer_dir)}
             pre, post = make_pre_post_processors(
-                policy.config, pretrained_path=source, preprocessor_overrides=overrides
+                policy.config, pretrained_path=source, pretrained_revision=revision,
+                preprocessor_overrides=pre_over, postprocessor_overrides=post_over,
             )
         else:  # a hub checkpoint saved before LeRobot's processor pipelines
             if stats is None:
                 raise ValueError(f"{source} has no saved processors: pass dataset stats to load_policy")
             pre, post = make_pre_post_processors(policy.config, dataset_stats=stats)
-    if stats is not None:
-        pre, post = hotswap_stats(pre, stats), hotswap_stats(post, stats)
-    if rename_map:
-        _only_step(pre, "RenameObservationsProcessorStep").rename_map = dict(rename_map)
+            if rename_map:
+                _only_step(pre, "RenameObservationsProcessorStep").rename_map = dict(rename_map)
+    hub.check_normalizer_covers(pre, source)
+    hub.check_normalizer_covers(post, source)
     return PI05Backbone(policy, pre, post, camera_keys, tiny_arch=arch, rename_map=rename_map)
 
 
 def _adapt_real_config(config, stats: dict | None) -> tuple[dict[str, str], tuple[str, ...]]:
-    """LIBERO view of a released config: rename map, cameras kept, action width (in place)."""
+    """LIBERO view of a released config: rename map, cameras kept, state/action width (in place)."""
     from lerobot.configs import FeatureType, PolicyFeature
 
     image_keys = list(config.image_features)
-    rename_map = {
-        src: dst
-        for src, dst in LIBERO_TO_PI05_BASE.items()
-        if dst in image_keys and src not in image_keys
-    }
-    policy_keys = [rename_map.get(src, src) for src in LIBERO_TO_PI05_BASE]
-    if not all(key in image_keys for key in policy_keys):
-        raise BackboneUnavailable(
-            f"checkpoint cameras {image_keys} match neither LIBERO's {list(LIBERO_TO_PI05_BASE)} "
-            f"nor pi05_base's {list(LIBERO_TO_PI05_BASE.values())}; extend LIBERO_TO_PI05_BASE"
-        )
-    for key in image_keys:  # see LIBERO_TO_PI05_BASE: unmapped cameras are dropped, not masked
+    rename_map = hub.libero_rename_map(image_keys, config.type)
+    policy_keys = list(rename_map.values())
+    for key in image_keys:  # unmapped cameras are dropped, not masked (see CAMERA_LAYOUTS above)
         if key not in policy_keys:
             del config.input_features[key]
-    action_dim = len(stats[ACTION_KEY]["q01"]) if stats else 7  # LIBERO's 7 real action dims
-    config.output_features[ACTION_KEY] = PolicyFeature(FeatureType.ACTION, (action_dim,))
-    camera_keys = tuple(src for src in LIBERO_TO_PI05_BASE)
-    return rename_map, camera_keys
+    rename_map = {src: dst for src, dst in rename_map.items() if src != dst}
+    dims = {key: len(stats[key]["q01"]) if stats else default
+            for key, default in ((STATE_KEY, 8), (ACTION_KEY, 7))}  # LIBERO's 8 / 7 real dims
+    config.input_features[STATE_KEY] = PolicyFeature(FeatureType.STATE, (dims[STATE_KEY],))
+    config.output_features[ACTION_KEY] = PolicyFeature(FeatureType.ACTION, (dims[ACTION_KEY],))
+    return rename_map, hub.LIBERO_CAMERAS
 
 
-def _policy_from_pretrained(source: str, config):
+def _policy_from_pretrained(source: str, config, revision: str | None = None):
     """PI05Policy.from_pretrained, failing loudly where lerobot would keep random weights."""
     from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 
@@ -350,7 +362,7 @@ def _policy_from_pretrained(source: str, config):
     # when the weights cannot be read or do not match; we refuse that.
     captured = io.StringIO()
     with contextlib.redirect_stdout(captured):
-        policy = PI05Policy.from_pretrained(source, config=config)
+        policy = PI05Policy.from_pretrained(source, config=config, revision=revision)
     if "Could not load" in captured.getvalue():
         raise RuntimeError(
             f"PI05Policy.from_pretrained({source!r}) kept random weights:\n{captured.getvalue()}"
@@ -358,32 +370,46 @@ def _policy_from_pretrained(source: str, config):
     return policy
 
 
-def _cached(repo_id: str, filename: str) -> bool:
-    from huggingface_hub import try_to_load_from_cache
-
-    return isinstance(try_to_load_from_cache(repo_id, filename), str)
-
-
-def _hub_offline() -> bool:
-    from huggingface_hub import constants
-
-    flag = os.environ.get("HF_HUB_OFFLINE", "").strip().upper() in {"1", "ON", "YES", "TRUE"}
-    return flag or bool(constants.HF_HUB_OFFLINE)
+TOKENIZER_INCLUDE = ("tokenizer*", "special_tokens_map.json", "added_tokens.json")
+TOKENIZER_NOTE = (
+    "gated: accept the licence at https://huggingface.co/google/paligemma-3b-pt-224 and run "
+    "`hf auth login` first; the --include patterns fetch the ~22 MB tokenizer, not 11.7 GB of weights"
+)
 
 
-def _require_cached(repo_id: str) -> None:
+def artifacts(repo_id: str, revision: str | None, needed_by: str) -> list:
+    """What loading `repo_id` reads from the hub: the checkpoint and the PaliGemma tokenizer
+    (LeRobot reads the tokenizer at its main revision: processor_pi05.py ~141 takes no revision)."""
+    return [
+        hub.hub_artifact("policy", repo_id, ("config.json", "model.safetensors"), needed_by, revision),
+        hub.hub_artifact("tokenizer", PALIGEMMA_TOKENIZER_REPO,
+                         ("tokenizer_config.json", "tokenizer.json"), needed_by,
+                         include=TOKENIZER_INCLUDE, note=TOKENIZER_NOTE),
+    ]
+
+
+def _require_cached(repo_id: str, revision: str | None = None) -> None:
     """Fail fast, in one line, when offline and the checkpoint or its tokenizer is not cached."""
-    from huggingface_hub import constants
+    hub.require_present(artifacts(repo_id, revision, f"backbone {repo_id}"))
 
-    needed = [(repo_id, "config.json"), (repo_id, "model.safetensors")]
-    needed.append((PALIGEMMA_TOKENIZER_REPO, "tokenizer_config.json"))
-    for repo, filename in needed:
-        if not _cached(repo, filename) and _hub_offline():
-            raise BackboneUnavailable(
-                f"{repo} ({filename}) is not in the Hugging Face cache {constants.HF_HUB_CACHE} and the "
-                f"hub is offline: run `hf download {repo}` on a networked machine with the same "
-                "HF_HOME (or point HF_HUB_CACHE at a cache that has it)"
-            )
+
+@contextlib.contextmanager
+def _hub_errors_as_unavailable(repo_id: str, revision: str | None) -> Iterator[None]:
+    """Hub/auth errors while loading (online: gated tokenizer, missing revision) as one line."""
+    from huggingface_hub.errors import HfHubHTTPError
+
+    try:
+        yield
+    except (HfHubHTTPError, OSError) as error:  # transformers and LeRobot raise OSError subclasses
+        if Path(repo_id).is_dir():
+            raise
+        fixes = "; ".join(f"`{a.fix}`" + (f" ({a.note})" if a.note else "")
+                          for a in artifacts(repo_id, revision, repo_id))
+        reason = " ".join(str(error).split())[:240]
+        raise BackboneUnavailable(
+            f"could not load {repo_id} or its tokenizer ({type(error).__name__}: {reason}); "
+            f"fix: {fixes or 'check the network and your hub token'}"
+        ) from error
 
 
 def check_real_shapes() -> dict[str, int]:

@@ -17,7 +17,6 @@ Places in lerobot/policies/smolvla this adapter relies on (line numbers for 0.6.
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 from pathlib import Path
 from typing import Iterator
@@ -25,6 +24,7 @@ from typing import Iterator
 import torch
 from torch import Tensor
 
+from backbones import hub
 from backbones.base import Backbone, BackboneInfo, BackboneUnavailable, ImageEmbedder
 from backbones.tiny_smolvla import REAL_VLM, real_shape_forward, tiny_config, tokens_per_camera
 from bench.suites.base import ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY
@@ -147,7 +147,12 @@ class SmolVLABackbone(Backbone):
         steps = batch[ACTION_KEY].shape[1]
         if steps != self.info.chunk_size:
             raise ValueError(f"action chunk of {steps} steps; SmolVLA's is {self.info.chunk_size}")
-        per_sample, _ = self.policy.forward(batch, noise=noise, time=time, reduction="none")
+        # LeRobot mixes caller noise/time with batch tensors without a device move
+        # (modeling_smolvla.py ~700): move them here, as the pi0.5 adapter does.
+        device = batch[ACTION_KEY].device
+        per_sample, _ = self.policy.forward(
+            batch, noise=noise.to(device), time=time.to(device), reduction="none"
+        )
         return per_sample
 
     def sample_time(self, batch_size: int, generator: torch.Generator) -> Tensor:
@@ -161,7 +166,8 @@ class SmolVLABackbone(Backbone):
         self._check_noise(batch, noise)
         was_training = self.policy.training
         try:
-            return self.policy.predict_action_chunk(dict(batch), noise=noise)
+            device = batch[STATE_KEY].device
+            return self.policy.predict_action_chunk(dict(batch), noise=noise.to(device))
         finally:
             self.policy.reset()  # empty the action queue predict_action_chunk filled
             self.policy.train(was_training)
@@ -241,14 +247,16 @@ def load_policy(
     state_dim: int = LIBERO_STATE_DIM,
     action_dim: int = LIBERO_ACTION_DIM,
     device: str | None = None,
+    revision: str | None = None,
 ) -> SmolVLABackbone:
     """A saved SmolVLA (local folder or hub id in the HF cache), fitted to LIBERO's features.
 
     When the checkpoint's features differ from LIBERO's (smolvla_base: cameras camera1/2/3, 6-dim
-    state and action), its cameras are renamed (`rename_map`, default SMOLVLA_BASE_RENAME), unused
-    ones dropped, state/action resized (both are zero-padded to 32 inside anyway), and `stats`
-    (dataset stats) are required: its saved normaliser does not cover LIBERO. With `stats`, the
-    processors are rebuilt from them; without, the saved processors are loaded.
+    state and action), its cameras are renamed (`rename_map`, default by hub.CAMERA_LAYOUTS),
+    unused ones dropped, state/action resized (both are zero-padded to 32 inside anyway), and
+    `stats` (dataset stats) are required: its saved normaliser does not cover LIBERO. With
+    `stats`, the processors are rebuilt from them; without, the saved processors are loaded with
+    our device and features, and their own stats must cover state and action.
     """
     from lerobot.configs import PreTrainedConfig
     from lerobot.policies.factory import make_pre_post_processors
@@ -260,9 +268,10 @@ def load_policy(
     if not local.is_dir():
         if path_or_repo_id.startswith(("/", ".", "~")) or path_or_repo_id.count("/") > 1:
             raise FileNotFoundError(f"no SmolVLA checkpoint folder at {path_or_repo_id}")
-        _require_hub_files(path_or_repo_id, ("config.json", "model.safetensors"))
-    with _hub_errors_as_unavailable(path_or_repo_id):
-        config = PreTrainedConfig.from_pretrained(source)
+        hub.require_present(artifacts(path_or_repo_id, revision, f"backbone {path_or_repo_id}")[:1])
+        device = device or hub.default_device()
+    with _hub_errors_as_unavailable(path_or_repo_id, revision=revision):
+        config = PreTrainedConfig.from_pretrained(source, revision=revision)
     if config.type != "smolvla":
         raise ValueError(f"{path_or_repo_id} holds a {config.type!r} policy, not 'smolvla'")
     config.load_vlm_weights = False  # the checkpoint carries every VLM weight; keep float32
@@ -272,34 +281,74 @@ def load_policy(
     if vendored.is_dir():
         config.vlm_model_name = str(vendored)
     elif not Path(config.vlm_model_name).is_dir():
-        _require_hub_files(config.vlm_model_name, ("config.json", "tokenizer_config.json"))
+        hub.require_present([_vlm_artifact(config.vlm_model_name, f"backbone {path_or_repo_id}")])
 
     if rename_map is None:
-        libero_named = all(k in config.image_features for k in camera_keys)
-        rename_map = {} if libero_named else dict(SMOLVLA_BASE_RENAME)
+        rename_map = hub.libero_rename_map(list(config.image_features), "smolvla")
+        rename_map = {src: dst for src, dst in rename_map.items() if src != dst}
     adapted = _fit_features(config, rename_map, camera_keys, state_dim, action_dim)
-    if adapted and stats is None:
+    if adapted and stats is None and not _saved_stats_fit(source, revision, state_dim, action_dim):
         raise ValueError(
             f"{path_or_repo_id}'s saved normaliser covers its own features, not LIBERO's "
             f"(state {state_dim}, action {action_dim}): pass stats=<dataset stats> to load_policy"
         )
-    with _hub_errors_as_unavailable(path_or_repo_id, config.vlm_model_name):
-        policy = SmolVLAPolicy.from_pretrained(source, config=config)
-    _check_all_weights_loaded(policy, source)
+    with _hub_errors_as_unavailable(path_or_repo_id, config.vlm_model_name, revision):
+        policy = SmolVLAPolicy.from_pretrained(source, config=config, revision=revision)
+    _check_all_weights_loaded(policy, source, revision)
+    policy.to(config.device)
 
     if stats is not None:
         preprocessor, postprocessor = make_pre_post_processors(config, dataset_stats=stats)
+        if rename_map:
+            _find_step(preprocessor, RenameObservationsProcessorStep).rename_map = dict(rename_map)
     else:
-        overrides = {"tokenizer_processor": {"tokenizer_name": config.vlm_model_name}}
-        if device is not None:
-            overrides["device_processor"] = {"device": device}
-        with _hub_errors_as_unavailable(path_or_repo_id):
+        pre_over, post_over = hub.saved_processor_overrides(config, config.device, None, rename_map)
+        pre_over["tokenizer_processor"] = {"tokenizer_name": config.vlm_model_name}
+        with _hub_errors_as_unavailable(path_or_repo_id, revision=revision):
             preprocessor, postprocessor = make_pre_post_processors(
-                config, pretrained_path=source, preprocessor_overrides=overrides
+                config, pretrained_path=source, pretrained_revision=revision,
+                preprocessor_overrides=pre_over, postprocessor_overrides=post_over,
             )
-    if rename_map:
-        _find_step(preprocessor, RenameObservationsProcessorStep).rename_map = dict(rename_map)
+    hub.check_normalizer_covers(preprocessor, source)
+    hub.check_normalizer_covers(postprocessor, source)
     return SmolVLABackbone(policy, preprocessor, postprocessor)
+
+
+def _saved_stats_fit(source: str, revision: str | None, state_dim: int, action_dim: int) -> bool:
+    """Do the checkpoint's saved normaliser stats have LIBERO's state and action widths?"""
+    from safetensors import safe_open
+
+    local = Path(source)
+    files = sorted(local.glob("policy_preprocessor_step_*_normalizer_processor.safetensors")) \
+        if local.is_dir() else []
+    if not local.is_dir():
+        for step in range(8):  # the step index varies by release (docs/HUB_FACTS.md)
+            found = hub.cached_file(source, f"policy_preprocessor_step_{step}_normalizer_processor.safetensors", revision)
+            files += [found] if found else []
+    for path in files:
+        with safe_open(str(path), framework="pt") as handle:
+            shapes = {k: tuple(handle.get_slice(k).get_shape()) for k in handle.keys()}
+        if shapes.get(f"{STATE_KEY}.mean") == (state_dim,) and shapes.get(f"{ACTION_KEY}.mean") == (action_dim,):
+            return True
+    return False
+
+
+VLM_INCLUDE = ("*.json", "*.txt", "*.jinja")  # config, processor, tokenizer: not the 1.9 GB weights
+
+
+def _vlm_artifact(vlm_repo_id: str, needed_by: str):
+    return hub.hub_artifact(
+        "vlm config", vlm_repo_id, ("config.json", "tokenizer_config.json", "processor_config.json"),
+        needed_by, include=VLM_INCLUDE,
+        note="LeRobot reads its config, processor and tokenizer at main (no revision); "
+             "the checkpoint carries the VLM weights",
+    )
+
+
+def artifacts(repo_id: str, revision: str | None, needed_by: str, vlm_repo_id: str = VLM_REPO_ID) -> list:
+    """What loading `repo_id` reads from the hub: the checkpoint, and its VLM's config/tokenizer."""
+    return [hub.hub_artifact("policy", repo_id, ("config.json", "model.safetensors"), needed_by, revision),
+            _vlm_artifact(vlm_repo_id, needed_by)]
 
 
 def _fit_features(config, rename_map, camera_keys, state_dim, action_dim) -> bool:
@@ -324,13 +373,14 @@ def _fit_features(config, rename_map, camera_keys, state_dim, action_dim) -> boo
     return changed
 
 
-def _check_all_weights_loaded(policy, source: str) -> None:
+def _check_all_weights_loaded(policy, source: str, revision: str | None = None) -> None:
     """LeRobot loads with strict=False and only logs missing keys: make a miss an error."""
     from huggingface_hub import hf_hub_download
     from safetensors import safe_open
 
     local = Path(source) / "model.safetensors"
-    model_file = local if local.is_file() else hf_hub_download(source, "model.safetensors")
+    model_file = local if local.is_file() else hf_hub_download(source, "model.safetensors",
+                                                               revision=revision)
     with safe_open(str(model_file), framework="pt") as handle:
         saved = set(handle.keys())
     state = policy.state_dict()
@@ -340,38 +390,9 @@ def _check_all_weights_loaded(policy, source: str) -> None:
         raise RuntimeError(f"{source} lacks {len(missing)} policy weights, e.g. {missing[:3]}")
 
 
-def _offline() -> bool:
-    from huggingface_hub import constants
-
-    flag = os.environ.get("HF_HUB_OFFLINE", "").upper() in {"1", "ON", "YES", "TRUE"}
-    return constants.HF_HUB_OFFLINE or flag
-
-
-def _require_hub_files(repo_id: str, filenames: tuple[str, ...]) -> None:
-    """Offline and not cached: raise BackboneUnavailable at once instead of retrying the network."""
-    from huggingface_hub import try_to_load_from_cache
-
-    if not _offline():
-        return  # online: let from_pretrained download it
-    absent = [f for f in filenames if not isinstance(try_to_load_from_cache(repo_id, f), str)]
-    if absent:
-        raise BackboneUnavailable(_unavailable_message(repo_id))
-
-
-def _unavailable_message(repo_id: str, vlm_repo_id: str = VLM_REPO_ID) -> str:
-    """One line: what is missing, where it was looked for, and the command that fixes it."""
-    from huggingface_hub import constants
-
-    fetch = " and ".join(f"`hf download {r}`" for r in dict.fromkeys((repo_id, vlm_repo_id)))
-    return (
-        f"{repo_id} is not in the Hugging Face cache ({constants.HF_HUB_CACHE}) and the hub is "
-        f"offline or unreachable: run {fetch} (SmolVLA also reads its VLM's config and tokenizer) "
-        f"on a networked machine with the same HF_HOME, or pass a local checkpoint folder"
-    )
-
-
 @contextlib.contextmanager
-def _hub_errors_as_unavailable(repo_id: str, vlm_repo_id: str = VLM_REPO_ID) -> Iterator[None]:
+def _hub_errors_as_unavailable(repo_id: str, vlm_repo_id: str = VLM_REPO_ID,
+                               revision: str | None = None) -> Iterator[None]:
     from huggingface_hub.errors import HfHubHTTPError
 
     try:
@@ -379,7 +400,13 @@ def _hub_errors_as_unavailable(repo_id: str, vlm_repo_id: str = VLM_REPO_ID) -> 
     except (HfHubHTTPError, OSError) as error:  # transformers and LeRobot raise OSError subclasses
         if Path(repo_id).is_dir() and Path(vlm_repo_id).is_dir():
             raise
-        raise BackboneUnavailable(_unavailable_message(repo_id, vlm_repo_id)) from error
+        needed = artifacts(repo_id, revision, repo_id, vlm_repo_id)
+        fixes = " and ".join(f"`{a.fix or hub.download_command(a.repo_id, a.revision)}`" for a in needed)
+        reason = " ".join(str(error).split())[:240]
+        raise BackboneUnavailable(
+            f"could not load {repo_id} ({type(error).__name__}: {reason}); fix: {fixes} on a "
+            "networked machine with the same HF_HOME, or pass a local checkpoint folder"
+        ) from error
 
 
 def _find_step(pipeline, step_type):

@@ -245,7 +245,8 @@ def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
     return ranking
 
 
-BACKBONE_PARAMS = {"smolvla": 450e6, "pi05": 3.3e9}  # orders "small" before "large"
+BACKBONE_PARAMS = {"smolvla": 450e6, "smolvla_libero": 450e6, "pi05": 3.3e9,
+                   "pi05_libero": 3.3e9}  # orders "small" before "large"
 
 
 def backbone_order(backbones: Sequence[str]) -> list[str]:
