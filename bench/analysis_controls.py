@@ -1,7 +1,8 @@
-"""Control cells against their references: wrapper neutrality and every control's delta.
+"""Control cells against their references: wrapper neutrality, every control's delta, vision use.
 
 delta = (control - reference) / reference, on mean MSE over the held-out windows, normalised and
-raw. The wrapper-neutrality delta is this delta for native_wrapped against native.
+raw. The wrapper-neutrality delta is this delta for native_wrapped against native. `vision_check`
+asks whether a backbone x suite's best graft beats its no-vision controls (VISION_RULE).
 """
 
 from __future__ import annotations
@@ -11,6 +12,10 @@ from typing import Sequence
 
 import numpy as np
 
+from bench.analysis import (
+    DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, graft_cells,
+    paired_window_bootstrap,
+)
 from bench.records import CONTROL_KINDS, GRAFT
 
 METRICS = ("normalized", "raw")
@@ -115,3 +120,148 @@ def wrapper_neutrality(records: Sequence[dict]) -> dict[tuple[str, str], Wrapper
         if wn.per_seed:
             wn.mean = {m: float(np.mean([d[m] for d in wn.per_seed.values()])) for m in METRICS}
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Does the best graft use vision? (else its backbone x suite ranking measures nothing)
+
+BLIND = "blind"  # the encoder that sees nothing (encoders/known.py)
+UNCHECKED_HINT = "vision use not checked: run the blind or zero_image control"
+VISION_RULE = (
+    "A backbone x suite's encoder ranking measures vision only if its best graft (lowest mean "
+    "normalised MSE over seeds, `blind` excluded) is better than every blind or zero-image "
+    "control present: the blind graft (same seeds), a zero_image control of the best encoder "
+    "(each variant) or of the native policy. Better = the 95% interval of (control - best "
+    "graft) lies above 0. Pooling over seeds: per seed, the mean over identical held-out "
+    "windows of the per-window difference; these are averaged over the seeds both cells have "
+    "(a native-policy control does not depend on the seed: its cell is paired with every graft "
+    "seed); the interval is the paired window bootstrap of the rankings (one window resample "
+    "per replicate shared by all seeds; seeds kept, not resampled)."
+)
+
+
+@dataclass
+class VisionComparison:
+    """Best graft against one no-vision control; `diff` is control minus graft, normalised MSE."""
+
+    control: str  # "blind graft", "zero_image[train] of siglip", "zero_image[eval] of native"
+    cell_ids: list[str]
+    seeds: list[int]
+    control_mse: float
+    diff: float
+    diff_ci: tuple[float, float]
+
+    @property
+    def better(self) -> bool:
+        """True when the graft is better: the interval of (control - graft) lies above 0."""
+        return bool(np.isfinite(self.diff_ci[0]) and self.diff_ci[0] > 0.0)
+
+
+@dataclass
+class VisionCheck:
+    """Whether the best graft of one backbone x suite beats its no-vision controls."""
+
+    backbone: str
+    suite: str
+    best_encoder: str | None = None
+    best_mse: float = float("nan")
+    comparisons: list[VisionComparison] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def checked(self) -> bool:
+        return bool(self.comparisons)
+
+    @property
+    def flagged(self) -> bool:
+        """The ranking says nothing: some control is not beaten by the best graft."""
+        return any(not c.better for c in self.comparisons)
+
+    @property
+    def status(self) -> str:
+        if not self.checked:
+            return "unchecked"
+        return "FLAGGED" if self.flagged else "uses vision"
+
+    @property
+    def failed_controls(self) -> list[str]:
+        return [c.control for c in self.comparisons if not c.better]
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out.update(status=self.status, flagged=self.flagged,
+                   better={c.control: c.better for c in self.comparisons})
+        return out
+
+
+def _no_vision_controls(records: Sequence[dict], backbone: str, suite: str,
+                        best: str) -> list[tuple[str, list[dict], bool]]:
+    """(label, cells, seed_free) for every blind / zero-image control present, in that order."""
+    here = [r for r in records if r["backbone"] == backbone and r["suite"] == suite]
+    groups: list[tuple[str, list[dict], bool]] = []
+    blind = [r for r in here if r["kind"] == GRAFT and r["encoder"] == BLIND]
+    if blind:
+        groups.append(("blind graft", blind, False))
+    zero = [r for r in here if r["kind"] == "zero_image"]
+    for owner, seed_free in ((best, False), ("native", True)):
+        mine = [r for r in zero if (r.get("encoder") or "native") == owner]
+        for variant in sorted({r.get("variant") or "" for r in mine}):
+            cells = [r for r in mine if (r.get("variant") or "") == variant]
+            label = "zero_image" + (f"[{variant}]" if variant else "") + f" of {owner}"
+            groups.append((label, cells, seed_free))
+    return groups
+
+
+def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
+                 n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> VisionCheck:
+    """Best graft of `backbone` x `suite` against its blind / zero-image controls (VISION_RULE)."""
+    check = VisionCheck(backbone=backbone, suite=suite)
+    grafts = [r for r in graft_cells(records, backbone, suite) if r["encoder"] != BLIND]
+    if not grafts:
+        check.notes.append("no graft cells besides blind")
+        return check
+    seed_means: dict[str, list[float]] = {}
+    for r in grafts:
+        seed_means.setdefault(r["encoder"], []).append(
+            float(np.mean(r["per_window"]["normalized"])))
+    means = {e: float(np.mean(v)) for e, v in seed_means.items()}
+    check.best_encoder = min(means, key=lambda e: (means[e], e))
+    check.best_mse = means[check.best_encoder]
+    best_cells = sorted((r for r in grafts if r["encoder"] == check.best_encoder),
+                        key=lambda r: int(r["seed"]))
+    for label, controls, seed_free in _no_vision_controls(records, backbone, suite,
+                                                          check.best_encoder):
+        by_seed = {int(r["seed"]): r for r in sorted(controls, key=lambda r: r["cell_id"])}
+        pairs = [(g, by_seed.get(int(g["seed"]), controls[0] if seed_free else None))
+                 for g in best_cells]
+        pairs = [(g, c) for g, c in pairs if c is not None]
+        if not pairs:
+            check.notes.append(f"{label}: no seed in common with the {check.best_encoder} graft "
+                               f"(control seeds {sorted(by_seed)})")
+            continue
+        cells = [g for g, _ in pairs] + [c for _, c in pairs]
+        try:
+            _, orders = align_windows(cells)
+        except WindowMismatchError as err:
+            check.notes.append(f"{label}: not compared: {err}")
+            continue
+        values = [np.asarray(c["per_window"]["normalized"], dtype=float)[o]
+                  for c, o in zip(cells, orders)]
+        # (2, S, W): row 0 the best graft, row 1 the control, seed s paired with seed s
+        per_window = np.stack([values[:len(pairs)], values[len(pairs):]])
+        boot = paired_window_bootstrap(per_window, leader=0, n_resamples=n_resamples,
+                                       random_seed=random_seed)
+        check.comparisons.append(VisionComparison(
+            control=label, cell_ids=sorted({c["cell_id"] for _, c in pairs}),
+            seeds=[int(g["seed"]) for g, _ in pairs], control_mse=float(boot.mean[1]),
+            diff=float(boot.diff[1]), diff_ci=(float(boot.diff_lo[1]), float(boot.diff_hi[1]))))
+    return check
+
+
+def vision_checks(records: Sequence[dict], *, n_resamples: int = DEFAULT_RESAMPLES,
+                  random_seed: int = 0) -> list[VisionCheck]:
+    """One VisionCheck per backbone x suite with graft cells, in the rankings' order."""
+    pairs = sorted({(r["backbone"], r["suite"]) for r in records if r["kind"] == GRAFT})
+    order = backbone_order([b for b, _ in pairs])
+    return [vision_check(records, b, s, n_resamples=n_resamples, random_seed=random_seed)
+            for b, s in sorted(pairs, key=lambda p: (p[1], order.index(p[0])))]

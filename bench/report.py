@@ -19,14 +19,15 @@ from pathlib import Path
 from typing import Callable, NamedTuple, Sequence
 
 from bench.analysis import DEFAULT_RESAMPLES, rank_all
-from bench.analysis_controls import control_deltas, wrapper_neutrality
+from bench.analysis_controls import control_deltas, vision_checks, wrapper_neutrality
 from bench.analysis_rollouts import closed_loop_all
 from bench.analysis_transfer import support_counts, transfer_all
 from bench.records import GRAFT, Results, load_results
 from bench.report_provenance import per_task_section, provenance_section
 from bench.report_sections import (
     ReportContext, answer_lines, caveats, closed_loop_section, controls_section, plots_section,
-    rankings_section, seed_section, tie_section, transfer_section, wrapper_section,
+    rankings_section, seed_section, tie_section, transfer_section, vision_section,
+    wrapper_section,
 )
 
 
@@ -40,6 +41,7 @@ class ReportSection(NamedTuple):
 SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
     ("Caveats", caveats),
     ("Encoder rankings", rankings_section),
+    ("Vision use", vision_section),
     ("Rank transfer between backbones", transfer_section),
     ("Tie bands", tie_section),
     ("Seed cells", seed_section),
@@ -67,7 +69,9 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
                          wrapper=wrapper_neutrality(records), controls=control_deltas(records),
                          n_resamples=n_resamples,
                          closed_loop=closed_loop_all(records, n_resamples=n_resamples,
-                                                     random_seed=random_seed))
+                                                     random_seed=random_seed),
+                         vision=vision_checks(records, n_resamples=n_resamples,
+                                              random_seed=random_seed))
 
 
 def _guarded(name: str, render: Callable[[ReportContext], str], ctx: ReportContext) -> str:
@@ -153,7 +157,7 @@ def summary(ctx: ReportContext) -> dict:
         "protocol_hashes": sorted({r.get("protocol_hash", "?") for r in ctx.records}),
         "rankings": ctx.rankings, "transfers": ctx.transfers, "support": ctx.support,
         "wrapper_neutrality": ctx.wrapper, "controls": ctx.controls,
-        "closed_loop": ctx.closed_loop,
+        "closed_loop": ctx.closed_loop, "vision_use": ctx.vision,
         "cells": {"finished": len(ctx.records), "failed": [f["cell_id"] for f in res.failed],
                   "missing": res.missing, "skipped": res.skipped},
         "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},

@@ -11,6 +11,7 @@ from bench.analysis import PRIMARY
 from bench.records import GRAFT
 from bench.report_format import bullets, num, table
 from bench.report_sections import ReportContext
+from bench.study import DISAGREES, NOT_RECORDED, OURS, STUDY, STUDY_SOURCE, compare_records
 
 PHASES = ("build", "features", "train", "eval", "total")
 
@@ -57,6 +58,31 @@ def _distinct(values) -> str:
     return ", ".join(seen) if seen else "unknown"
 
 
+STUDY_TABLE_INTRO = (
+    f"**Protocol constants: the study's and ours.** Study values: {STUDY_SOURCE}. Status "
+    f"`{STUDY}`: ours equals the study's; `{OURS}`: a constant of ours the study does not give; "
+    f"`{DISAGREES}`: ours differs from the study's; `{NOT_RECORDED}`: the records do not say "
+    f"what we used."
+)
+
+
+def study_constants_section(records: list[dict]) -> str:
+    """The study-vs-ours table per protocol hash, disagreements listed under it."""
+    if not records:
+        return STUDY_TABLE_INTRO + "\n\n_No records: nothing to compare._"
+    parts = [STUDY_TABLE_INTRO]
+    for h, rows in compare_records(records).items():
+        parts.append(f"Protocol `{h}`:\n\n" + table(
+            [[r.constant, r.study, r.ours, f"**{r.status}**" if r.status == DISAGREES
+              else r.status, r.field or "(none)", r.note] for r in rows],
+            ["constant", "study", "ours", "status", "Protocol field", "note"]))
+        differ = [f"{r.constant} (study {r.study}, ours {r.ours})" for r in rows
+                  if r.status == DISAGREES]
+        parts.append(f"Disagreements with the study under `{h}`: "
+                     + ("; ".join(differ) if differ else "none") + ".")
+    return "\n\n".join(parts)
+
+
 def provenance_section(ctx: ReportContext) -> str:
     res, records = ctx.results, ctx.records
     parts = []
@@ -84,6 +110,7 @@ def provenance_section(ctx: ReportContext) -> str:
     for h, recs in hashes.items():
         parts.append(f"Protocol `{h}`:\n\n```json\n"
                      f"{json.dumps(recs[0].get('protocol', {}), indent=1, sort_keys=True)}\n```")
+    parts.append(study_constants_section(records))
     totals = {p: sum(float((r.get("timings_s") or {}).get(p, 0.0)) for r in records)
               for p in PHASES}
     parts.append("Wall time per phase, summed over finished cells (seconds):\n\n"

@@ -10,11 +10,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.analysis import CONFIDENCE, PRIMARY, Ranking
-from bench.analysis_controls import ControlDelta, WrapperNeutrality
+from bench.analysis_controls import (
+    UNCHECKED_HINT, VISION_RULE, ControlDelta, VisionCheck, VisionComparison, WrapperNeutrality,
+)
 from bench.analysis_rollouts import ClosedLoop
 from bench.analysis_transfer import SUPPORT_RULES, Transfer, min_exact_kendall_p
 from bench.records import Results
 from bench.report_format import bullets, half_width, interval, num, pct, table, yes_no
+from bench.study import DISAGREES, compare_records
 
 TIER_RULE = (
     f"**Top tier (near-tie band)**: the leader (lowest mean normalised MSE over seeds) plus every "
@@ -42,16 +45,55 @@ class ReportContext:
     plots: list[tuple[str, Path]] = field(default_factory=list)
     n_resamples: int = 0
     closed_loop: list[ClosedLoop] = field(default_factory=list)
+    vision: list[VisionCheck] = field(default_factory=list)
 
     @property
     def records(self) -> list[dict]:
         return self.results.records
+
+    def vision_of(self, backbone: str, suite: str) -> VisionCheck | None:
+        return next((v for v in self.vision if (v.backbone, v.suite) == (backbone, suite)), None)
 
     def wrapper_text(self, backbone: str, suite: str) -> str:
         wn = self.wrapper.get((backbone, suite))
         if wn is None or not wn.mean:
             return "not measured (no native + native_wrapped pair)"
         return f"{pct(wn.mean[PRIMARY])} (mean over seeds {sorted(wn.per_seed)})"
+
+
+def _gap(c: VisionComparison) -> str:
+    return (f"{c.control}: control - graft {num(c.diff, 3)}, {CONFIDENCE:.0%} CI "
+            f"{interval(c.diff_ci, 3)}, seeds {c.seeds}")
+
+
+def vision_text(check: VisionCheck | None) -> str:
+    """One sentence: does this backbone x suite's ranking measure vision at all?"""
+    if check is None or not check.checked:
+        notes = f" ({'; '.join(check.notes)})" if check is not None and check.notes else ""
+        return f"{UNCHECKED_HINT[0].upper()}{UNCHECKED_HINT[1:]}{notes}."
+    if check.flagged:
+        failed = [c for c in check.comparisons if not c.better]
+        return (f"Vision use: **this encoder ranking says nothing**: the best graft "
+                f"(**{check.best_encoder}**) is not better than "
+                f"{'; '.join(_gap(c) for c in failed)}. The backbone may ignore its images here, "
+                f"so the order of the encoders is noise.")
+    return (f"Vision use: the best graft (**{check.best_encoder}**) beats every no-vision "
+            f"control present ({'; '.join(_gap(c) for c in check.comparisons)}).")
+
+
+def _vision_answer(ctx: ReportContext) -> list[str]:
+    flagged = [f"{v.backbone} x {v.suite} ({v.best_encoder} not better than "
+               f"{', '.join(v.failed_controls)})" for v in ctx.vision if v.flagged]
+    unchecked = [f"{v.backbone} x {v.suite}" for v in ctx.vision if not v.checked]
+    lines = []
+    if flagged:
+        lines.append("**Encoder rankings that measure nothing** (best graft not better than a "
+                     "no-vision control by a paired interval; see Vision use): "
+                     + "; ".join(flagged) + ".")
+    if unchecked:
+        lines.append(f"Vision use not checked on {', '.join(unchecked)}: run the blind or "
+                     "zero_image control.")
+    return lines
 
 
 def answer_lines(ctx: ReportContext) -> list[str]:
@@ -73,6 +115,13 @@ def answer_lines(ctx: ReportContext) -> list[str]:
             f"{num(t.agreement.get('tau_b'), 2)} over {len(t.encoders)} encoders; wrapper "
             f"delta {t.small} {ctx.wrapper_text(t.small, t.suite)}, {t.large} "
             f"{ctx.wrapper_text(t.large, t.suite)}).")
+        blind_sides = [b for b in (t.small, t.large)
+                       if (v := ctx.vision_of(b, t.suite)) is not None and v.flagged]
+        if blind_sides:
+            lines[-1] += (f" **But the ranking on {' and '.join(blind_sides)} x {t.suite} "
+                          f"measures nothing** (best graft not better than a no-vision control), "
+                          f"so this transfer answer is not evidence either way.")
+    lines += _vision_answer(ctx)
     s = ctx.support
     if s["comparisons_total"] or s["seed_cells_total"]:
         lines.append(
@@ -115,6 +164,20 @@ def caveats(ctx: ReportContext) -> str:
         "compare rankings across backbones, never levels; every plot gives each backbone its "
         "own axis.",
     ]
+    flagged = [f"{v.backbone} x {v.suite}" for v in ctx.vision if v.flagged]
+    unchecked = [f"{v.backbone} x {v.suite}" for v in ctx.vision if not v.checked]
+    if flagged or unchecked:
+        lines.append(
+            "**A ranking only means something if the policy uses its images.** "
+            + (f"Flagged (best graft not better than its blind / zero-image control): "
+               f"{', '.join(flagged)}. " if flagged else "")
+            + (f"Vision use not checked (no blind or zero_image control): "
+               f"{', '.join(unchecked)}." if unchecked else ""))
+    differ = sorted({r.constant for rows in compare_records(ctx.records).values() for r in rows
+                     if r.status == DISAGREES})
+    if differ:
+        lines.append(f"**Constants that differ from the published study's**: {', '.join(differ)} "
+                     "(table 'Protocol constants: the study's and ours' under Provenance).")
     if len(hashes) > 1:
         lines.append(f"**Warning: records come from {len(hashes)} different protocols** "
                      f"({', '.join(hashes)}); numbers measured under different rules are mixed.")
@@ -131,6 +194,7 @@ def rankings_section(ctx: ReportContext) -> str:
         parts.append(f"### {r.backbone} x {r.suite}")
         parts.append(f"Wrapper neutrality delta on {r.backbone} x {r.suite}: "
                      f"{ctx.wrapper_text(r.backbone, r.suite)}.")
+        parts.append(vision_text(ctx.vision_of(r.backbone, r.suite)))
         if r.error:
             parts.append(f"_Not ranked: {r.error}_")
             continue
@@ -243,6 +307,31 @@ def wrapper_section(ctx: ReportContext) -> str:
         return intro + "\n\n_No native_wrapped cells in the results._"
     return intro + "\n\n" + table(rows, ["backbone", "suite", "seed", "native norm. MSE",
                                          "wrapped norm. MSE", "Δ norm.", "Δ raw", "note"])
+
+
+def vision_section(ctx: ReportContext) -> str:
+    """Best graft vs blind / zero-image controls, per backbone x suite (VISION_RULE)."""
+    rows = []
+    for v in ctx.vision:
+        if not v.checked:
+            rows.append([v.backbone, v.suite, v.best_encoder or "n/a", num(v.best_mse), "none",
+                         "", "", "", "", UNCHECKED_HINT])
+        for c in v.comparisons:
+            rows.append([v.backbone, v.suite, v.best_encoder, num(v.best_mse), c.control,
+                         ", ".join(map(str, c.seeds)), num(c.control_mse), num(c.diff, 3),
+                         interval(c.diff_ci, 3),
+                         "graft better" if c.better else "**FLAGGED: not better**"])
+    notes = [f"{v.backbone} x {v.suite}: {n}" for v in ctx.vision for n in v.notes]
+    parts = [VISION_RULE + f" {ctx.n_resamples} replicates."]
+    if not rows:
+        parts.append("_No graft cells in the results._")
+    else:
+        parts.append(table(rows, ["backbone", "suite", "best graft", "graft norm. MSE",
+                                  "control", "seeds", "control norm. MSE",
+                                  "control - graft", f"{CONFIDENCE:.0%} CI", "verdict"]))
+    if notes:
+        parts.append(bullets(notes))
+    return "\n\n".join(parts)
 
 
 def controls_section(ctx: ReportContext) -> str:

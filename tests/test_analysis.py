@@ -9,7 +9,10 @@ from bench.analysis import (
     WindowMismatchError, align_windows, encoder_means, paired_window_bootstrap, rank_all,
     rank_encoders, seed_winner_index, top_tier_mask,
 )
-from bench.analysis_controls import control_deltas, relative_delta, wrapper_neutrality
+from bench.analysis_controls import (
+    UNCHECKED_HINT, control_deltas, relative_delta, vision_check, vision_checks,
+    wrapper_neutrality,
+)
 from bench.analysis_transfer import (
     min_exact_kendall_p, rank_agreement, support_counts, transfer_all,
 )
@@ -226,3 +229,109 @@ def test_native_reference_falls_back_to_any_seed_of_the_released_policy():
     (cd,) = control_deltas(records)
     assert cd.reference_id == "smolvla-spatial-native-seed0"
     assert cd.delta["normalized"] == pytest.approx(-0.5)
+
+
+# ---------------------------------------------------------------------------------------------
+# vision use: does the best graft beat its blind / zero-image control?
+
+RAMP = [0.05 + 0.01 * i for i in range(12)]  # per-window graft MSE, 12 windows
+
+
+def cells(encoder, values_per_seed, **kw):
+    return [make_record(encoder=encoder, seed=seed, per_window=values, **kw)
+            for seed, values in enumerate(values_per_seed)]
+
+
+def check(records):
+    return vision_check(records, "smolvla", "spatial", n_resamples=RESAMPLES)
+
+
+def test_graft_that_clearly_beats_blind_is_not_flagged():
+    # per-window difference blind - siglip is exactly +0.02 on every window and seed
+    records = (cells("siglip", [RAMP, RAMP]) + cells("dinov2_s", [[v + 0.01 for v in RAMP]] * 2)
+               + cells("blind", [[v + 0.02 for v in RAMP]] * 2))
+    c = check(records)
+    assert c.best_encoder == "siglip" and c.best_mse == pytest.approx(np.mean(RAMP))
+    (cmp,) = c.comparisons
+    assert cmp.control == "blind graft" and cmp.seeds == [0, 1]
+    assert cmp.diff == pytest.approx(0.02)
+    assert cmp.diff_ci == pytest.approx((0.02, 0.02)) and cmp.better
+    assert c.status == "uses vision" and not c.flagged
+
+
+def test_graft_no_better_than_blind_is_flagged():
+    # blind = graft -/+ 0.01 on alternating windows: mean difference 0, interval straddles 0
+    wobble = [v + (0.01 if i % 2 else -0.01) for i, v in enumerate(RAMP)]
+    c = check(cells("siglip", [RAMP, RAMP]) + cells("blind", [wobble, wobble]))
+    (cmp,) = c.comparisons
+    assert cmp.diff == pytest.approx(0.0, abs=1e-12)
+    assert cmp.diff_ci[0] < 0 < cmp.diff_ci[1] and not cmp.better
+    assert c.flagged and c.status == "FLAGGED" and c.failed_controls == ["blind graft"]
+
+
+def test_blind_leading_the_ranking_is_flagged_and_never_the_best_graft():
+    c = check(cells("siglip", [RAMP]) + cells("blind", [[v - 0.01 for v in RAMP]]))
+    assert c.best_encoder == "siglip"
+    assert c.comparisons[0].diff == pytest.approx(-0.01) and c.flagged
+
+
+def test_no_control_is_unchecked():
+    records = cells("siglip", [RAMP]) + cells("dinov2_s", [[v + 0.01 for v in RAMP]])
+    # a zero_image control of an encoder that is not the best one does not check the best
+    records.append(make_record(kind="zero_image", encoder="dinov2_s", variant="train",
+                               per_window=RAMP))
+    records.append(make_record(kind="shuffled_image", encoder="siglip", per_window=RAMP))
+    c = check(records)
+    assert c.best_encoder == "siglip"
+    assert c.comparisons == [] and not c.checked and not c.flagged
+    assert c.status == "unchecked" and "blind or zero_image" in UNCHECKED_HINT
+
+
+def test_pooled_over_seeds_is_the_mean_of_per_seed_paired_differences():
+    # seed 0: blind worse by 0.04 on every window; seed 1: identical. Pooled: +0.02.
+    records = cells("siglip", [RAMP, RAMP]) + cells("blind", [[v + 0.04 for v in RAMP], RAMP])
+    (cmp,) = check(records).comparisons
+    assert cmp.diff == pytest.approx(0.02) and cmp.diff_ci == pytest.approx((0.02, 0.02))
+    # a blind cell of a seed the graft lacks is not paired
+    records.append(make_record(encoder="blind", seed=7, per_window=[9.0] * 12))
+    assert check(records).comparisons[0].seeds == [0, 1]
+
+
+def test_zero_image_controls_of_the_best_encoder_and_of_native():
+    records = cells("siglip", [RAMP, RAMP, RAMP]) + [
+        make_record(kind="zero_image", encoder="siglip", variant=variant, seed=seed,
+                    per_window=[v + shift for v in RAMP],
+                    cell_id=f"smolvla-spatial-siglip-zero_image_{variant}-seed{seed}")
+        for variant, shift in (("train", 0.0), ("eval", 0.05)) for seed in (0, 1, 2)]
+    # the released policy does not depend on the seed: its one cell pairs with every graft seed
+    records.append(make_record(kind="zero_image", encoder=None, variant="eval", seed=0,
+                               per_window=[v + 0.03 for v in RAMP]))
+    c = check(records)
+    by = {cmp.control: cmp for cmp in c.comparisons}
+    assert set(by) == {"zero_image[eval] of siglip", "zero_image[train] of siglip",
+                       "zero_image[eval] of native"}
+    assert by["zero_image[eval] of native"].seeds == [0, 1, 2]
+    assert by["zero_image[eval] of native"].diff == pytest.approx(0.03)
+    assert by["zero_image[eval] of siglip"].better
+    # the graft trained on zeroed images scores the same: vision adds nothing -> flagged
+    assert not by["zero_image[train] of siglip"].better
+    assert c.flagged and c.failed_controls == ["zero_image[train] of siglip"]
+
+
+def test_vision_control_windows_are_paired_by_id():
+    graft = make_record(encoder="siglip", per_window=RAMP)
+    shuffled = list(range(12))[::-1]
+    blind = make_record(encoder="blind", per_window=[RAMP[i] + 0.01 for i in shuffled],
+                        window_ids=[10 * i for i in shuffled])
+    (cmp,) = check([graft, blind]).comparisons
+    assert cmp.diff_ci == pytest.approx((0.01, 0.01))
+    other = make_record(encoder="blind", per_window=RAMP, window_ids=list(range(500, 512)))
+    c = check([graft, other])
+    assert not c.checked and "other held-out windows" in c.notes[0]
+
+
+def test_vision_checks_cover_every_backbone_suite():
+    records = (cells("siglip", [RAMP]) + cells("blind", [[v + 0.02 for v in RAMP]])
+               + cells("siglip", [RAMP], backbone="pi05"))
+    got = {(c.backbone, c.suite): c.status for c in vision_checks(records, n_resamples=100)}
+    assert got == {("smolvla", "spatial"): "uses vision", ("pi05", "spatial"): "unchecked"}

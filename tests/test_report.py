@@ -163,3 +163,50 @@ def test_cli_entry_point(tmp_path, capsys):
     assert (tmp_path / "R.md").is_file() and "wrote" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         main([str(tmp_path / "nope")])
+
+
+def vision_grid() -> list[dict]:
+    """smolvla x spatial: siglip clearly beats blind; pi05 x spatial: blind ties the best graft;
+    smolvla x object: no blind or zero_image control."""
+    levels = {("smolvla", "spatial", "siglip"): 0.05, ("smolvla", "spatial", "dinov2_s"): 0.06,
+              ("smolvla", "spatial", "blind"): 0.08, ("pi05", "spatial", "siglip"): 0.030,
+              ("pi05", "spatial", "dinov2_s"): 0.031, ("pi05", "spatial", "blind"): 0.030,
+              ("smolvla", "object", "siglip"): 0.05, ("smolvla", "object", "dinov2_s"): 0.06}
+    return make_grid(levels, (0, 1), noise=0.002)
+
+
+def test_report_flags_rankings_that_measure_nothing(tmp_path):
+    out = build_report(write_grid(tmp_path, vision_grid()), n_resamples=RESAMPLES, plots=False)
+    text = check_markdown(out)
+    answer = text[:text.index("## Caveats")]
+    assert "**Encoder rankings that measure nothing**" in answer
+    assert "pi05 x spatial (siglip not better than blind graft)" in answer
+    assert "**But the ranking on pi05 x spatial measures nothing**" in answer
+    assert "Vision use not checked on smolvla x object" in answer
+    caveat_text = text[text.index("## Caveats"):text.index("## Encoder rankings")]
+    assert "Flagged (best graft not better than its blind / zero-image control): " \
+        "pi05 x spatial." in caveat_text
+    # next to each ranking: flagged, passed, unchecked
+    rankings = text[text.index("## Encoder rankings"):text.index("## Vision use")]
+    blocks = dict(re.findall(r"### (\S+ x \S+)\n\n(.*?)(?=\n### |\Z)", rankings, re.S))
+    assert "**this encoder ranking says nothing**" in blocks["pi05 x spatial"]
+    assert "beats every no-vision control" in blocks["smolvla x spatial"]
+    assert "Vision use not checked: run the blind or zero_image control." in \
+        blocks["smolvla x object"]
+    assert "says nothing" not in blocks["smolvla x spatial"] + blocks["smolvla x object"]
+    summary = json.loads((out.parent / "REPORT_summary.json").read_text())
+    assert {(v["backbone"], v["suite"]): v["status"] for v in summary["vision_use"]} == {
+        ("smolvla", "spatial"): "uses vision", ("pi05", "spatial"): "FLAGGED",
+        ("smolvla", "object"): "unchecked"}
+
+
+def test_provenance_lists_study_constants_and_disagreements(full_report):
+    _, text = full_report
+    provenance = text[text.index("## Provenance"):]
+    assert "**Protocol constants: the study's and ours.**" in provenance
+    assert re.search(r"\| learning rate +\| 0\.0001 +\| 0\.003 +\| \*\*DISAGREES\*\*", provenance)
+    assert re.search(r"\| warmup_steps +\| not given +\| 30 +\| ours \(study silent\)",
+                     provenance)
+    assert "Disagreements with the study under" in provenance
+    assert "learning rate (study 0.0001, ours 0.003)" in provenance
+    assert "**Constants that differ from the published study's**" in text
