@@ -12,17 +12,19 @@ import math
 import timm
 import torch
 import torch.nn.functional as F
+from huggingface_hub import constants as hub_constants
+from huggingface_hub import try_to_load_from_cache
+from timm.models._hub import HF_WEIGHTS_NAME, _get_safe_alternatives, check_cached_file
 from torch import Tensor
 
+from bench.artifacts import Artifact
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder
-from encoders.registry import EncoderUnavailable, register, register_prefix
+from encoders.registry import EncoderUnavailable, get_spec, register, register_prefix
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 TINY_SEED = 0
-
-# Weight files timm looks for in a timm/* Hugging Face repo.
-_HUB_WEIGHT_FILES = ("model.safetensors", "pytorch_model.bin", "open_clip_pytorch_model.bin")
+REASON_CHARS = 300
 
 
 class TimmEncoder(Encoder):
@@ -71,22 +73,78 @@ def _tokens_to_grid(tokens: Tensor, num_prefix_tokens: int) -> Tensor:
     return patches.transpose(1, 2).reshape(b, c, side, side)
 
 
-def _fix(repo_id: str) -> str:
-    return (f"fetch it on a machine with network (`huggingface-cli download {repo_id}`) into the "
-            f"HF cache, or use source='tiny'")
+def _one_line(text: str, limit: int = REASON_CHARS) -> str:
+    """`text` with whitespace runs (newlines included) collapsed to one space, cut at `limit`."""
+    flat = " ".join(text.split())
+    return flat if len(flat) <= limit else flat[: limit - 3] + "..."
 
 
-def _missing_hub_repo(timm_name: str) -> str | None:
-    """The HF repo id when it is known and none of its weight files is cached; else None."""
-    from huggingface_hub import try_to_load_from_cache
+def hub_weights(timm_name: str) -> tuple[str, str | None, tuple[str, ...]] | None:
+    """(repo id, revision, weight files in the order timm 1.0.31 tries them) of the Hugging Face
+    repo `timm.create_model(timm_name, pretrained=True)` loads; None when not hub-hosted.
 
+    The repo id is the pretrained cfg's hf_hub_id, so it carries the default tag for an untagged
+    name ("vit_small_patch14_dinov2" -> "timm/vit_small_patch14_dinov2.lvd142m").
+    """
     cfg = timm.models.get_pretrained_cfg(timm_name)
-    repo_id = getattr(cfg, "hf_hub_id", None) if cfg is not None else None
-    if not repo_id:
+    hub_id = getattr(cfg, "hf_hub_id", None) if cfg is not None else None
+    if not hub_id:
         return None
-    files = (getattr(cfg, "hf_hub_filename", None),) + _HUB_WEIGHT_FILES
-    cached = any(isinstance(try_to_load_from_cache(repo_id, f), str) for f in files if f)
-    return None if cached else repo_id
+    repo_id, _, revision = hub_id.partition("@")
+    # timm's load_state_dict_from_hf: a safetensors alternative of the file first, then the file.
+    filename = getattr(cfg, "hf_hub_filename", None) or HF_WEIGHTS_NAME
+    files = (*_get_safe_alternatives(filename), filename)
+    return repo_id, revision or None, files
+
+
+def _cached_weight_file(repo_id: str, revision: str | None, files: tuple[str, ...]) -> str | None:
+    """Path of the first of `files` in the local HF hub cache (HF_HUB_CACHE), else None."""
+    for filename in files:
+        path = try_to_load_from_cache(repo_id, filename, revision=revision)
+        if isinstance(path, str):
+            return path
+    return None
+
+
+def fetch_command(repo_id: str, revision: str | None, filename: str) -> str:
+    """The shell command that puts one weight file of `repo_id` in the HF hub cache."""
+    pin = f" --revision {revision}" if revision else ""
+    return f"hf download {repo_id} {filename}{pin}"
+
+
+def _create_command(timm_name: str) -> str:
+    """The shell command that has timm fetch URL-hosted weights into torch's hub cache."""
+    return f"python -c \"import timm; timm.create_model('{timm_name}', pretrained=True)\""
+
+
+def _fix(command: str) -> str:
+    """The fix clause of an EncoderUnavailable message."""
+    return f"fix: `{command}` on a machine with network, or use source='tiny'"
+
+
+def weight_artifacts(name: str) -> list[Artifact]:
+    """The pretrained weights encoder `name` (registered or "timm:<model>") reads with source
+    "hub"; [] for encoders without pretrained weights (pixels, blind)."""
+    spec = get_spec(name)
+    if spec.timm_name is None:
+        return []
+    needed_by = f"encoder {name}"
+    hub = hub_weights(spec.timm_name)
+    if hub is None:
+        cfg = timm.models.get_pretrained_cfg(spec.timm_name)
+        url = getattr(cfg, "url", None) if cfg is not None else None
+        if not url:
+            return []  # timm has no pretrained weights for it: nothing to fetch
+        present = bool(check_cached_file(url))
+        return [Artifact(kind="encoder weights", repo_id=url, needed_by=needed_by,
+                         present=present, where=f"{torch.hub.get_dir()}/checkpoints",
+                         fix="" if present else _create_command(spec.timm_name))]
+    repo_id, revision, files = hub
+    cached = _cached_weight_file(repo_id, revision, files)
+    where = cached or f"not in {hub_constants.HF_HUB_CACHE} (looked for {', '.join(files)})"
+    return [Artifact(kind="encoder weights", repo_id=repo_id, needed_by=needed_by,
+                     present=cached is not None, where=where, revision=revision,
+                     fix="" if cached else fetch_command(repo_id, revision, files[0]))]
 
 
 def build_timm_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
@@ -109,16 +167,17 @@ def build_timm_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
             model = timm.create_model(spec.timm_name, pretrained=False, **kwargs)
         return TimmEncoder(spec, model, input_size, weights_id=f"tiny-init{TINY_SEED}")
 
-    missing = _missing_hub_repo(spec.timm_name)
-    if missing is not None:
-        raise EncoderUnavailable(f"encoder {spec.name!r}: pretrained weights {missing!r} are not in "
-                                 f"the local Hugging Face cache; {_fix(missing)}")
+    hub = hub_weights(spec.timm_name)
+    command = fetch_command(hub[0], hub[1], hub[2][0]) if hub else _create_command(spec.timm_name)
+    if hub is not None and _cached_weight_file(*hub) is None:
+        raise EncoderUnavailable(f"encoder {spec.name!r}: pretrained weights {hub[0]!r} are not in "
+                                 f"the local Hugging Face cache; {_fix(command)}")
     try:
         model = timm.create_model(spec.timm_name, pretrained=True, **kwargs)
     except OSError as err:  # offline download attempt (URL-hosted weights, partial cache)
         raise EncoderUnavailable(f"encoder {spec.name!r}: could not load pretrained weights of "
-                                 f"{spec.timm_name!r} ({type(err).__name__}: {err}); "
-                                 f"{_fix('timm/' + spec.timm_name)}".replace("\n", " ")) from err
+                                 f"{spec.timm_name!r} ({type(err).__name__}: "
+                                 f"{_one_line(str(err))}); {_fix(command)}") from err
     cfg = model.pretrained_cfg
     weights_id = f"pretrained:{cfg.get('architecture', spec.timm_name)}.{cfg.get('tag') or ''}"
     return TimmEncoder(spec, model, input_size, weights_id=weights_id)

@@ -9,6 +9,7 @@ import timm
 import torch
 
 import encoders
+from encoders import timm_encoders
 from encoders import EncoderSpec, EncoderUnavailable, UnknownEncoder, build_encoder, get_spec
 
 # (registry name, real forward_features channels, tiny channels, tiny grid side at 64 px input)
@@ -104,15 +105,16 @@ def test_timm_prefix_builds_any_timm_model():
     assert vit.layout == "tokens" and vit.num_prefix_tokens == 1
 
 
-def _fake_hub_cache(root, repo_id: str, state_dict: dict) -> None:
+def _fake_hub_cache(root, repo_id: str, state_dict: dict, sha: str = "0") -> None:
+    """What `hf download REPO model.safetensors` leaves in hub cache `root`."""
     from safetensors.torch import save_file
 
     repo = root / ("models--" + repo_id.replace("/", "--"))
-    (repo / "snapshots" / "0").mkdir(parents=True)
+    (repo / "snapshots" / sha).mkdir(parents=True)
     (repo / "refs").mkdir()
-    (repo / "refs" / "main").write_text("0")
+    (repo / "refs" / "main").write_text(sha)
     save_file({k: v.contiguous() for k, v in state_dict.items()},
-              str(repo / "snapshots" / "0" / "model.safetensors"))
+              str(repo / "snapshots" / sha / "model.safetensors"))
 
 
 @pytest.fixture
@@ -120,17 +122,76 @@ def hub_cache(tmp_path, monkeypatch):
     from huggingface_hub import constants
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path))
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
     monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path))
     return tmp_path
+
+
+DINOV2_REPO = "timm/vit_small_patch14_dinov2.lvd142m"
+DINOV2_FIX = f"hf download {DINOV2_REPO} model.safetensors"
+
+
+@pytest.mark.parametrize("timm_name, repo_id", [
+    ("vit_small_patch14_dinov2", DINOV2_REPO),  # untagged: timm's default tag
+    ("fastvit_sa12", "timm/fastvit_sa12.apple_in1k"),
+    ("repvit_m1", "timm/repvit_m1.dist_in1k"),
+    ("vit_base_patch16_siglip_224.webli", "timm/vit_base_patch16_siglip_224.webli"),
+])
+def test_hub_weights_name_the_tagged_repo_and_timms_file_order(timm_name, repo_id):
+    assert timm_encoders.hub_weights(timm_name) == (repo_id, None,
+                                                    ("model.safetensors", "pytorch_model.bin"))
 
 
 def test_hub_missing_weights_fail_fast_with_the_fix(hub_cache):
     with pytest.raises(EncoderUnavailable) as err:
         build_encoder("repvit", "hub")
     msg = str(err.value)
-    assert "\n" not in msg and "'repvit'" in msg and "timm/repvit_m1" in msg
-    assert "huggingface-cli download" in msg and "source='tiny'" in msg
+    assert "\n" not in msg and "'repvit'" in msg and "timm/repvit_m1.dist_in1k" in msg
+    assert "`hf download timm/repvit_m1.dist_in1k model.safetensors`" in msg
+    assert "huggingface-cli" not in msg and "source='tiny'" in msg
+
+
+def test_hub_missing_dinov2_names_its_tagged_repo(hub_cache):
+    with pytest.raises(EncoderUnavailable) as err:
+        build_encoder("dinov2_s", "hub")
+    msg = str(err.value)
+    assert "\n" not in msg and f"{DINOV2_REPO!r}" in msg and f"`{DINOV2_FIX}`" in msg
+    assert "huggingface-cli" not in msg
+
+
+def test_a_failed_pretrained_load_is_one_line_naming_the_tagged_repo(hub_cache, monkeypatch):
+    _fake_hub_cache(hub_cache, DINOV2_REPO, {"w": torch.zeros(1)})
+
+    def offline(*args, **kwargs):
+        raise OSError("\nWe couldn't connect to 'https://huggingface.co'.\n\nCheck your connection.")
+
+    monkeypatch.setattr(timm, "create_model", offline)
+    with pytest.raises(EncoderUnavailable) as err:
+        build_encoder("dinov2_s", "hub")
+    msg = str(err.value)
+    assert "\n" not in msg and f"`{DINOV2_FIX}`" in msg and "huggingface-cli" not in msg
+    assert "(OSError: We couldn't connect to 'https://huggingface.co'. Check your connection.)" in msg
+
+
+def test_weight_artifacts_missing_then_present_after_the_fix(hub_cache):
+    (missing,) = timm_encoders.weight_artifacts("dinov2_s")
+    assert (missing.kind, missing.repo_id, missing.needed_by) == (
+        "encoder weights", DINOV2_REPO, "encoder dinov2_s")
+    assert not missing.present and missing.fix == DINOV2_FIX and str(hub_cache) in missing.where
+    _fake_hub_cache(hub_cache, DINOV2_REPO, {"w": torch.zeros(1)}, sha="a" * 40)
+    (present,) = timm_encoders.weight_artifacts("dinov2_s")
+    snapshot_file = hub_cache / f"models--{DINOV2_REPO.replace('/', '--')}" / "snapshots" / ("a" * 40)
+    assert present.present and present.fix == "" and present.revision is None
+    assert present.where == str(snapshot_file / "model.safetensors")
+
+
+def test_weight_artifacts_of_timm_names_and_weightless_encoders(hub_cache):
+    (resnet,) = timm_encoders.weight_artifacts("timm:resnet18")
+    assert resnet.repo_id == "timm/resnet18.a1_in1k" and resnet.needed_by == "encoder timm:resnet18"
+    assert resnet.fix == "hf download timm/resnet18.a1_in1k model.safetensors"
+    assert timm_encoders.weight_artifacts("pixels") == []
+    assert timm_encoders.weight_artifacts("blind") == []
 
 
 def test_hub_loads_cached_weights(hub_cache):

@@ -1,4 +1,5 @@
-"""The real LIBERO suites as LeRobot datasets, found in a local root or the Hugging Face cache.
+"""The real LIBERO suites as LeRobot datasets, found in a local root, LeRobot's cache or the
+Hugging Face hub cache (where `hf download --repo-type dataset REPO` puts them).
 
 Assumption (stated, not verified offline): the suites are LeRobot's image-format ports
 `lerobot/libero_{spatial,object,goal,10}_image` (LeRobot's own scripts use
@@ -14,6 +15,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from bench.artifacts import Artifact
 from bench.suites.base import (
     ACTION_KEY,
     IMAGE_KEYS,
@@ -29,8 +31,11 @@ LIBERO_REPO_IDS = {
     "goal": "lerobot/libero_goal_image",
     "10": "lerobot/libero_10_image",
 }
+# Hub revision each suite is pinned to; None: no pin (the hub cache's refs/main, LeRobot's default).
+LIBERO_REVISIONS: dict[str, str | None] = {name: None for name in LIBERO_REPO_IDS}
 ROOT_ENV = "GRAFTBENCH_LIBERO_ROOT"
 CAMERA_DTYPES = ("image", "video")
+REASON_CHARS = 300
 
 
 def hub_offline() -> bool:
@@ -45,9 +50,44 @@ def lerobot_home() -> Path:
     return Path(HF_LEROBOT_HOME)
 
 
-def candidate_roots(repo_id: str, root: str | Path | None = None) -> list[Path]:
+def hub_cache() -> Path:
+    """The Hugging Face hub cache `hf download` writes to (huggingface_hub's HF_HUB_CACHE)."""
+    from huggingface_hub import constants
+
+    return Path(constants.HF_HUB_CACHE)
+
+
+def hub_snapshots(repo_id: str, cache: Path, revision: str | None = None) -> list[Path]:
+    """Snapshot folders of dataset `repo_id` in hub-layout `cache`: the one refs/<revision or
+    main> names first, then the others newest first; a pinned revision admits only its own."""
+    repo = cache / f"datasets--{repo_id.replace('/', '--')}"
+    snapshots = repo / "snapshots"
+    if not snapshots.is_dir():
+        return []
+    ref = repo / "refs" / (revision or "main")
+    sha = ref.read_text().strip() if ref.is_file() else revision  # a pin may be a commit sha
+    named = [snapshots / sha] if sha and (snapshots / sha).is_dir() else []
+    if revision is not None:
+        return named
+    others = sorted((p for p in snapshots.iterdir() if p not in named),
+                    key=lambda p: p.stat().st_mtime, reverse=True)
+    return named + others
+
+
+def places_looked(repo_id: str, root: str | Path | None = None) -> list[Path]:
+    """The folders searched for `repo_id`, as a person would check them (no snapshot expansion)."""
+    places = [Path(root)] if root is not None else []
+    if os.environ.get(ROOT_ENV):
+        places.append(Path(os.environ[ROOT_ENV]))
+    home = lerobot_home()
+    places += [home / repo_id, home / "hub", hub_cache()]
+    return list(dict.fromkeys(places))
+
+
+def candidate_roots(repo_id: str, root: str | Path | None = None,
+                    revision: str | None = None) -> list[Path]:
     """Folders that may hold `repo_id`, in the order they are tried."""
-    org, name = repo_id.split("/")
+    name = repo_id.split("/")[1]
     bases = [Path(root)] if root is not None else []
     if os.environ.get(ROOT_ENV):
         bases.append(Path(os.environ[ROOT_ENV]))
@@ -56,19 +96,50 @@ def candidate_roots(repo_id: str, root: str | Path | None = None) -> list[Path]:
         found += [base, base / repo_id, base / name]
     home = lerobot_home()
     found.append(home / repo_id)
-    # LeRobot's revision-safe snapshot cache: $HF_LEROBOT_HOME/hub/datasets--org--name/snapshots/*
-    snapshots = home / "hub" / f"datasets--{org}--{name}" / "snapshots"
-    if snapshots.is_dir():
-        found += sorted(snapshots.iterdir(), key=lambda p: p.stat().st_mtime, reverse=True)
+    # LeRobot's revision-safe snapshot cache ($HF_LEROBOT_HOME/hub), then the HF hub cache that
+    # `hf download --repo-type dataset` fills; both have the datasets--org--name/snapshots layout.
+    for cache in dict.fromkeys((home / "hub", hub_cache())):
+        found += hub_snapshots(repo_id, cache, revision)
     return found
 
 
-def locate(repo_id: str, root: str | Path | None = None) -> Path | None:
+def locate(repo_id: str, root: str | Path | None = None,
+           revision: str | None = None) -> Path | None:
     """The first candidate folder holding a LeRobot dataset (meta/info.json), else None."""
-    for path in candidate_roots(repo_id, root):
+    for path in candidate_roots(repo_id, root, revision):
         if (path / "meta" / "info.json").is_file():
             return path
     return None
+
+
+def download_command(repo_id: str, revision: str | None = None) -> str:
+    """The shell command that puts `repo_id` in the HF hub cache, where locate() finds it."""
+    pin = f" --revision {revision}" if revision else ""
+    return f"hf download --repo-type dataset {repo_id}{pin}"
+
+
+def _repo_id(name: str) -> str:
+    if name not in LIBERO_REPO_IDS:
+        raise ValueError(f"unknown LIBERO suite {name!r}; choose one of {sorted(LIBERO_REPO_IDS)}")
+    return LIBERO_REPO_IDS[name]
+
+
+def dataset_artifact(name: str, root: str | Path | None = None,
+                     revision: str | None = None) -> Artifact:
+    """The dataset LIBERO suite `name` reads: present when locate() finds its meta/info.json."""
+    repo_id = _repo_id(name)
+    revision = revision if revision is not None else LIBERO_REVISIONS.get(name)
+    local = locate(repo_id, root, revision)
+    where = str(local) if local else "not in " + ", ".join(map(str, places_looked(repo_id, root)))
+    return Artifact(kind="dataset", repo_id=repo_id, needed_by=f"suite {name}",
+                    present=local is not None, where=where,
+                    fix="" if local else download_command(repo_id, revision), revision=revision)
+
+
+def one_line(text: str, limit: int = REASON_CHARS) -> str:
+    """`text` with whitespace runs (newlines included) collapsed to one space, cut at `limit`."""
+    flat = " ".join(text.split())
+    return flat if len(flat) <= limit else flat[: limit - 3] + "..."
 
 
 def validate_features(features: dict, repo_id: str) -> None:
@@ -105,31 +176,28 @@ def image_shape_chw(spec: dict) -> tuple[int, int, int]:
     return (c, h, w)
 
 
-def open_dataset(name: str, root: str | Path | None = None):
+def open_dataset(name: str, root: str | Path | None = None, revision: str | None = None):
     """LeRobotDataset of LIBERO suite `name`, validated; SuiteUnavailable if absent or malformed.
 
     Offline (HF_HUB_OFFLINE=1) a cache miss fails at once, without touching the network.
     """
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    if name not in LIBERO_REPO_IDS:
-        raise ValueError(f"unknown LIBERO suite {name!r}; choose one of {sorted(LIBERO_REPO_IDS)}")
-    repo_id = LIBERO_REPO_IDS[name]
-    local = locate(repo_id, root)
+    repo_id = _repo_id(name)
+    revision = revision if revision is not None else LIBERO_REVISIONS.get(name)
+    local = locate(repo_id, root, revision)
+    fix = (f"fix: `{download_command(repo_id, revision)}` (needs network; fills the HF hub cache "
+           f"{hub_cache()}), or `{download_command(repo_id, revision)} --local-dir "
+           f"{lerobot_home() / repo_id}`, or point {ROOT_ENV} at a local copy")
     if local is None and hub_offline():
-        where = [str(p) for p in ([Path(root)] if root else []) + [lerobot_home()]]
-        raise SuiteUnavailable(
-            f"LIBERO suite {name!r}: dataset {repo_id} not found under {', '.join(where)} and "
-            f"HF_HUB_OFFLINE=1; fix: `hf download --repo-type dataset {repo_id}` on a networked "
-            f"machine into {lerobot_home()}, or point {ROOT_ENV} at a local copy"
-        )
+        where = ", ".join(map(str, places_looked(repo_id, root)))
+        raise SuiteUnavailable(f"LIBERO suite {name!r}: dataset {repo_id} not found under {where} "
+                               f"and HF_HUB_OFFLINE=1; {fix}")
     try:
-        ds = LeRobotDataset(repo_id, root=local)  # root=None: download into LeRobot's cache
+        # root=None: LeRobot downloads into its own cache ($HF_LEROBOT_HOME/hub)
+        ds = LeRobotDataset(repo_id, root=local, revision=revision)
     except Exception as err:  # network, auth, format version: one actionable line
-        raise SuiteUnavailable(
-            f"LIBERO suite {name!r}: could not load {repo_id} ({type(err).__name__}: "
-            f"{str(err).splitlines()[0] if str(err) else ''}); fix: download it with "
-            f"`hf download --repo-type dataset {repo_id}` or set {ROOT_ENV}"
-        ) from err
+        raise SuiteUnavailable(f"LIBERO suite {name!r}: could not load {repo_id} "
+                               f"({type(err).__name__}: {one_line(str(err))}); {fix}") from err
     validate_features(ds.features, repo_id)
     return ds
