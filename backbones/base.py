@@ -92,6 +92,24 @@ class Backbone:
         """The backbone's own sampler with caller noise; (B, chunk, A) normalised, real dims."""
         raise NotImplementedError
 
+    def with_stats(self, stats: dict) -> "Backbone":
+        """The same policy (shared, not copied) with processors normalising by `stats`: the
+        features and devices the processors were loaded with are kept, only the stats change."""
+        import copy
+
+        from lerobot.processor.normalize_processor import hotswap_stats
+
+        clone = copy.copy(self)
+        clone.preprocessor = hotswap_stats(self.preprocessor, stats)
+        clone.postprocessor = hotswap_stats(self.postprocessor, stats)
+        return clone
+
+    def normalizer_fingerprint(self) -> str:
+        """12 hex chars over the state/action stats the pre-processor really normalises with."""
+        from backbones.hub import normalizer_stats, stats_fingerprint
+
+        return stats_fingerprint(normalizer_stats(self.preprocessor))
+
     # -- freezing ---------------------------------------------------------------------------
     def freeze(self) -> None:
         """Every policy parameter requires_grad=False and the policy in eval mode."""

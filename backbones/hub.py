@@ -194,3 +194,29 @@ def libero_rename_map(image_keys, policy_type: str) -> dict[str, str]:
         f"{[list(layout) for layout in CAMERA_LAYOUTS]}; add its layout to "
         "backbones.hub.CAMERA_LAYOUTS (agent view first, then wrist)"
     )
+
+
+def saved_normalizer_stats(source: str, revision: str | None = None) -> dict | None:
+    """The stats a checkpoint's saved pre-processor normalises with, {key: {stat: tensor}}, read
+    from its policy_preprocessor.json's normaliser state file (local folder or HF cache)."""
+    import json
+
+    from safetensors.torch import load_file
+
+    def find(filename: str) -> Path | None:
+        local = Path(source) / filename
+        return local if local.is_file() else cached_file(source, filename, revision)
+
+    config_path = find("policy_preprocessor.json")
+    if config_path is None:
+        return None
+    steps = json.loads(config_path.read_text()).get("steps", [])
+    files = [s.get("state_file") for s in steps if s.get("registry_name") == "normalizer_processor"]
+    state_path = find(files[0]) if files and files[0] else None
+    if state_path is None:
+        return None
+    stats: dict = {}
+    for flat, tensor in load_file(str(state_path)).items():
+        key, stat = flat.rsplit(".", 1)
+        stats.setdefault(key, {})[stat] = tensor
+    return stats

@@ -16,11 +16,14 @@ import json
 import os
 import shutil
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from backbones import adapter_module, get_entry
+from backbones.base import BackboneUnavailable
+from backbones.hub import download_command, resolved_revision, saved_normalizer_stats, stats_fingerprint
 from bench.protocol import Profile
 from bench.provenance import stable_seed
 from bench.suites.base import STATE_KEY
@@ -132,14 +135,54 @@ def train_tiny_release(name: str, backbone, profile: Profile, suites, train_fram
     os.replace(tmp, folder)
 
 
+@dataclass(frozen=True)
+class Normalizer:
+    """Which stats a backbone x suite normalises with, known before the policy is loaded (a
+    resume compares `fingerprint` with the record's: one report never mixes normalisers)."""
+
+    source: str  # "dataset:<suite>" (its training episodes) or "checkpoint" (the release's own)
+    stats: dict | None  # the dataset stats to load with; None: the checkpoint's saved stats
+    fingerprint: str
+
+
+def normalizer_for(name: str, profile: Profile, suites, train_frames, cache: Path) -> Normalizer:
+    """The normaliser of backbone `name` on `suites` (hub "dataset" stats: ONE suite, so that its
+    numbers do not depend on which other suites a run selects)."""
+    entry = get_entry(name)
+    if profile.source != "hub":  # the tiny release keeps what it was trained with: all suites
+        stats = union_stats(suites, train_frames)
+        return Normalizer("checkpoint", None, stats_fingerprint(stats))
+    if entry.stats == "dataset":
+        if len(suites) != 1:
+            raise ValueError(f"dataset stats of {name} are per suite, got {[s.name for s in suites]}")
+        stats = union_stats(suites, train_frames)
+        return Normalizer(f"dataset:{suites[0].name}", stats, stats_fingerprint(stats))
+    saved = saved_normalizer_stats(entry.repo_id, entry.revision)
+    if saved is None:
+        raise BackboneUnavailable(
+            f"{entry.repo_id}@{entry.revision}: no saved normaliser stats in the HF cache, but the "
+            f"backbone entry {name!r} keeps the checkpoint's own (stats='checkpoint'); fix: "
+            f"`{download_command(entry.repo_id, entry.revision)}`"
+        )
+    return Normalizer("checkpoint", None, stats_fingerprint(saved))
+
+
+def checkpoint_id(name: str, profile: Profile) -> dict:
+    """The checkpoint a record was measured on: repo id and the commit the cache resolves."""
+    entry = get_entry(name)
+    if profile.source != "hub":
+        return {"repo_id": f"tiny:{name}", "revision": None}
+    return {"repo_id": entry.repo_id, "revision": resolved_revision(entry.repo_id, entry.revision)}
+
+
 def load_released(name: str, profile: Profile, suites, train_frames, cache: Path,
-                  chunk_size: int = 10, progress: bool = True):
-    """The released policy for `name` in this profile's world, loaded with from_pretrained."""
+                  chunk_size: int = 10, progress: bool = True, stats: dict | None = None):
+    """The released policy for `name` in this profile's world, loaded with from_pretrained.
+    Hub: `stats` are the dataset stats to normalise with (None: the checkpoint's own)."""
     module = adapter_module(name)
     if profile.source == "hub":
-        # Real base checkpoints carry their pre-training stats, not LIBERO's: normalise with the
-        # suites' training-episode stats, as LeRobot's fine-tuning does with dataset_stats.
-        return module.load_policy(get_entry(name).repo_id, stats=union_stats(suites, train_frames))
+        entry = get_entry(name)
+        return module.load_policy(entry.repo_id, stats=stats, revision=entry.revision)
     # The untrained build (seed 0) both keys the cache and, on a miss, is what gets trained.
     untrained = module.build_tiny_policy(union_stats(suites, train_frames), suites[0].camera_keys,
                                          chunk_size=chunk_size, seed=0)

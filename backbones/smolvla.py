@@ -64,18 +64,12 @@ class SmolVLABackbone(Backbone):
     """A real SmolVLAPolicy and its own processors (the rename map lives in the preprocessor)."""
 
     def __init__(self, policy, preprocessor, postprocessor, name: str = "smolvla"):
-        from lerobot.processor import (
-            NormalizerProcessorStep,
-            RenameObservationsProcessorStep,
-            UnnormalizerProcessorStep,
-        )
+        from lerobot.processor import RenameObservationsProcessorStep
 
         self.policy = policy
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
         self.rename_map = dict(_find_step(preprocessor, RenameObservationsProcessorStep).rename_map)
-        self._normalizer = _find_step(preprocessor, NormalizerProcessorStep)
-        self._unnormalizer = _find_step(postprocessor, UnnormalizerProcessorStep)
         dataset_key = {policy_key: key for key, policy_key in self.rename_map.items()}
         self.camera_keys = tuple(dataset_key.get(k, k) for k in policy.config.image_features)
         self.info = info_from_policy(policy, name)
@@ -93,10 +87,14 @@ class SmolVLABackbone(Backbone):
         return batch
 
     def normalize_actions(self, actions: Tensor) -> Tensor:
-        return self._apply_action_step(self._normalizer, actions)
+        from lerobot.processor import NormalizerProcessorStep
+
+        return self._apply_action_step(_find_step(self.preprocessor, NormalizerProcessorStep), actions)
 
     def unnormalize_actions(self, actions: Tensor) -> Tensor:
-        return self._apply_action_step(self._unnormalizer, actions)
+        from lerobot.processor import UnnormalizerProcessorStep
+
+        return self._apply_action_step(_find_step(self.postprocessor, UnnormalizerProcessorStep), actions)
 
     @staticmethod
     def _apply_action_step(step, actions: Tensor) -> Tensor:
@@ -316,21 +314,10 @@ def load_policy(
 
 def _saved_stats_fit(source: str, revision: str | None, state_dim: int, action_dim: int) -> bool:
     """Do the checkpoint's saved normaliser stats have LIBERO's state and action widths?"""
-    from safetensors import safe_open
-
-    local = Path(source)
-    files = sorted(local.glob("policy_preprocessor_step_*_normalizer_processor.safetensors")) \
-        if local.is_dir() else []
-    if not local.is_dir():
-        for step in range(8):  # the step index varies by release (docs/HUB_FACTS.md)
-            found = hub.cached_file(source, f"policy_preprocessor_step_{step}_normalizer_processor.safetensors", revision)
-            files += [found] if found else []
-    for path in files:
-        with safe_open(str(path), framework="pt") as handle:
-            shapes = {k: tuple(handle.get_slice(k).get_shape()) for k in handle.keys()}
-        if shapes.get(f"{STATE_KEY}.mean") == (state_dim,) and shapes.get(f"{ACTION_KEY}.mean") == (action_dim,):
-            return True
-    return False
+    stats = hub.saved_normalizer_stats(source, revision) or {}
+    widths = {key: tuple(stats.get(key, {}).get("mean", torch.empty(0)).shape)
+              for key in (STATE_KEY, ACTION_KEY)}
+    return widths == {STATE_KEY: (state_dim,), ACTION_KEY: (action_dim,)}
 
 
 VLM_INCLUDE = ("*.json", "*.txt", "*.jinja")  # config, processor, tokenizer: not the 1.9 GB weights

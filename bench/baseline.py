@@ -173,7 +173,7 @@ def _change(base: float, now: float) -> str:
 
 
 CELL_FIELDS = ("kind", "backbone", "suite", "encoder", "seed", "variant", "protocol_hash",
-               "versions", "mse", "per_window", "window_ids")
+               "checkpoint", "versions", "mse", "per_window", "window_ids")
 
 
 def baseline_path(baseline_dir: Path, name: str) -> Path:
@@ -237,6 +237,10 @@ def provenance_mismatch(base_cell: dict, baseline: dict, now: dict) -> list[str]
     if base_cell.get("protocol_hash") != now.get("protocol_hash"):
         out.append(f"protocol_hash {now.get('protocol_hash')} (baseline "
                    f"{base_cell.get('protocol_hash')})")
+    base_norm = (base_cell.get("checkpoint") or {}).get("normalizer_fingerprint")
+    now_norm = (now.get("checkpoint") or {}).get("normalizer_fingerprint")
+    if base_norm is not None and base_norm != now_norm:  # never compare across normalisers
+        out.append(f"normalizer {now_norm} (baseline {base_norm})")
     base_versions = base_cell.get("versions") or baseline.get("versions") or {}
     now_versions = now.get("versions") or {}
     for pkg in sorted(set(base_versions) & set(now_versions)):

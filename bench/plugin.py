@@ -196,6 +196,11 @@ class GraftSession:
         record = self.store.current(cell.id, self.profile.protocol.hash)
         if record is not None and self.rollouts and not has_rollouts(record, self.rollouts):
             return None  # the offline part is current, the closed loop is not: measure again
+        if record is not None:
+            # Measured with another normaliser (other stats or checkpoint): measure again.
+            expected = self.workspace().normalizer(cell.backbone, cell.suite).fingerprint
+            if (record.get("checkpoint") or {}).get("normalizer_fingerprint") != expected:
+                return None
         return record
 
     def _run_submitted(self, cell: CellSpec) -> dict:

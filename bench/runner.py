@@ -18,6 +18,7 @@ from bench.graft import GraftFeed, Projector, assert_only_trainable, trainable_p
 from bench.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
+from backbones.released import checkpoint_id
 from bench.closed_loop import cell_rollouts
 from bench.suites.windows import raw_batch
 from bench.train import FitConfig, fit, frozen_autocast
@@ -113,7 +114,8 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
     t_start = time.perf_counter()
     suite = ws.suite(cell.suite)
     split = ws.split(cell.suite)
-    backbone = ws.fresh_backbone(cell.backbone) if cell.kind == K.LORA else ws.backbone(cell.backbone)
+    backbone = (ws.fresh_backbone(cell.backbone, cell.suite) if cell.kind == K.LORA
+                else ws.backbone(cell.backbone, cell.suite))
     info = backbone.info
     device = next(backbone.policy.parameters()).device
     reset_peak_memory(device)
@@ -244,6 +246,9 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
         "seed": cell.seed, "variant": cell.variant, "reference": ref.id if ref else None,
         "grid": list(grid), "features_mode": features_mode if encoder is not None else None,
         "profile": ws.profile.name, "protocol": p.to_dict(), "protocol_hash": p.hash,
+        "checkpoint": {**checkpoint_id(cell.backbone, ws.profile),
+                       "normalizer": ws.normalizer(cell.backbone, cell.suite).source,
+                       "normalizer_fingerprint": backbone.normalizer_fingerprint()},
         **scores,
         "trainable_params": trainable_parameters(projector, backbone.policy) if projector else 0,
         "projector_params": trainable_parameters(projector) if projector else 0,

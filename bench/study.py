@@ -31,7 +31,7 @@ OUR_CODE = {
     "gradient accumulation": False,  # bench/train.py: one optimiser step per batch
     # encoders/timm_encoders.py: one bilinear resize to the encoder's own input size, then its
     # own mean/std. Input sizes of the paper encoders (timm's pretrained sizes):
-    "input sizes": {"siglip": 224, "dinov2_s": 224, "fastvit": 256, "repvit": 224},
+    "input sizes": {"siglip": 224, "dinov2_s": 224, "fastvit": 224, "repvit": 224},
 }
 
 

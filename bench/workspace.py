@@ -10,7 +10,8 @@ from pathlib import Path
 
 import torch
 
-from backbones.released import load_released
+from backbones import get_entry
+from backbones.released import Normalizer, load_released, normalizer_for
 from bench.features import FeatureCache
 from bench.paths import cache_dir
 from bench.protocol import Profile
@@ -40,7 +41,9 @@ class Workspace:
     cache: Path = field(default_factory=cache_dir)
     _suites: dict = field(default_factory=dict)
     _splits: dict = field(default_factory=dict)
-    _backbones: dict = field(default_factory=dict)
+    _released: dict = field(default_factory=dict)  # name -> loaded policy adapter
+    _backbones: dict = field(default_factory=dict)  # (name, normaliser fingerprint) -> adapter
+    _normalizers: dict = field(default_factory=dict)
     _encoders: dict = field(default_factory=dict)
     _features: FeatureCache | None = None
     # graft cell id -> runner.TrainedProjector: its shuffled/zero-at-eval controls reuse it.
@@ -72,27 +75,54 @@ class Workspace:
             )
         return self._splits[name]
 
-    def backbone(self, name: str):
-        """The released policy (frozen, eval). Tiny: trained on every tiny suite of the profile."""
-        if name not in self._backbones:
+    def normalizer(self, name: str, suite: str | None) -> Normalizer:
+        """Which stats backbone `name` normalises `suite` with (no policy is loaded for this)."""
+        per_suite = self.profile.source == "hub" and get_entry(name).stats == "dataset"
+        if per_suite and suite is None:
+            raise ValueError(f"backbone {name!r} normalises per suite: name the suite")
+        names = (suite,) if per_suite else self.released_suites()
+        key = (name, names)
+        if key not in self._normalizers:
+            suites = [self.suite(s) for s in names]
+            train = {s.name: self.split(s.name).train_frames for s in suites}
+            self._normalizers[key] = normalizer_for(name, self.profile, suites, train, self.cache)
+        return self._normalizers[key]
+
+    def backbone(self, name: str, suite: str | None = None):
+        """The released policy (frozen, eval), normalising `suite` as `normalizer` says. The
+        policy is loaded once per backbone; per-suite dataset stats only swap its processors."""
+        norm = self.normalizer(name, suite)
+        if name not in self._released:
             suites = [self.suite(s) for s in self.released_suites()]
             train = {s.name: self.split(s.name).train_frames for s in suites}
             chunk = TINY_CHUNK if self.profile.source == "tiny" else None
             kwargs = {"chunk_size": chunk} if chunk else {}
             bb = load_released(name, self.profile, suites, train, self.cache,
-                               progress=self.progress, **kwargs)
+                               progress=self.progress, stats=norm.stats, **kwargs)
             bb.freeze()
-            self._backbones[name] = bb
-        return self._backbones[name]
+            self._released[name] = bb
+        key = (name, norm.fingerprint)
+        if key not in self._backbones:
+            bb = self._released[name]
+            if bb.normalizer_fingerprint() != norm.fingerprint and norm.stats is not None:
+                bb = bb.with_stats(norm.stats)
+            if bb.normalizer_fingerprint() != norm.fingerprint:
+                raise RuntimeError(
+                    f"{name}: the loaded normaliser ({bb.normalizer_fingerprint()}) is not the "
+                    f"expected {norm.source} one ({norm.fingerprint})"
+                )
+            self._backbones[key] = bb
+        return self._backbones[key]
 
-    def fresh_backbone(self, name: str):
+    def fresh_backbone(self, name: str, suite: str | None = None):
         """A private copy (the LoRA control modifies the LM in place)."""
-        return copy.deepcopy(self.backbone(name))
+        return copy.deepcopy(self.backbone(name, suite))
 
     def released_suites(self) -> tuple[str, ...]:
         # The tiny release is trained on both tiny suites whatever -k selects, so its cache key
         # (and every number measured on it) does not depend on the selection.
-        return ("spatial", "object") if self.profile.data_source == "tiny" else self.profile.suites
+        # Hub: which suites does not matter (stats are per suite or the checkpoint's own).
+        return ("spatial", "object") if self.profile.data_source == "tiny" else self.profile.suites[:1]
 
     def encoder(self, name: str):
         if name not in self._encoders:

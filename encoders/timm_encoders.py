@@ -228,12 +228,14 @@ register(EncoderSpec(
                 "tiny: 64 ch, 4x4 grid at 56 px"), build_timm_encoder)
 
 register(EncoderSpec(
-    name="fastvit", timm_name="fastvit_sa12", input_size=256,
+    # 224, not timm's pretrained 256: the study runs one 224 px path for every encoder.
+    name="fastvit", timm_name="fastvit_sa12", input_size=224,
     mean=IMAGENET_MEAN, std=IMAGENET_STD, layout="map",
     # Stage widths must each divide the next (grouped downsampling convs).
     tiny_kwargs=dict(layers=(1, 1, 1, 1), embed_dims=(16, 32, 64, 128)), tiny_input_size=64,
-    description="FastViT-SA12 (timm's pretrained size 256): 10.6M params, 1024 ch (final conv = "
-                "2 x 512), 8x8 grid at 256; tiny: 256 ch, 2x2 grid at 64 px"), build_timm_encoder)
+    description="FastViT-SA12 (pretrained at 256, run at the study's 224): 10.6M params, 1024 ch "
+                "(final conv = 2 x 512), 7x7 grid at 224; tiny: 256 ch, 2x2 grid at 64 px"),
+    build_timm_encoder)
 
 register(EncoderSpec(
     name="repvit", timm_name="repvit_m1", input_size=224,
