@@ -119,6 +119,15 @@ def _check_rollouts_possible(profile) -> None:
         raise pytest.UsageError(f"--rollouts needs the LIBERO simulator; {INSTALL_HINT}")
 
 
+def _unavailable_errors() -> tuple[type, ...]:
+    """Errors that mean "an artifact is missing" and carry their own one-line fix."""
+    from backbones.base import BackboneUnavailable
+    from bench.suites.base import SuiteUnavailable
+    from encoders.registry import EncoderUnavailable
+
+    return (BackboneUnavailable, SuiteUnavailable, EncoderUnavailable)
+
+
 class GraftSession:
     """State of one pytest run of the grid: profile, store, workspace, what ran."""
 
@@ -184,6 +193,8 @@ class GraftSession:
                 "variant": cell.variant, "error": f"{type(e).__name__}: {e}",
                 "protocol_hash": self.profile.protocol.hash,
             })
+            if isinstance(e, _unavailable_errors()):  # a missing artifact: its line, no traceback
+                pytest.fail(f"{cell.id}: {type(e).__name__}: {e}", pytrace=False)
             raise
         self.ran.append(cell.id)
         return record
@@ -230,6 +241,23 @@ class GraftSession:
         except Exception as e:  # the task died before writing its own failure record
             self.store.write_failure(failure_record(cell, self.profile, e))
             raise
+
+    def preflight(self, cells: list[CellSpec]) -> None:
+        """Hub grids: list every artifact the selected cells read; stop (UsageError, no cell
+        run) when one is missing. --collect-only shows the list and stops anyway."""
+        if self.profile.source != "hub" or not cells:
+            return
+        from bench.preflight import cells_artifacts, missing_summary, render
+
+        artifacts = cells_artifacts(cells)
+        reporter = self.config.pluginmanager.get_plugin("terminalreporter")
+        screen = render(artifacts)
+        if reporter is not None:
+            reporter.write_line(screen)
+        else:
+            sys.stderr.write(screen + "\n")
+        if any(not a.present for a in artifacts) and not self.config.option.collectonly:
+            raise pytest.UsageError(missing_summary(artifacts))
 
     def finish(self) -> Path | None:
         if not self.selected:
@@ -334,12 +362,15 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items) -> None:
     gs: GraftSession = config.stash[SESSION_KEY]
     gs.selected = []
+    cells = []
     for item in items:
         params = getattr(getattr(item, "callspec", None), "params", {})
         cell = params.get("graft_cell", params.get("control_cell"))
         if isinstance(cell, CellSpec):
             gs.selected.append(cell.id)
+            cells.append(cell)
     if gs.selected and not hasattr(config, "workerinput"):
+        gs.preflight(cells)
         gs.store.write_grid(gs.selected, gs.profile.name)
 
 

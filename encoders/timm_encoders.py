@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import difflib
 import math
+from pathlib import Path
 
 import timm
 import torch
@@ -147,6 +148,24 @@ def weight_artifacts(name: str) -> list[Artifact]:
                      fix="" if cached else fetch_command(repo_id, revision, files[0]))]
 
 
+def _hub_model_args(timm_name: str) -> tuple[dict, int] | None:
+    """(model_args, input size) when the cached weight repo's config.json declares a smaller
+    architecture (`model_args`, written by bench.hubworld); None for real weight repos, which
+    timm builds from its own registry. The one construction patch tiny hub weights need."""
+    import json
+
+    from huggingface_hub import try_to_load_from_cache
+
+    hub = hub_weights(timm_name)
+    found = try_to_load_from_cache(hub[0], "config.json", revision=hub[1]) if hub else None
+    if not isinstance(found, str):
+        return None
+    config = json.loads(Path(found).read_text())
+    if not config.get("model_args"):
+        return None
+    return dict(config["model_args"]), int(config["pretrained_cfg"]["input_size"][-1])
+
+
 def build_timm_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
     """Build a registered or on-the-fly timm spec; see encoders.registry.build_encoder."""
     assert spec.timm_name is not None, spec
@@ -156,6 +175,10 @@ def build_timm_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
         input_size = spec.tiny_input_size or spec.input_size
     else:
         input_size = spec.input_size
+        tiny_world = _hub_model_args(spec.timm_name)
+        if tiny_world is not None:  # the offline hub-cache world (bench.hubworld): tiny weights
+            kwargs.update(tiny_world[0])
+            input_size = tiny_world[1]
     native = timm.models.get_pretrained_cfg(spec.timm_name)
     native_size = native.input_size[-1] if native is not None else input_size
     if spec.layout == "tokens" and "img_size" not in kwargs and input_size != native_size:
