@@ -370,7 +370,9 @@ def _policy_from_pretrained(source: str, config, revision: str | None = None):
     return policy
 
 
-TOKENIZER_INCLUDE = ("tokenizer*", "special_tokens_map.json", "added_tokens.json")
+# config.json too: transformers 5.5's AutoTokenizer reads the repo's model config first (found
+# offline by the hub-cache world: without it the tokenizer does not load).
+TOKENIZER_INCLUDE = ("config.json", "tokenizer*", "special_tokens_map.json", "added_tokens.json")
 TOKENIZER_NOTE = (
     "gated: accept the licence at https://huggingface.co/google/paligemma-3b-pt-224 and run "
     "`hf auth login` first; the --include patterns fetch the ~22 MB tokenizer, not 11.7 GB of weights"
@@ -383,7 +385,7 @@ def artifacts(repo_id: str, revision: str | None, needed_by: str) -> list:
     return [
         hub.hub_artifact("policy", repo_id, ("config.json", "model.safetensors"), needed_by, revision),
         hub.hub_artifact("tokenizer", PALIGEMMA_TOKENIZER_REPO,
-                         ("tokenizer_config.json", "tokenizer.json"), needed_by,
+                         ("config.json", "tokenizer_config.json", "tokenizer.json"), needed_by,
                          include=TOKENIZER_INCLUDE, note=TOKENIZER_NOTE),
     ]
 

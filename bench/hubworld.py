@@ -115,6 +115,8 @@ def write_pi05_base(hub_cache: Path) -> None:
     tokenizer = snapshot_dir(hub_cache, PALIGEMMA_TOKENIZER_REPO, None)
     shutil.copytree(snap / TOKENIZER_SUBDIR, tokenizer, dirs_exist_ok=True)
     shutil.rmtree(snap / TOKENIZER_SUBDIR)
+    (tokenizer / "config.json").write_text(json.dumps(  # AutoTokenizer reads it first
+        {"architectures": ["PaliGemmaForConditionalGeneration"], "model_type": "paligemma"}))
     marker = json.loads((snap / MARKER_FILE).read_text())
     (snap / MARKER_FILE).write_text(json.dumps({"tiny_arch": marker["tiny_arch"]}, indent=2))
     for stats_file in snap.glob("policy_*processor_step_*.safetensors"):

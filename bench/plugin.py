@@ -260,8 +260,8 @@ class GraftSession:
             raise pytest.UsageError(missing_summary(artifacts))
 
     def finish(self) -> Path | None:
-        if not self.selected:
-            return None
+        if not self.selected or not (self.ran or self.resumed):
+            return None  # nothing measured or resumed (--collect-only, a stopped preflight)
         from bench.report import build_report
 
         return build_report(self.results_dir, self.report_path, extra_sections=self.extra_sections)

@@ -1,0 +1,134 @@
+"""The paper profile end to end in the offline hub-cache world (bench.hubworld): the real repo
+ids, revisions, cache layout and hub processor quirks at tiny sizes, loaded through the same
+from_pretrained / LeRobotDataset / timm code a real run uses."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from bench import hubworld
+from bench.paths import REPO_ROOT
+
+SLICE = ["--profile", "paper", "--steps", "3", "--backbones", "smolvla,pi05", "--suites", "spatial",
+         "--seeds", "0", "--encoders", "dinov2_s", "--controls", "native,zero_image"]
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> dict[str, str]:
+    return hubworld.build(tmp_path_factory.mktemp("hubworld"))
+
+
+@pytest.fixture
+def in_world(world, monkeypatch):
+    """This process looks at the world (huggingface_hub and LeRobot read their paths at import)."""
+    from huggingface_hub import constants
+    from lerobot.utils import constants as lerobot_constants
+
+    for key, value in world.items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", world["HF_HUB_CACHE"])
+    monkeypatch.setattr(lerobot_constants, "HF_LEROBOT_HOME", Path(world["HF_LEROBOT_HOME"]))
+    return world
+
+
+def run_bench(world: dict, tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, **world, "OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1"}
+    args = [sys.executable, "-m", "pytest", "bench", *SLICE, "-p", "no:cacheprovider", "-q",
+            "--results-dir", str(tmp_path / "results"), "--report", str(tmp_path / "REPORT.md"),
+            *extra]
+    return subprocess.run(args, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=900)
+
+
+def test_paper_profile_runs_end_to_end_offline_on_both_backbones(world, tmp_path):
+    out = run_bench(world, tmp_path)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
+    assert "9 artifacts, 0 missing" in out.stdout
+    records = [json.loads(p.read_text()) for p in (tmp_path / "results" / "cells").glob("*.json")]
+    assert {r["backbone"] for r in records} == {"smolvla", "pi05"} and len(records) == 22
+    pinned = {"smolvla": "c83c3163b8ca9b7e67c509fffd9121e66cb96205",
+              "pi05": "b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba"}
+    for r in records:
+        assert r["checkpoint"]["revision"] == pinned[r["backbone"]]
+        assert r["checkpoint"]["normalizer"] == "dataset:spatial"
+        assert r["encoder_weights"] in (None, "pretrained:vit_small_patch14_dinov2.lvd142m") or \
+            r["encoder_weights"].startswith("pretrained:")
+    report = (tmp_path / "REPORT.md").read_text()
+    # Untrained base releases after 3 steps: the report must say the ranking measures nothing.
+    assert "this encoder ranking says nothing" in report
+
+
+def _artifact_paths(hub_cache: Path) -> dict[str, Path]:
+    """Repo id -> the snapshot folder of every artifact in the world."""
+    out = {}
+    for repo in hub_cache.iterdir():
+        kind, _, name = repo.name.partition("--")
+        out[name.replace("--", "/", 1)] = next((repo / "snapshots").iterdir())
+    return out
+
+
+def test_removing_any_one_artifact_makes_the_preflight_name_exactly_it(in_world, tmp_path):
+    from bench.preflight import grid_artifacts
+    from bench.protocol import PAPER_ENCODERS
+
+    def missing():
+        found = grid_artifacts(["smolvla", "pi05"], PAPER_ENCODERS, ["spatial", "object"])
+        return [a for a in found if not a.present], found
+
+    assert missing()[0] == []
+    paths = _artifact_paths(Path(in_world["HF_HUB_CACHE"]))
+    assert len(paths) == len(missing()[1]) == 10
+    for repo_id, snapshot in paths.items():
+        aside = tmp_path / "aside"
+        shutil.move(snapshot, aside)
+        try:
+            absent, _ = missing()
+        finally:
+            shutil.move(aside, snapshot)
+        assert [a.repo_id for a in absent] == [repo_id]
+        assert absent[0].fix.startswith("hf download ") and repo_id in absent[0].fix
+
+
+def test_a_missing_artifact_stops_the_run_in_one_line_before_any_cell(world, tmp_path):
+    tokenizer = _artifact_paths(Path(world["HF_HUB_CACHE"]))["google/paligemma-3b-pt-224"]
+    aside = tmp_path / "aside"
+    shutil.move(tokenizer, aside)
+    try:
+        out = run_bench(world, tmp_path)
+    finally:
+        shutil.move(aside, tokenizer)
+    assert out.returncode == 4, out.stdout[-2000:]  # pytest's usage error: nothing ran
+    text = out.stdout + out.stderr
+    assert "Traceback" not in text and not (tmp_path / "results" / "cells").exists() or \
+        not list((tmp_path / "results" / "cells").glob("*.json"))
+    assert "1 missing" in text and "MISSING tokenizer" in text
+    assert 'hf download google/paligemma-3b-pt-224 --include "config.json" "tokenizer*"' in text
+    assert "hf auth login" in text
+
+
+def test_pi05_hub_processors_normalise_the_state_they_pass_through_untouched(in_world):
+    # pi05_base's hub preprocessor has `features: {}` and no stats: loaded as saved (even with
+    # stats hot-swapped in), observation.state went into the prompt unnormalised.
+    from backbones import pi05
+
+    stats = hubworld._release_stats((), 8)
+    stats["action"] = hubworld._stats(7, 0.5)
+    backbone = pi05.load_policy("lerobot/pi05_base", stats=stats,
+                                revision="b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba")
+    state = torch.linspace(-1.5, 1.5, 16).reshape(2, 8)
+    raw = {cam: torch.rand(2, 3, 64, 64) for cam in backbone.camera_keys}
+    raw.update({"observation.state": state.clone(), "action": torch.zeros(2, 10, 7),
+                "action_is_pad": torch.zeros(2, 10, dtype=torch.bool), "task": ["a", "b"]})
+    batch = backbone.preprocess(raw)
+    q01, q99 = (torch.tensor(stats["observation.state"][k], dtype=torch.float32) for k in ("q01", "q99"))
+    expected = 2 * (state - q01) / (q99 - q01) - 1
+    assert torch.allclose(batch["observation.state"].float(), expected, atol=1e-5)
+    device = next(backbone.policy.parameters()).device
+    assert all(v.device == device for v in batch.values() if torch.is_tensor(v))
