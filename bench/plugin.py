@@ -260,7 +260,8 @@ class GraftSession:
             raise pytest.UsageError(missing_summary(artifacts))
 
     def finish(self) -> Path | None:
-        if not self.selected or not (self.ran or self.resumed):
+        xdist_controller = bool(getattr(self.config.option, "numprocesses", None))
+        if not self.selected or not (self.ran or self.resumed or xdist_controller):
             return None  # nothing measured or resumed (--collect-only, a stopped preflight)
         from bench.report import build_report
 
