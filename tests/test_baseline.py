@@ -182,6 +182,19 @@ def test_protocol_and_version_mismatch_are_named():
     assert B.provenance_mismatch(base, {}, _cell()) == []
 
 
+def test_another_normaliser_is_a_mismatch_never_compared():
+    def with_norm(fingerprint):
+        return _cell(checkpoint={"repo_id": "lerobot/pi05_base", "revision": "b" * 40,
+                                 "normalizer": "dataset:spatial",
+                                 "normalizer_fingerprint": fingerprint})
+
+    base = with_norm("aaaaaaaaaaaa")
+    assert B.provenance_mismatch(base, {}, with_norm("aaaaaaaaaaaa")) == []
+    assert B.provenance_mismatch(base, {}, with_norm("bbbbbbbbbbbb")) == [
+        "normalizer bbbbbbbbbbbb (baseline aaaaaaaaaaaa)"]
+    assert B.provenance_mismatch(base, {}, _cell()) == ["normalizer None (baseline aaaaaaaaaaaa)"]
+
+
 def test_baseline_names():
     assert B.baseline_path(B.Path("d"), "ci-main") == B.Path("d/ci-main.json")
     assert B.baseline_path(B.Path("d"), "x/y.json") == B.Path("x/y.json")
