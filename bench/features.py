@@ -9,7 +9,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import sys
 from pathlib import Path
 from typing import Protocol
 
@@ -18,6 +17,7 @@ import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 from torch import Tensor
 
+from bench.progress import Progress, say
 from encoders.base import Encoder
 
 # Bump when a change to pooling or encoding moves cached numbers on purpose.
@@ -84,11 +84,6 @@ def feature_key(encoder: Encoder, suite: FeatureSource, target_grid: tuple[int, 
     return hashlib.sha256(blob).hexdigest()
 
 
-def _progress_disabled(progress: bool) -> bool:
-    return (not progress or os.environ.get("GRAFTBENCH_QUIET") == "1"
-            or not sys.stderr.isatty())
-
-
 class FeatureCache:
     """Pooled features of every frame of a suite, one safetensors file per (encoder, grid, suite)."""
 
@@ -100,7 +95,7 @@ class FeatureCache:
 
     def pooled_features(self, encoder: Encoder, suite: FeatureSource,
                         target_grid: tuple[int, int], batch_size: int = 64,
-                        progress: bool = True) -> dict[str, Tensor]:
+                        progress=True) -> dict[str, Tensor]:
         """{camera: (N_frames, rows*cols, C) float32 on CPU}, computed once per key, then loaded."""
         path = self.path(encoder, suite, target_grid)
         if path.exists():
@@ -110,24 +105,22 @@ class FeatureCache:
         return features
 
     def _compute(self, encoder: Encoder, suite: FeatureSource, target_grid: tuple[int, int],
-                 batch_size: int, progress: bool) -> dict[str, Tensor]:
-        from tqdm import tqdm
-
+                 batch_size: int, progress) -> dict[str, Tensor]:
         n_frames = int(suite.state.shape[0])
         if n_frames == 0:
             raise ValueError(f"suite {suite.name!r} has no frames to encode")
         chunks: dict[str, list[Tensor]] = {camera: [] for camera in suite.camera_keys}
-        bar = tqdm(total=n_frames, desc=f"features {encoder.spec.name}/{suite.name}", unit="frame",
-                   file=sys.stderr, mininterval=2.0, disable=_progress_disabled(progress))
-        with bar:
-            for start in range(0, n_frames, batch_size):
-                frames = torch.arange(start, min(start + batch_size, n_frames))
-                images = suite.images(frames)
-                pooled = encode_pooled(encoder, {c: images[c] for c in suite.camera_keys},
-                                       target_grid)
-                for camera, feats in pooled.items():
-                    chunks[camera].append(feats.cpu())
-                bar.update(len(frames))
+        label = f"features {encoder.spec.name} / {suite.name} at {target_grid[0]}x{target_grid[1]}"
+        say(progress, f"{label}: encoding {n_frames} frames x {len(suite.camera_keys)} cameras")
+        bar = Progress(label, n_frames, progress)
+        for start in range(0, n_frames, batch_size):
+            frames = torch.arange(start, min(start + batch_size, n_frames))
+            images = suite.images(frames)
+            pooled = encode_pooled(encoder, {c: images[c] for c in suite.camera_keys},
+                                   target_grid)
+            for camera, feats in pooled.items():
+                chunks[camera].append(feats.cpu())
+            bar.update(int(frames[-1]) + 1, "frames")
         return {camera: torch.cat(parts) for camera, parts in chunks.items()}
 
     def _write(self, path: Path, features: dict[str, Tensor], encoder: Encoder,

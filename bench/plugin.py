@@ -14,6 +14,7 @@ import pytest
 
 from bench.cells import CellSpec, control_cells, graft_cells
 from bench.paths import REPO_ROOT
+from bench.progress import say
 from bench.protocol import ALL_CONTROLS, get_profile, with_overrides
 
 SESSION_KEY = pytest.StashKey["GraftSession"]()
@@ -25,7 +26,8 @@ def _csv(value: str | None) -> tuple[str, ...] | None:
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     g = parser.getgroup("graftbench", "graftbench grid")
-    g.addoption("--profile", default="tiny", help="tiny (offline default) or paper")
+    g.addoption("--profile", default="tiny",
+                help="tiny (offline default, 40 cells), tiny-full (136 cells), paper, sim")
     g.addoption("--backbones", help="comma list, e.g. smolvla,pi05")
     g.addoption("--encoders", help="comma list of registry names or timm:<model>")
     g.addoption("--suites", help="comma list, e.g. spatial,object")
@@ -55,6 +57,22 @@ def _add_executor_options(g) -> None:
                 help="array tasks running at once (sbatch --array=0-N%%P)")
 
 
+def _seeds(values: tuple[str, ...] | None) -> tuple[int, ...] | None:
+    if not values:
+        return None
+    bad = [v for v in values if not v.isdigit()]
+    if bad:
+        raise ValueError(f"--seeds {','.join(values)}: {bad} not a non-negative integer; give a "
+                         "comma list such as --seeds 0,1,2")
+    return tuple(int(v) for v in values)
+
+
+def _positive(option: str, value: int | None, what: str) -> int | None:
+    if value is not None and value < 1:
+        raise ValueError(f"{option} {value}: give a positive number of {what} (at least 1)")
+    return value
+
+
 def build_profile(config: pytest.Config):
     opt = config.getoption
     try:
@@ -71,9 +89,9 @@ def build_profile(config: pytest.Config):
             backbones=_csv(opt("--backbones")),
             encoders=_csv(opt("--encoders")),
             suites=_csv(opt("--suites")),
-            seeds=tuple(int(s) for s in seeds) if seeds else None,
+            seeds=_seeds(seeds),
             controls=controls,
-            steps=opt("--steps"),
+            steps=_positive("--steps", opt("--steps"), "projector steps"),
         )
     except ValueError as e:
         raise pytest.UsageError(str(e)) from None
@@ -128,6 +146,29 @@ def _unavailable_errors() -> tuple[type, ...]:
     return (BackboneUnavailable, SuiteUnavailable, EncoderUnavailable)
 
 
+def report_path(report: str | None, results: str | None, profile: str, results_dir: Path) -> Path:
+    """Where the report goes: --report; else beside an explicit --results-dir; else the repo's
+    REPORT.md for the default tiny run (the committed report), else beside the results."""
+    if report:
+        return Path(report)
+    if results is None and profile == "tiny":
+        return REPO_ROOT / "REPORT.md"
+    return results_dir / "REPORT.md"
+
+
+def _check_writable(option: str, folder: Path) -> None:
+    """A UsageError naming the option when `folder` cannot be created or written."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
+            pass
+    except OSError as e:
+        raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
+                                "pass a writable folder") from None
+
+
 class GraftSession:
     """State of one pytest run of the grid: profile, store, workspace, what ran."""
 
@@ -137,8 +178,8 @@ class GraftSession:
         _offline_env(self.profile.offline)
         results = config.getoption("--results-dir")
         self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name
-        report = config.getoption("--report")
-        self.report_path = Path(report) if report else REPO_ROOT / "REPORT.md"
+        self.report_path = report_path(config.getoption("--report"), results, self.profile.name,
+                                       self.results_dir)
         self.rerun = bool(config.getoption("--rerun"))
         self.features_mode = config.getoption("--features")
         self.rollouts = int(config.getoption("--rollouts") or 0)
@@ -148,28 +189,44 @@ class GraftSession:
             _check_rollouts_possible(self.profile)
         self._workspace = None
         self._store = None
+        self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
         self.selected: list[str] = []
-        self.ran: list[str] = []
-        self.resumed: list[str] = []
         self.extra_sections: list[tuple[str, str]] = []
         self._cell_array = None  # bench.executors.CellArray, when --executor is not local
 
     @property
     def store(self):
-        from bench.store import ResultStore
+        from bench.store import ResultsDirError, ResultStore
 
         if self._store is None:
-            self._store = ResultStore(self.results_dir)
+            try:  # first opened at collection: a UsageError there, never an INTERNALERROR
+                self._store = ResultStore(self.results_dir)
+            except ResultsDirError as e:
+                raise pytest.UsageError(f"--results-dir: {e}") from None
         return self._store
 
     def workspace(self):
         from bench.workspace import Workspace
 
         if self._workspace is None:
-            quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
-            self._workspace = Workspace(self.profile, self.store, progress=not quiet,
+            sink = self.progress_sink()
+            if not hasattr(self.config, "workerinput"):  # workers: _configure_scale split CPUs
+                import torch
+
+                threads, why = serial_threads()
+                torch.set_num_threads(threads)
+                say(sink, f"torch threads: {threads} ({why})")
+            self._workspace = Workspace(self.profile, self.store, progress=sink,
                                         rollouts=self.rollouts)
         return self._workspace
+
+    def progress_sink(self):
+        """The terminal, or False: under -q, GRAFTBENCH_QUIET=1 and in xdist workers (their
+        output would interleave with the controller's)."""
+        from bench.progress import TerminalSink
+
+        quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
+        return False if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
 
     def run(self, cell: CellSpec) -> dict:
         """The stored record when current (resume), else measure the cell now."""
@@ -178,11 +235,12 @@ class GraftSession:
         if not self.rerun:
             record = self._current(cell)
             if record is not None:
-                self.resumed.append(cell.id)
+                self.outcomes[cell.id] = "resumed"
                 return record
+        self._say_start(cell)
         if self.config.getoption("--executor") != "local":
             record = self._run_submitted(cell)
-            self.ran.append(cell.id)
+            self.outcomes[cell.id] = "measured"
             return record
         try:
             record = run_cell(cell, self.workspace(), features_mode=self.features_mode)
@@ -196,8 +254,30 @@ class GraftSession:
             if isinstance(e, _unavailable_errors()):  # a missing artifact: its line, no traceback
                 pytest.fail(f"{cell.id}: {type(e).__name__}: {e}", pytrace=False)
             raise
-        self.ran.append(cell.id)
+        self.outcomes[cell.id] = "measured"
+        say(self.workspace().progress, f"{cell.id}: MSE {record['mse']['normalized']:.4f} "
+                                       f"normalised ({record['timings_s']['total']:.1f} s)")
         return record
+
+    def pytest_runtest_logreport(self, report) -> None:
+        """Each grid case's outcome, serial or from xdist workers (user_properties travel)."""
+        from bench.summary import OUTCOME_PROPERTY, cell_id_of, failure_line
+
+        cell = cell_id_of(report.nodeid)
+        if cell is None or cell not in self.selected or report.when != "call":
+            return
+        if report.passed:
+            outcome = dict(report.user_properties).get(OUTCOME_PROPERTY)
+            self.outcomes[cell] = outcome or self.outcomes.get(cell, "measured")
+        elif report.failed:
+            self.outcomes[cell] = failure_line(self.results_dir, cell, report.longreprtext)
+
+    def _say_start(self, cell: CellSpec) -> None:
+        position = self.selected.index(cell.id) + 1 if cell.id in self.selected else "?"
+        work = (f"{self.profile.protocol.steps} projector steps, then" if cell.trains_projector
+                else "no training,")
+        say(self.workspace().progress, f"cell {position}/{len(self.selected)} {cell.id}: {work} "
+                                       "offline MSE on the held-out windows")
 
     def _current(self, cell: CellSpec) -> dict | None:
         """The stored record of `cell` if it is current: same protocol hash and, with
@@ -260,9 +340,10 @@ class GraftSession:
             raise pytest.UsageError(missing_summary(artifacts))
 
     def finish(self) -> Path | None:
-        xdist_controller = bool(getattr(self.config.option, "numprocesses", None))
-        if not self.selected or not (self.ran or self.resumed or xdist_controller):
-            return None  # nothing measured or resumed (--collect-only, a stopped preflight)
+        measured = any(o == "measured" for o in self.outcomes.values())
+        resumed = any(o == "resumed" for o in self.outcomes.values())
+        if not self.selected or not (measured or (resumed and not self.report_path.exists())):
+            return None  # nothing new finished: an existing report is left as it is
         from bench.report import build_report
 
         return build_report(self.results_dir, self.report_path, extra_sections=self.extra_sections)
@@ -271,7 +352,9 @@ class GraftSession:
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "cell: a graftbench grid cell")
     _configure_scale(config)
-    config.stash[SESSION_KEY] = GraftSession(config)
+    session = GraftSession(config)
+    config.stash[SESSION_KEY] = session
+    config.pluginmanager.register(session, "graftbench-session")  # its hook methods below
 
 
 def _configure_scale(config: pytest.Config) -> None:
@@ -292,6 +375,18 @@ def _configure_scale(config: pytest.Config) -> None:
         if torch.cuda.is_available():
             torch.cuda.set_device(int(worker[2:]) % torch.cuda.device_count())
         torch.set_num_threads(worker_threads(workerinput.get("workercount", 1)))
+
+
+def serial_threads() -> tuple[int, str]:
+    """Torch threads for a serial run, and why: OMP_NUM_THREADS when set, else the CPUs the
+    1-minute load leaves free (at least 1). torch's default (every CPU) against one other busy
+    process made the tiny grid's steps 20x slower (docs/SCALING.md: 4.3 s -> 88-99 s)."""
+    cpus = len(os.sched_getaffinity(0))
+    if os.environ.get("OMP_NUM_THREADS"):
+        return max(1, int(os.environ["OMP_NUM_THREADS"])), "OMP_NUM_THREADS"
+    load = os.getloadavg()[0]
+    free = max(1, min(cpus, round(cpus - load)))
+    return free, f"{cpus} CPUs, 1-min load {load:.1f}; set OMP_NUM_THREADS to choose"
 
 
 def worker_threads(workers: int) -> int:
@@ -371,6 +466,8 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
             gs.selected.append(cell.id)
             cells.append(cell)
     if gs.selected and not hasattr(config, "workerinput"):
+        gs.store  # opens (creates, probes) the results dir: a one-line UsageError if it cannot
+        _check_writable("--report", gs.report_path.parent)
         gs.preflight(cells)
         gs.store.write_grid(gs.selected, gs.profile.name)
 
@@ -396,15 +493,13 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    from bench.summary import summary_lines
+
     gs: GraftSession | None = config.stash.get(SESSION_KEY, None)
     if gs is None or not gs.selected or hasattr(config, "workerinput"):
         return
-    tr = terminalreporter
-    tr.write_sep("-", "graftbench")
-    tr.write_line(f"profile {gs.profile.name}, protocol {gs.profile.protocol.hash}, "
-                  f"results in {gs.results_dir}")
-    tr.write_line(f"cells selected {len(gs.selected)}, measured {len(gs.ran)}, "
-                  f"resumed from store {len(gs.resumed)}")
-    written = getattr(gs, "report_written", None)
-    if written:
-        tr.write_line(f"report: {written}")
+    terminalreporter.write_sep("-", "graftbench")
+    for line in summary_lines(gs.profile.name, gs.profile.protocol.hash, gs.outcomes,
+                              len(gs.selected), gs.results_dir, gs.report_path,
+                              getattr(gs, "report_written", None) is not None):
+        terminalreporter.write_line(line)

@@ -52,18 +52,32 @@ def git_commit() -> str:
         return "unknown"
 
 
-@functools.cache
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), else what platform knows."""
+    try:
+        with open("/proc/cpuinfo") as handle:
+            for line in handle:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def hardware() -> str:
-    if torch.cuda.is_available():
-        return f"{torch.cuda.get_device_name(0)} (CUDA {torch.version.cuda})"
-    cpu = platform.processor() or platform.machine()
+    """GPU (if any), CPU model, the instruction set torch's CPU kernels use (AVX512 / AVX2 /
+    ...: kernels move last bits across machines, docs/CI.md), cores and torch threads now."""
     try:
         import os
 
         cores = len(os.sched_getaffinity(0))
     except AttributeError:
         cores = torch.get_num_threads()
-    return f"CPU {cpu}, {cores} cores, torch threads {torch.get_num_threads()}, {sys.platform}"
+    cpu = (f"CPU {cpu_model()} ({torch.backends.cpu.get_cpu_capability()} kernels), {cores} "
+           f"cores, torch threads {torch.get_num_threads()}, {sys.platform}")
+    if torch.cuda.is_available():
+        return f"{torch.cuda.get_device_name(0)} (CUDA {torch.version.cuda}); {cpu}"
+    return cpu
 
 
 def device_name(device: torch.device) -> str:

@@ -200,7 +200,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.report", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results_dir", type=Path, help="results dir holding cells/ (and grid.json)")
-    parser.add_argument("--out", type=Path, default=None,
+    # --report, as in `pytest bench --report PATH`; --out kept for older commands.
+    parser.add_argument("--report", "--out", dest="out", type=Path, default=None,
                         help="report path (default: RESULTS_DIR/REPORT.md)")
     parser.add_argument("--resamples", type=int, default=DEFAULT_RESAMPLES,
                         help=f"bootstrap replicates (default {DEFAULT_RESAMPLES})")

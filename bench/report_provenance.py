@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 
@@ -88,9 +90,11 @@ def provenance_section(ctx: ReportContext) -> str:
     parts = []
     hashes = defaultdict(list)
     for r in records:
-        hashes[r.get("protocol_hash", "?")].append(r)
+        hashes[r.get("protocol_hash", "unrecorded")].append(r)
+    # Relative to the report's folder: a committed report names no folder of one machine.
+    results_dir = os.path.relpath(Path(res.root).resolve(), ctx.out_path.parent.resolve())
     lines = [
-        f"Results dir: `{res.root}`",
+        f"Results dir: `{results_dir}` (relative to this report)",
         f"Profile(s): {_distinct([r.get('profile') for r in records] + [res.grid_profile])}",
         f"Protocol hash(es): {', '.join(f'`{h}` ({len(v)} cells)' for h, v in hashes.items())}"
         if hashes else "Protocol hash(es): none",

@@ -132,10 +132,16 @@ def answer_lines(ctx: ReportContext) -> list[str]:
 
 
 def caveats(ctx: ReportContext) -> str:
-    profiles = sorted({r.get("profile", "?") for r in ctx.records}
+    profiles = sorted({r["profile"] for r in ctx.records if r.get("profile")}
                       | ({ctx.results.grid_profile} if ctx.results.grid_profile else set()))
-    hashes = sorted({r.get("protocol_hash", "?") for r in ctx.records})
+    hashes = sorted({r["protocol_hash"] for r in ctx.records if r.get("protocol_hash")})
     protocol = ctx.records[0].get("protocol", {}) if ctx.records else {}
+    if all(k in protocol for k in ("split_seed", "heldout_episodes_per_task", "eval_noise_seed")):
+        split = (f" (split_seed={protocol['split_seed']}, "
+                 f"{protocol['heldout_episodes_per_task']} episodes per task)")
+        crn = f", eval_noise_seed={protocol['eval_noise_seed']}"
+    else:  # no finished record carries the protocol: leave its values out, say why
+        split, crn = " (its seed and size are left out: no finished cell records them)", ""
     wrapper = [f"{b} x {s}: {ctx.wrapper_text(b, s)}" for b, s in sorted(ctx.wrapper)]
     rolled = sum(1 for cl in ctx.closed_loop for n in cl.n_episodes if n)
     lines = [
@@ -151,15 +157,18 @@ def caveats(ctx: ReportContext) -> str:
         f"**Profile(s) that ran: {', '.join(profiles) or 'unknown'}.**"
         + (" Tiny-profile numbers come from tiny random-init encoders, tiny policies and "
            "generated suites: they exercise the code paths and say **nothing** about real "
-           "encoders." if "tiny" in profiles else ""),
+           "encoders." if any(p.startswith("tiny") for p in profiles) else ""),
         "**What offline action MSE means here**: held-out whole EPISODES per task, split with a "
-        f"fixed split seed (split_seed={protocol.get('split_seed', '?')}, "
-        f"{protocol.get('heldout_episodes_per_task', '?')} episodes per task) that does not "
+        f"fixed split seed{split} that does not "
         "depend on the cell seed, so every cell of a suite is scored on identical windows; the "
         "backbone's own flow-matching sampler (its default denoising steps) with noise fixed per "
-        f"window (common random numbers, eval_noise_seed={protocol.get('eval_noise_seed', '?')}); "
+        f"window (common random numbers{crn}); "
         "only the real action dimensions (LIBERO: 7; padding masked out); over the full action "
         "chunk; reported in the backbone's normalised action space (primary) and in raw units.",
+        "**Two machines differ by up to ~2.5% MSE on the same cell** (measured: CPUs with "
+        "different kernels, tiny releases retrained, docs/CI.md; `hardware` in each record names "
+        "the CPU and its kernels): a difference that small between reports from two machines "
+        "means nothing.",
         "**MSE levels are not comparable across backbones** (different action normalisation): "
         "compare rankings across backbones, never levels; every plot gives each backbone its "
         "own axis.",

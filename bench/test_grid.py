@@ -7,6 +7,8 @@ recorded MSE); it never asserts a ranking: rankings are the report's business.
 
 import math
 
+from bench.summary import OUTCOME_PROPERTY
+
 
 def _check_record(record: dict, cell) -> None:
     assert record["cell_id"] == cell.id
@@ -28,9 +30,11 @@ def _check_record(record: dict, cell) -> None:
         assert record["trainable_params"] == 0
 
 
-def test_graft(graft_cell, graft_session):
+def test_graft(graft_cell, graft_session, record_property):
     _check_record(graft_session.run(graft_cell), graft_cell)
+    record_property(OUTCOME_PROPERTY, graft_session.outcomes.get(graft_cell.id))
 
 
-def test_control(control_cell, graft_session):
+def test_control(control_cell, graft_session, record_property):
     _check_record(graft_session.run(control_cell), control_cell)
+    record_property(OUTCOME_PROPERTY, graft_session.outcomes.get(control_cell.id))

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import sys
-import time
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
@@ -17,6 +15,7 @@ import torch
 from torch import Tensor
 
 from backbones.base import Backbone
+from bench.progress import Progress
 from bench.provenance import stable_seed
 
 # next_batch(step, frames) -> (raw batch, graft features or None)
@@ -68,25 +67,6 @@ def frozen_autocast(device: torch.device):
     return contextlib.nullcontext()
 
 
-class Progress:
-    """One self-overwriting line on a terminal; silent otherwise (and under -q)."""
-
-    def __init__(self, label: str, total: int, enabled: bool) -> None:
-        self.label, self.total = label, total
-        self.enabled = enabled and sys.stderr.isatty()
-        self._last = 0.0
-
-    def update(self, done: int, note: str = "") -> None:
-        now = time.monotonic()
-        if not self.enabled or (now - self._last < 0.5 and done < self.total):
-            return
-        self._last = now
-        sys.stderr.write(f"\r  {self.label}: {done}/{self.total} {note}\x1b[K")
-        if done >= self.total:
-            sys.stderr.write("\r\x1b[K")
-        sys.stderr.flush()
-
-
 def fit(
     backbone: Backbone,
     params: Iterable[torch.nn.Parameter],
@@ -96,7 +76,7 @@ def fit(
     seed: int,
     feed=None,
     label: str = "train",
-    progress: bool = True,
+    progress=True,  # a bench.progress sink, or a bool
 ) -> list[list[float]]:
     """Train `params` with the backbone's own loss. Returns the loss curve [[step, loss], ...]
     (every `log_every` steps, plus the first and last). Raises NonFiniteLoss naming the step."""

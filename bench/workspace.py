@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from backbones import get_entry
 from backbones.released import Normalizer, load_released, normalizer_for
 from bench.features import FeatureCache
 from bench.paths import cache_dir
+from bench.progress import say
 from bench.protocol import Profile
 from bench.store import ResultStore
 from bench.suites import load_suite
@@ -35,7 +37,7 @@ class Split:
 class Workspace:
     profile: Profile
     store: ResultStore
-    progress: bool = True
+    progress: object = True  # a bench.progress sink, or a bool
     # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
     rollouts: int = 0
     cache: Path = field(default_factory=cache_dir)
@@ -60,7 +62,14 @@ class Workspace:
 
     def suite(self, name: str):
         if name not in self._suites:
-            self._suites[name] = load_suite(name, self.profile.data_source)
+            say(self.progress, f"suite {name} ({self.profile.data_source}): loading "
+                               "(generated on first use, then cached)")
+            start = time.monotonic()
+            suite = load_suite(name, self.profile.data_source)
+            say(self.progress, f"suite {name}: {len(suite.state)} frames, "
+                               f"{len(set(suite.episode_index.tolist()))} episodes "
+                               f"({time.monotonic() - start:.0f} s)")
+            self._suites[name] = suite
         return self._suites[name]
 
     def split(self, name: str) -> Split:

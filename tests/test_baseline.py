@@ -243,7 +243,7 @@ def pytest_configure(config):
                              encoder=cell.encoder, seed=cell.seed, cell_id=cell.id,
                              level=levels.get(cell.id, 0.05))
         gs.store.write(record)
-        gs.ran.append(cell.id)
+        gs.outcomes[cell.id] = "measured"
         return record
 
     gs.run = fake_run

@@ -1,7 +1,7 @@
 import pytest
 
 from bench.cells import CellSpec, control_cells, graft_cells
-from bench.protocol import TINY, get_profile, with_overrides
+from bench.protocol import TINY, TINY_FULL, get_profile, with_overrides
 
 
 def test_ids_read_as_the_cell():
@@ -30,11 +30,19 @@ def test_bad_cells_are_rejected(kwargs, match):
         CellSpec(backbone="smolvla", suite="spatial", seed=0, **kwargs)
 
 
-def test_tiny_grid_size_and_unique_ids():
-    grafts = graft_cells(TINY)
-    assert len(grafts) == 2 * 2 * len(TINY.encoders) * 2
-    ids = [c.id for c in grafts + control_cells(TINY)]
+@pytest.mark.parametrize("profile", [TINY, TINY_FULL], ids=["tiny", "tiny-full"])
+def test_tiny_grid_size_and_unique_ids(profile):
+    grafts = graft_cells(profile)
+    assert len(grafts) == 2 * len(profile.suites) * len(profile.encoders) * 2
+    ids = [c.id for c in grafts + control_cells(profile)]
     assert len(ids) == len(set(ids))
+
+
+def test_default_grid_is_the_full_tiny_grid_cut_down_on_the_same_protocol():
+    assert TINY.protocol == TINY_FULL.protocol and TINY.seeds == TINY_FULL.seeds == (0, 1)
+    full = {c.id for c in graft_cells(TINY_FULL) + control_cells(TINY_FULL)}
+    small = [c.id for c in graft_cells(TINY) + control_cells(TINY)]
+    assert set(small) < full and len(small) == 40 and len(full) == 136
 
 
 def test_profile_overrides_and_errors():

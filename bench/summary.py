@@ -1,0 +1,60 @@
+"""What a run did, for the end of the terminal output: cells measured / resumed / failed (each
+failure with its one-line reason), where the records and the report went, the headline answer."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+OUTCOME_PROPERTY = "graftbench"  # record_property name a grid case reports its outcome under
+
+
+def cell_id_of(nodeid: str) -> str | None:
+    """`bench/test_grid.py::test_graft[smolvla-spatial-dinov2_s-seed0]` -> the cell id."""
+    if "[" not in nodeid:
+        return None
+    return nodeid.split("@")[0].rsplit("[", 1)[-1].rstrip("]")
+
+
+def failure_line(results_dir: Path, cell_id: str, longrepr: str) -> str:
+    """The failure record's error when the cell wrote one, else the report's last line."""
+    path = Path(results_dir) / "failed" / f"{cell_id}.json"
+    if path.is_file():
+        try:
+            return " ".join(str(json.loads(path.read_text())["error"]).split())[:300]
+        except (ValueError, KeyError, OSError):
+            pass
+    lines = [ln.strip() for ln in longrepr.splitlines() if ln.strip()]
+    return (lines[-1] if lines else "failed")[:300]
+
+
+def headline(report: Path) -> str | None:
+    """The report's first paragraph after its title (the answer, in one line)."""
+    if not report.is_file():
+        return None
+    for line in report.read_text().splitlines()[1:]:
+        if line.strip() and not line.startswith("#"):
+            return " ".join(line.split())[:400]
+    return None
+
+
+def summary_lines(profile: str, protocol_hash: str, outcomes: dict[str, str], selected: int,
+                  results_dir: Path, report: Path, written: bool) -> list[str]:
+    measured = sum(1 for o in outcomes.values() if o == "measured")
+    resumed = sum(1 for o in outcomes.values() if o == "resumed")
+    failed = {c: o for c, o in outcomes.items() if o not in ("measured", "resumed")}
+    lines = [f"profile {profile}, protocol {protocol_hash}",
+             f"cells selected {selected}: measured {measured}, resumed from store {resumed}, "
+             f"failed {len(failed)}",
+             f"records: {results_dir / 'cells'}"]
+    if written:
+        lines.append(f"report: {report}")
+    elif report.exists():
+        lines.append(f"report: {report} left as it was (this run finished no new cell)")
+    else:
+        lines.append("report: not written (no cell finished)")
+    answer = headline(report) if report.exists() else None
+    if answer:
+        lines.append(f"answer: {answer}")
+    lines += [f"FAILED {cell}: {reason}" for cell, reason in sorted(failed.items())]
+    return lines
