@@ -15,7 +15,6 @@ import hashlib
 import json
 import os
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import torch
 from backbones import adapter_module, get_entry
 from backbones.base import BackboneUnavailable
 from backbones.hub import download_command, resolved_revision, saved_normalizer_stats, stats_fingerprint
+from bench.progress import say
 from bench.protocol import Profile
 from bench.provenance import stable_seed
 from bench.suites.base import STATE_KEY
@@ -85,7 +85,7 @@ def drop_states(states: torch.Tensor, rate: float, mean: torch.Tensor,
 
 
 def train_tiny_release(name: str, backbone, profile: Profile, suites, train_frames, folder: Path,
-                       chunk_size: int, progress: bool = True) -> None:
+                       chunk_size: int, progress=True) -> None:
     """Train ALL of the untrained tiny `backbone` with its own loss, save it into `folder`."""
     from bench.suites.windows import raw_batch
 
@@ -176,7 +176,7 @@ def checkpoint_id(name: str, profile: Profile) -> dict:
 
 
 def load_released(name: str, profile: Profile, suites, train_frames, cache: Path,
-                  chunk_size: int = 10, progress: bool = True, stats: dict | None = None):
+                  chunk_size: int = 10, progress=True, stats: dict | None = None):
     """The released policy for `name` in this profile's world, loaded with from_pretrained.
     Hub: `stats` are the dataset stats to normalise with (None: the checkpoint's own)."""
     module = adapter_module(name)
@@ -192,7 +192,8 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
         # xdist workers and array tasks sharing a cache: one trains, the others wait and load it.
         with _exclusive(folder.with_name(folder.name + ".lock")):
             if not (folder / "graftbench_release.json").exists():
-                print(f"[graftbench] training tiny released {name} -> {folder}", file=sys.stderr)
+                say(progress, f"training the tiny released {name} natively ({profile.protocol.native_steps} "
+                              f"steps, once; cached in {folder})")
                 train_tiny_release(name, untrained, profile, suites, train_frames, folder,
                                    chunk_size, progress)
     return module.load_policy(str(folder))

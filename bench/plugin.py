@@ -1,4 +1,5 @@
-"""The pytest plugin: options, the grid parametrisation, the session object, the report hook.
+"""The pytest plugin: the grid parametrisation, the session object, the report hook (options:
+bench.options).
 
 Hooks only hand work on: `pytest_configure` builds ONE `GraftSession`; cells run through it;
 `pytest_sessionfinish` asks it for the report (controller only under xdist).
@@ -12,129 +13,20 @@ from pathlib import Path
 
 import pytest
 
-from bench.cells import CellSpec, control_cells, graft_cells
+from bench.cells import GRAFT, CellSpec, control_cells, graft_cells
+from bench.options import (  # noqa: F401  (pytest_addoption: the hook, found here by name)
+    check_rollouts_possible,
+    check_writable,
+    offline_env,
+    validate_names,
+    build_profile,
+    pytest_addoption,
+    report_path,
+)
 from bench.paths import REPO_ROOT
 from bench.progress import say
-from bench.protocol import ALL_CONTROLS, get_profile, with_overrides
 
 SESSION_KEY = pytest.StashKey["GraftSession"]()
-
-
-def _csv(value: str | None) -> tuple[str, ...] | None:
-    return tuple(v.strip() for v in value.split(",") if v.strip()) if value else None
-
-
-def pytest_addoption(parser: pytest.Parser) -> None:
-    g = parser.getgroup("graftbench", "graftbench grid")
-    g.addoption("--profile", default="tiny",
-                help="tiny (offline default, 40 cells), tiny-full (136 cells), paper, sim")
-    g.addoption("--backbones", help="comma list, e.g. smolvla,pi05")
-    g.addoption("--encoders", help="comma list of registry names or timm:<model>")
-    g.addoption("--suites", help="comma list, e.g. spatial,object")
-    g.addoption("--seeds", help="comma list of ints, e.g. 0,1,2")
-    g.addoption("--controls", help=f"comma list of control kinds ({','.join(ALL_CONTROLS)}) or none")
-    g.addoption("--steps", type=int, help="projector steps (overrides the profile's protocol)")
-    g.addoption("--results-dir", help="results store (default .graftbench/results/<profile>)")
-    g.addoption("--report", help="where REPORT.md goes (default: REPORT.md at the repo root)")
-    g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
-    g.addoption("--rollouts", type=int, default=0, metavar="N",
-                help="also roll every cell out in the LIBERO simulator, N episodes per task "
-                     "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
-    g.addoption("--features", default="cache", choices=("cache", "loop"),
-                help="pooled features from the on-disk cache (default) or the encoder in the loop")
-    _add_executor_options(g)
-
-
-def _add_executor_options(g) -> None:
-    """Where cells run (bench.executors): here, or as one submitit job array."""
-    g.addoption("--executor", default="local", choices=("local", "slurm", "submitit-local"),
-                help="local (default): in this process; slurm: the selected cells as ONE Slurm "
-                     "job array via submitit; submitit-local: the same on this machine")
-    g.addoption("--slurm-partition", help="sbatch --partition")
-    g.addoption("--slurm-time", type=int, default=240, help="minutes per cell task (sbatch --time)")
-    g.addoption("--slurm-gpus-per-task", type=int, default=1, help="sbatch --gpus-per-task")
-    g.addoption("--slurm-array-parallelism", type=int, default=64,
-                help="array tasks running at once (sbatch --array=0-N%%P)")
-
-
-def _seeds(values: tuple[str, ...] | None) -> tuple[int, ...] | None:
-    if not values:
-        return None
-    bad = [v for v in values if not v.isdigit()]
-    if bad:
-        raise ValueError(f"--seeds {','.join(values)}: {bad} not a non-negative integer; give a "
-                         "comma list such as --seeds 0,1,2")
-    return tuple(int(v) for v in values)
-
-
-def _positive(option: str, value: int | None, what: str) -> int | None:
-    if value is not None and value < 1:
-        raise ValueError(f"{option} {value}: give a positive number of {what} (at least 1)")
-    return value
-
-
-def build_profile(config: pytest.Config):
-    opt = config.getoption
-    try:
-        profile = get_profile(opt("--profile"))
-        seeds = _csv(opt("--seeds"))
-        controls = _csv(opt("--controls"))
-        if controls == ("none",):
-            controls = ()
-        bad = [c for c in controls or () if c not in ALL_CONTROLS]
-        if bad:
-            raise ValueError(f"unknown control kind(s) {bad}; valid: {', '.join(ALL_CONTROLS)}")
-        return with_overrides(
-            profile,
-            backbones=_csv(opt("--backbones")),
-            encoders=_csv(opt("--encoders")),
-            suites=_csv(opt("--suites")),
-            seeds=_seeds(seeds),
-            controls=controls,
-            steps=_positive("--steps", opt("--steps"), "projector steps"),
-        )
-    except ValueError as e:
-        raise pytest.UsageError(str(e)) from None
-
-
-def _validate_names(profile) -> None:
-    """Unknown backbone/suite/encoder names fail at collection, listing the valid ones."""
-    from backbones import get_entry
-    from bench.suites import SUITES
-    from encoders import get_spec
-
-    try:
-        for b in profile.backbones:
-            get_entry(b)
-        for e in set(profile.encoders) | set(profile.control_encoders):
-            get_spec(e)
-    except ValueError as e:
-        raise pytest.UsageError(str(e)) from None
-    for s in profile.suites:
-        if s not in SUITES:
-            raise pytest.UsageError(f"unknown suite {s!r}; valid suites: {', '.join(SUITES)}")
-
-
-def _offline_env(offline: bool) -> None:
-    if not offline:
-        return
-    os.environ["HF_HUB_OFFLINE"] = "1"
-    os.environ["TRANSFORMERS_OFFLINE"] = "1"
-    os.environ["HF_DATASETS_OFFLINE"] = "1"
-    if "huggingface_hub.constants" in sys.modules:  # imported before us: patch the cached flag
-        sys.modules["huggingface_hub.constants"].HF_HUB_OFFLINE = True
-
-
-def _check_rollouts_possible(profile) -> None:
-    """--rollouts needs LIBERO scenes behind the suites and the simulator installed."""
-    if profile.data_source == "tiny":
-        raise pytest.UsageError(
-            f"--rollouts: profile {profile.name!r} uses generated synthetic suites, which have no "
-            "simulator; use --profile sim (scripted demos in LIBERO scenes) or --profile paper")
-    from bench.sim.env import INSTALL_HINT, libero_available
-
-    if not libero_available():
-        raise pytest.UsageError(f"--rollouts needs the LIBERO simulator; {INSTALL_HINT}")
 
 
 def _unavailable_errors() -> tuple[type, ...]:
@@ -146,36 +38,13 @@ def _unavailable_errors() -> tuple[type, ...]:
     return (BackboneUnavailable, SuiteUnavailable, EncoderUnavailable)
 
 
-def report_path(report: str | None, results: str | None, profile: str, results_dir: Path) -> Path:
-    """Where the report goes: --report; else beside an explicit --results-dir; else the repo's
-    REPORT.md for the default tiny run (the committed report), else beside the results."""
-    if report:
-        return Path(report)
-    if results is None and profile == "tiny":
-        return REPO_ROOT / "REPORT.md"
-    return results_dir / "REPORT.md"
-
-
-def _check_writable(option: str, folder: Path) -> None:
-    """A UsageError naming the option when `folder` cannot be created or written."""
-    import tempfile
-
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
-                                "pass a writable folder") from None
-
-
 class GraftSession:
     """State of one pytest run of the grid: profile, store, workspace, what ran."""
 
     def __init__(self, config: pytest.Config) -> None:
         self.config = config
         self.profile = build_profile(config)
-        _offline_env(self.profile.offline)
+        offline_env(self.profile.offline)
         results = config.getoption("--results-dir")
         self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name
         self.report_path = report_path(config.getoption("--report"), results, self.profile.name,
@@ -186,7 +55,7 @@ class GraftSession:
         if self.rollouts < 0:
             raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
         if self.rollouts:
-            _check_rollouts_possible(self.profile)
+            check_rollouts_possible(self.profile)
         self._workspace = None
         self._store = None
         self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
@@ -273,11 +142,18 @@ class GraftSession:
             self.outcomes[cell] = failure_line(self.results_dir, cell, report.longreprtext)
 
     def _say_start(self, cell: CellSpec) -> None:
+        from bench.runner import shared_projector_key
+
+        ws = self.workspace()
         position = self.selected.index(cell.id) + 1 if cell.id in self.selected else "?"
-        work = (f"{self.profile.protocol.steps} projector steps, then" if cell.trains_projector
-                else "no training,")
-        say(self.workspace().progress, f"cell {position}/{len(self.selected)} {cell.id}: {work} "
-                                       "offline MSE on the held-out windows")
+        if not cell.trains_projector:
+            work = "no training,"
+        elif cell.kind != GRAFT and shared_projector_key(cell, self.features_mode) in ws.trained_projectors:
+            work = "its graft's trained projector, then"
+        else:
+            work = f"{self.profile.protocol.steps} projector steps, then"
+        say(ws.progress, f"cell {position}/{len(self.selected)} {cell.id}: {work} "
+                         "offline MSE on the held-out windows")
 
     def _current(self, cell: CellSpec) -> dict | None:
         """The stored record of `cell` if it is current: same protocol hash and, with
@@ -385,7 +261,8 @@ def serial_threads() -> tuple[int, str]:
     if os.environ.get("OMP_NUM_THREADS"):
         return max(1, int(os.environ["OMP_NUM_THREADS"])), "OMP_NUM_THREADS"
     load = os.getloadavg()[0]
-    free = max(1, min(cpus, round(cpus - load)))
+    # Whole busy CPUs only: the load a finished job leaves behind decays over minutes.
+    free = max(1, min(cpus, cpus - int(load)))
     return free, f"{cpus} CPUs, 1-min load {load:.1f}; set OMP_NUM_THREADS to choose"
 
 
@@ -445,7 +322,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if "graft_cell" not in names and "control_cell" not in names:
         return
     session: GraftSession = metafunc.config.stash[SESSION_KEY]
-    _validate_names(session.profile)
+    validate_names(session.profile)
     cells = graft_cells(session.profile) if "graft_cell" in names else control_cells(session.profile)
     argname = "graft_cell" if "graft_cell" in names else "control_cell"
     metafunc.parametrize(
@@ -467,7 +344,7 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
             cells.append(cell)
     if gs.selected and not hasattr(config, "workerinput"):
         gs.store  # opens (creates, probes) the results dir: a one-line UsageError if it cannot
-        _check_writable("--report", gs.report_path.parent)
+        check_writable("--report", gs.report_path.parent)
         gs.preflight(cells)
         gs.store.write_grid(gs.selected, gs.profile.name)
 

@@ -42,7 +42,7 @@ def test_default_grid_is_the_full_tiny_grid_cut_down_on_the_same_protocol():
     assert TINY.protocol == TINY_FULL.protocol and TINY.seeds == TINY_FULL.seeds == (0, 1)
     full = {c.id for c in graft_cells(TINY_FULL) + control_cells(TINY_FULL)}
     small = [c.id for c in graft_cells(TINY) + control_cells(TINY)]
-    assert set(small) < full and len(small) == 40 and len(full) == 136
+    assert set(small) < full and len(small) == 28 and len(full) == 136
 
 
 def test_profile_overrides_and_errors():

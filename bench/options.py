@@ -1,0 +1,153 @@
+"""The grid's command-line options: declared, parsed into a Profile, and checked at start-up,
+each bad value a one-line `pytest.UsageError` naming the option (never an INTERNALERROR)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench.paths import REPO_ROOT
+from bench.protocol import ALL_CONTROLS, get_profile, with_overrides
+
+
+def _csv(value: str | None) -> tuple[str, ...] | None:
+    return tuple(v.strip() for v in value.split(",") if v.strip()) if value else None
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    g = parser.getgroup("graftbench", "graftbench grid")
+    g.addoption("--profile", default="tiny",
+                help="tiny (offline default, 28 cells), tiny-full (136 cells), paper, sim")
+    g.addoption("--backbones", help="comma list, e.g. smolvla,pi05")
+    g.addoption("--encoders", help="comma list of registry names or timm:<model>")
+    g.addoption("--suites", help="comma list, e.g. spatial,object")
+    g.addoption("--seeds", help="comma list of ints, e.g. 0,1,2")
+    g.addoption("--controls", help=f"comma list of control kinds ({','.join(ALL_CONTROLS)}) or none")
+    g.addoption("--steps", type=int, help="projector steps (overrides the profile's protocol)")
+    g.addoption("--results-dir", help="results store (default .graftbench/results/<profile>)")
+    g.addoption("--report", help="where REPORT.md goes (default: REPORT.md at the repo root)")
+    g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
+    g.addoption("--rollouts", type=int, default=0, metavar="N",
+                help="also roll every cell out in the LIBERO simulator, N episodes per task "
+                     "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
+    g.addoption("--features", default="cache", choices=("cache", "loop"),
+                help="pooled features from the on-disk cache (default) or the encoder in the loop")
+    _add_executor_options(g)
+
+
+def _add_executor_options(g) -> None:
+    """Where cells run (bench.executors): here, or as one submitit job array."""
+    g.addoption("--executor", default="local", choices=("local", "slurm", "submitit-local"),
+                help="local (default): in this process; slurm: the selected cells as ONE Slurm "
+                     "job array via submitit; submitit-local: the same on this machine")
+    g.addoption("--slurm-partition", help="sbatch --partition")
+    g.addoption("--slurm-time", type=int, default=240, help="minutes per cell task (sbatch --time)")
+    g.addoption("--slurm-gpus-per-task", type=int, default=1, help="sbatch --gpus-per-task")
+    g.addoption("--slurm-array-parallelism", type=int, default=64,
+                help="array tasks running at once (sbatch --array=0-N%%P)")
+
+
+def _seeds(values: tuple[str, ...] | None) -> tuple[int, ...] | None:
+    if not values:
+        return None
+    bad = [v for v in values if not v.isdigit()]
+    if bad:
+        raise ValueError(f"--seeds {','.join(values)}: {bad} not a non-negative integer; give a "
+                         "comma list such as --seeds 0,1,2")
+    return tuple(int(v) for v in values)
+
+
+def _positive(option: str, value: int | None, what: str) -> int | None:
+    if value is not None and value < 1:
+        raise ValueError(f"{option} {value}: give a positive number of {what} (at least 1)")
+    return value
+
+
+def build_profile(config: pytest.Config):
+    opt = config.getoption
+    try:
+        profile = get_profile(opt("--profile"))
+        seeds = _csv(opt("--seeds"))
+        controls = _csv(opt("--controls"))
+        if controls == ("none",):
+            controls = ()
+        bad = [c for c in controls or () if c not in ALL_CONTROLS]
+        if bad:
+            raise ValueError(f"unknown control kind(s) {bad}; valid: {', '.join(ALL_CONTROLS)}")
+        return with_overrides(
+            profile,
+            backbones=_csv(opt("--backbones")),
+            encoders=_csv(opt("--encoders")),
+            suites=_csv(opt("--suites")),
+            seeds=_seeds(seeds),
+            controls=controls,
+            steps=_positive("--steps", opt("--steps"), "projector steps"),
+        )
+    except ValueError as e:
+        raise pytest.UsageError(str(e)) from None
+
+
+def validate_names(profile) -> None:
+    """Unknown backbone/suite/encoder names fail at collection, listing the valid ones."""
+    from backbones import get_entry
+    from bench.suites import SUITES
+    from encoders import get_spec
+
+    try:
+        for b in profile.backbones:
+            get_entry(b)
+        for e in set(profile.encoders) | set(profile.control_encoders):
+            get_spec(e)
+    except ValueError as e:
+        raise pytest.UsageError(str(e)) from None
+    for s in profile.suites:
+        if s not in SUITES:
+            raise pytest.UsageError(f"unknown suite {s!r}; valid suites: {', '.join(SUITES)}")
+
+
+def offline_env(offline: bool) -> None:
+    if not offline:
+        return
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    os.environ["TRANSFORMERS_OFFLINE"] = "1"
+    os.environ["HF_DATASETS_OFFLINE"] = "1"
+    if "huggingface_hub.constants" in sys.modules:  # imported before us: patch the cached flag
+        sys.modules["huggingface_hub.constants"].HF_HUB_OFFLINE = True
+
+
+def check_rollouts_possible(profile) -> None:
+    """--rollouts needs LIBERO scenes behind the suites and the simulator installed."""
+    if profile.data_source == "tiny":
+        raise pytest.UsageError(
+            f"--rollouts: profile {profile.name!r} uses generated synthetic suites, which have no "
+            "simulator; use --profile sim (scripted demos in LIBERO scenes) or --profile paper")
+    from bench.sim.env import INSTALL_HINT, libero_available
+
+    if not libero_available():
+        raise pytest.UsageError(f"--rollouts needs the LIBERO simulator; {INSTALL_HINT}")
+
+
+def report_path(report: str | None, results: str | None, profile: str, results_dir: Path) -> Path:
+    """Where the report goes: --report; else beside an explicit --results-dir; else the repo's
+    REPORT.md for the default tiny run (the committed report), else beside the results."""
+    if report:
+        return Path(report)
+    if results is None and profile == "tiny":
+        return REPO_ROOT / "REPORT.md"
+    return results_dir / "REPORT.md"
+
+
+def check_writable(option: str, folder: Path) -> None:
+    """A UsageError naming the option when `folder` cannot be created or written."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
+            pass
+    except OSError as e:
+        raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
+                                "pass a writable folder") from None
