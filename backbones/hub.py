@@ -121,11 +121,13 @@ def normalizer_stats(pipeline) -> dict:
 
 
 def download_command(repo_id: str, revision: str | None = None, include: tuple[str, ...] = (),
-                     repo_type: str = "model") -> str:
-    """The `hf download` line that puts `repo_id` into the Hugging Face cache graftbench reads."""
-    parts = ["hf download", repo_id]
+                     repo_type: str = "model", files: tuple[str, ...] = ()) -> str:
+    """The `hf download` line that puts `repo_id` (or just `files` of it) into the Hugging Face
+    cache graftbench reads. One owner for every fix message (policies, datasets, timm weights)."""
+    parts = ["hf download"]
     if repo_type != "model":
         parts.append(f"--repo-type {repo_type}")
+    parts += [repo_id, *files]
     if revision:
         parts.append(f"--revision {revision}")
     if include:

@@ -109,8 +109,9 @@ def _cached_weight_file(repo_id: str, revision: str | None, files: tuple[str, ..
 
 def fetch_command(repo_id: str, revision: str | None, filename: str) -> str:
     """The shell command that puts one weight file of `repo_id` in the HF hub cache."""
-    pin = f" --revision {revision}" if revision else ""
-    return f"hf download {repo_id} {filename}{pin}"
+    from backbones.hub import download_command
+
+    return download_command(repo_id, revision, files=(filename,))
 
 
 def _create_command(timm_name: str) -> str:

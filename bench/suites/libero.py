@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from backbones.hub import hub_offline
 from bench.artifacts import Artifact
 from bench.suites.base import (
     ACTION_KEY,
@@ -36,11 +37,6 @@ LIBERO_REVISIONS: dict[str, str | None] = {name: None for name in LIBERO_REPO_ID
 ROOT_ENV = "GRAFTBENCH_LIBERO_ROOT"
 CAMERA_DTYPES = ("image", "video")
 REASON_CHARS = 300
-
-
-def hub_offline() -> bool:
-    """True when HF_HUB_OFFLINE asks for no network (read at call time, not import time)."""
-    return os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
 
 
 def lerobot_home() -> Path:
@@ -114,8 +110,9 @@ def locate(repo_id: str, root: str | Path | None = None,
 
 def download_command(repo_id: str, revision: str | None = None) -> str:
     """The shell command that puts `repo_id` in the HF hub cache, where locate() finds it."""
-    pin = f" --revision {revision}" if revision else ""
-    return f"hf download --repo-type dataset {repo_id}{pin}"
+    from backbones.hub import download_command as hf_download
+
+    return hf_download(repo_id, revision, repo_type="dataset")
 
 
 def _repo_id(name: str) -> str:
