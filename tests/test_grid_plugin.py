@@ -61,3 +61,21 @@ def test_rollouts_on_synthetic_suites_fail_before_any_work(tmp_path):
     assert "--rollouts: profile 'tiny' uses generated synthetic suites" in text
     assert "--profile sim" in text
     assert not (tmp_path / "results" / "cells").exists()
+
+
+def test_a_record_from_another_normaliser_is_measured_again_not_resumed(tmp_path):
+    one = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "blind", "--seeds", "0",
+           "--controls", "none", "--steps", "5"]
+    first = run_bench(tmp_path, *one)
+    assert first.returncode == 0 and "measured 1, resumed from store 0" in first.stdout
+    path = tmp_path / "results" / "cells" / "pi05-spatial-blind-seed0.json"
+    record = json.loads(path.read_text())
+    assert record["checkpoint"]["normalizer"] == "checkpoint"
+    assert len(record["checkpoint"]["normalizer_fingerprint"]) == 12
+    record["checkpoint"]["normalizer_fingerprint"] = "000000000000"  # measured under other stats
+    path.write_text(json.dumps(record))
+    again = run_bench(tmp_path, *one)
+    assert again.returncode == 0 and "measured 1, resumed from store 0" in again.stdout
+    assert json.loads(path.read_text())["checkpoint"]["normalizer_fingerprint"] != "000000000000"
+    third = run_bench(tmp_path, *one)
+    assert "measured 0, resumed from store 1" in third.stdout
