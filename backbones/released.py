@@ -145,7 +145,7 @@ class Normalizer:
     fingerprint: str
 
 
-def normalizer_for(name: str, profile: Profile, suites, train_frames, cache: Path) -> Normalizer:
+def normalizer_for(name: str, profile: Profile, suites, train_frames) -> Normalizer:
     """The normaliser of backbone `name` on `suites` (hub "dataset" stats: ONE suite, so that its
     numbers do not depend on which other suites a run selects)."""
     entry = get_entry(name)

@@ -77,6 +77,28 @@ def _edit_json(path: Path, edit) -> None:
     path.write_text(json.dumps(data, indent=2))
 
 
+def _edit_steps(path: Path, configs: dict[str, dict], drop_state_files: bool = False) -> None:
+    """Rewrite a saved processor JSON as the hub's is: `configs` {registry name: config keys to
+    set} merged into those steps; `drop_state_files` removes every step's stats file entry."""
+    def edit(data):
+        for step in data["steps"]:
+            step["config"].update(configs.get(step["registry_name"], {}))
+            if drop_state_files:
+                step.pop("state_file", None)
+    _edit_json(path, edit)
+
+
+def _so100_keyed_stats(snap: Path) -> None:
+    """smolvla_base's saved stats: action stats under SO-100 dataset keys only, no state stats
+    (docs/HUB_FACTS.md), so LeRobot's look-up by `action` / `observation.state` misses."""
+    from safetensors.torch import load_file, save_file
+
+    for path in snap.glob("policy_*processor_step_*_normalizer_processor.safetensors"):
+        stats = load_file(str(path))
+        save_file({f"so100.buffer.{k}": v for k, v in stats.items() if k.startswith("action.")},
+                  str(path))
+
+
 def write_smolvla_base(hub_cache: Path) -> None:
     """lerobot/smolvla_base shaped: SO-100 cameras and dims, VLM by its hub id, hub quirks."""
     from backbones import smolvla
@@ -94,13 +116,10 @@ def write_smolvla_base(hub_cache: Path) -> None:
         data.update(vlm_model_name=VLM_REPO_ID, load_vlm_weights=True)
     _edit_json(snap / "config.json", config)
 
-    def preprocessor(data):  # the hub file: saved on CUDA, stats under SO-100 keys only
-        for step in data["steps"]:
-            if step["registry_name"] == "device_processor":
-                step["config"]["device"] = "cuda"
-            if step["registry_name"] == "tokenizer_processor":
-                step["config"]["tokenizer_name"] = VLM_REPO_ID
-    _edit_json(snap / "policy_preprocessor.json", preprocessor)
+    # The hub files: saved on CUDA, tokenizer by the VLM's hub id, stats under SO-100 keys only.
+    _edit_steps(snap / "policy_preprocessor.json", {"device_processor": {"device": "cuda"},
+                                                    "tokenizer_processor": {"tokenizer_name": VLM_REPO_ID}})
+    _so100_keyed_stats(snap)
 
 
 def write_pi05_base(hub_cache: Path) -> None:
@@ -122,17 +141,11 @@ def write_pi05_base(hub_cache: Path) -> None:
     for stats_file in snap.glob("policy_*processor_step_*.safetensors"):
         stats_file.unlink()
 
-    def processor(data):
-        for step in data["steps"]:
-            if step["registry_name"] in ("normalizer_processor", "unnormalizer_processor"):
-                step["config"]["features"] = {}
-                step.pop("state_file", None)
-            if step["registry_name"] == "device_processor":
-                step["config"]["device"] = "cpu"
-            if step["registry_name"] == "tokenizer_processor":
-                step["config"]["tokenizer_name"] = PALIGEMMA_TOKENIZER_REPO
-    _edit_json(snap / "policy_preprocessor.json", processor)
-    _edit_json(snap / "policy_postprocessor.json", processor)
+    hub_steps = {"normalizer_processor": {"features": {}}, "unnormalizer_processor": {"features": {}},
+                 "device_processor": {"device": "cpu"},
+                 "tokenizer_processor": {"tokenizer_name": PALIGEMMA_TOKENIZER_REPO}}
+    _edit_steps(snap / "policy_preprocessor.json", hub_steps, drop_state_files=True)
+    _edit_steps(snap / "policy_postprocessor.json", hub_steps, drop_state_files=True)
 
 
 def write_timm_weights(hub_cache: Path, names=("siglip", "dinov2_s", "fastvit", "repvit")) -> None:

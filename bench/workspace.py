@@ -94,7 +94,7 @@ class Workspace:
         if key not in self._normalizers:
             suites = [self.suite(s) for s in names]
             train = {s.name: self.split(s.name).train_frames for s in suites}
-            self._normalizers[key] = normalizer_for(name, self.profile, suites, train, self.cache)
+            self._normalizers[key] = normalizer_for(name, self.profile, suites, train)
         return self._normalizers[key]
 
     def backbone(self, name: str, suite: str | None = None):

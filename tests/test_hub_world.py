@@ -132,3 +132,12 @@ def test_pi05_hub_processors_normalise_the_state_they_pass_through_untouched(in_
     assert torch.allclose(batch["observation.state"].float(), expected, atol=1e-5)
     device = next(backbone.policy.parameters()).device
     assert all(v.device == device for v in batch.values() if torch.is_tensor(v))
+
+
+def test_smolvla_base_saved_stats_do_not_cover_libero_so_dataset_stats_are_required(in_world):
+    # The hub's smolvla_base keeps its stats under SO-100 dataset keys only: loading it without
+    # dataset stats would leave state and action unnormalised, so it is refused.
+    from backbones import smolvla
+
+    with pytest.raises(ValueError, match="pass stats="):
+        smolvla.load_policy("lerobot/smolvla_base", revision="c83c3163b8ca9b7e67c509fffd9121e66cb96205")
