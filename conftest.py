@@ -21,4 +21,4 @@ if _profile_from_argv(sys.argv) != "paper":
     for _var in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
         os.environ[_var] = "1"
 
-pytest_plugins = ["bench.plugin", "bench.baseline_plugin"]
+pytest_plugins = ["bench.plugin"]

@@ -254,10 +254,6 @@ def backbone_order(backbones: Sequence[str]) -> list[str]:
     return sorted(set(backbones), key=lambda b: (BACKBONE_PARAMS.get(b, float("inf")), b))
 
 
-def suites_in(records: Sequence[dict]) -> list[str]:
-    return sorted({r["suite"] for r in records})
-
-
 def rank_all(records: Sequence[dict], *, n_resamples: int = DEFAULT_RESAMPLES,
              random_seed: int = 0) -> list[Ranking]:
     """One Ranking per backbone x suite that has graft cells (mismatches become `error`)."""

@@ -16,7 +16,7 @@ from bench.analysis import (
     DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, graft_cells,
     paired_window_bootstrap,
 )
-from bench.records import CONTROL_KINDS, GRAFT
+from bench.kinds import CELL_KINDS, GRAFT, NATIVE, NATIVE_SLOT, ZERO, get_kind, is_native_like, kind_of
 
 METRICS = ("normalized", "raw")
 
@@ -37,8 +37,8 @@ def find_reference(record: dict, records: Sequence[dict]) -> tuple[dict | None, 
     wanted = record.get("reference")
     if wanted:
         return by_id.get(wanted), wanted
-    native_like = record["kind"] == "native_wrapped" or record.get("encoder") in (None, "native")
-    kind = "native" if native_like else GRAFT
+    native_like = is_native_like(record)
+    kind = NATIVE if native_like else GRAFT
     candidates = [r for r in records
                   if r["kind"] == kind and r["backbone"] == record["backbone"]
                   and r["suite"] == record["suite"]
@@ -47,7 +47,7 @@ def find_reference(record: dict, records: Sequence[dict]) -> tuple[dict | None, 
     # The released policy does not depend on a cell seed: any seed's native cell will do.
     for r in same_seed or (candidates if native_like else []):
         return r, r["cell_id"]
-    label = "native" if native_like else f"{record.get('encoder')} graft"
+    label = NATIVE if native_like else f"{record.get('encoder')} graft"
     return None, f"({label}, seed {record['seed']})"
 
 
@@ -68,15 +68,15 @@ class ControlDelta:
 
     @property
     def label(self) -> str:
-        what = self.kind + (f"[{self.variant}]" if self.variant else "")
-        return f"{what} of {self.encoder or 'native'}"
+        return get_kind(self.kind).label(self.encoder, self.variant)
 
 
 def control_deltas(records: Sequence[dict]) -> list[ControlDelta]:
     """One ControlDelta per control record (native_wrapped, lora, pooling, zero/shuffled image)."""
     out = []
     for r in sorted(records, key=lambda r: (r["backbone"], r["suite"], r["kind"], r["cell_id"])):
-        if r["kind"] not in CONTROL_KINDS:
+        kind = kind_of(r)
+        if kind is None or not kind.control:
             continue
         ref, ref_id = find_reference(r, records)
         cd = ControlDelta(cell_id=r["cell_id"], kind=r["kind"], backbone=r["backbone"],
@@ -109,7 +109,7 @@ def wrapper_neutrality(records: Sequence[dict]) -> dict[tuple[str, str], Wrapper
     """{(backbone, suite): WrapperNeutrality} from native_wrapped cells and their native refs."""
     out: dict[tuple[str, str], WrapperNeutrality] = {}
     for cd in control_deltas(records):
-        if cd.kind != "native_wrapped":
+        if not get_kind(cd.kind).tower:
             continue
         wn = out.setdefault((cd.backbone, cd.suite), WrapperNeutrality(cd.backbone, cd.suite))
         if cd.reference_found:
@@ -202,13 +202,15 @@ def _no_vision_controls(records: Sequence[dict], backbone: str, suite: str,
     blind = [r for r in here if r["kind"] == GRAFT and r["encoder"] == BLIND]
     if blind:
         groups.append(("blind graft", blind, False))
-    zero = [r for r in here if r["kind"] == "zero_image"]
-    for owner, seed_free in ((best, False), ("native", True)):
-        mine = [r for r in zero if (r.get("encoder") or "native") == owner]
-        for variant in sorted({r.get("variant") or "" for r in mine}):
-            cells = [r for r in mine if (r.get("variant") or "") == variant]
-            label = "zero_image" + (f"[{variant}]" if variant else "") + f" of {owner}"
-            groups.append((label, cells, seed_free))
+    # Controls whose policy sees no image at evaluation, in table order (zero_image).
+    for kind in (k for k in CELL_KINDS.values() if k.control and k.eval_inputs == ZERO):
+        mine_of = [r for r in here if r["kind"] == kind.name]
+        for owner, seed_free in ((best, False), (NATIVE_SLOT, True)):
+            mine = [r for r in mine_of if (r.get("encoder") or NATIVE_SLOT) == owner]
+            for variant in sorted({r.get("variant") or "" for r in mine}):
+                cells = [r for r in mine if (r.get("variant") or "") == variant]
+                label = kind.label(None if owner == NATIVE_SLOT else owner, variant or None)
+                groups.append((label, cells, seed_free))
     return groups
 
 

@@ -22,6 +22,7 @@ import scipy.stats
 
 from bench.analysis import CONFIDENCE, PRIMARY
 from bench.analysis_transfer import rank_agreement
+from bench.kinds import record_label
 
 DEFAULT_RESAMPLES = 1000
 
@@ -29,16 +30,6 @@ DEFAULT_RESAMPLES = 1000
 def rolled_out(record: dict) -> bool:
     """The record carries closed-loop episodes (not absent, not skipped)."""
     return bool((record.get("rollouts") or {}).get("episodes"))
-
-
-def item_label(record: dict) -> str:
-    """What a cell is, seeds aside: 'dinov2_s', 'native', 'pixels zero_image/eval'."""
-    kind, encoder, variant = record["kind"], record.get("encoder"), record.get("variant")
-    if kind == "graft":
-        return encoder
-    if kind in ("native", "native_wrapped"):
-        return kind
-    return " ".join(x for x in (encoder or "native", kind + (f"/{variant}" if variant else "")) if x)
 
 
 def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
@@ -100,7 +91,7 @@ def closed_loop(records: Sequence[dict], backbone: str, suite: str, *,
             return out
     groups: dict[str, list[dict]] = {}
     for r in rolled:
-        groups.setdefault(item_label(r), []).append(r)
+        groups.setdefault(record_label(r), []).append(r)
     out.items = sorted(groups)
     # (I, W) per-window MSE and (I, E) per-episode success, each averaged over the item's seeds.
     per_window = np.array([np.mean([g["per_window"][PRIMARY] for g in groups[i]], axis=0)

@@ -2,7 +2,7 @@
 
 A baseline is one JSON file holding, per cell, what a later run is compared on: the MSE and the
 per-window MSE in both action spaces, the window ids they are aligned on, the protocol hash and the
-package versions. Nothing here touches pytest; `bench.baseline_plugin` turns `BaselineError` into
+package versions. Nothing here touches pytest; `bench.regression_run` turns `BaselineError` into
 `pytest.UsageError` and verdicts into failed cases.
 
 Noise rules (also in docs/CI.md):
@@ -28,7 +28,10 @@ from typing import Sequence
 
 import numpy as np
 
-SCHEMA = 1
+from bench.kinds import GRAFT
+
+# The baseline FILE's format (a snapshot of records), not the record's (bench.record).
+BASELINE_SCHEMA = 1
 CONFIDENCE = 0.95
 N_RESAMPLES = 2000
 METRIC_SPACES = {"mse": "normalized", "raw_mse": "raw"}
@@ -49,19 +52,17 @@ class BaselineError(ValueError):
 def paired_interval(now: Sequence[float], base: Sequence[float], *,
                     confidence: float = CONFIDENCE, n_resamples: int = N_RESAMPLES,
                     seed: int = 0) -> tuple[float, float, float]:
-    """(mean, lo, hi) of the per-window differences now - base, (W,) each, paired by position.
+    """(mean, lo, hi) of the per-window differences now - base, (W,) each, paired by position:
+    the report's paired window bootstrap (bench.analysis) on the two cells; lo = hi = NaN with
+    fewer than 2 windows."""
+    from bench.analysis import paired_window_bootstrap
 
-    Percentile bootstrap over windows; lo = hi = NaN with fewer than 2 windows."""
-    import scipy.stats
-
-    diff = np.asarray(now, dtype=float) - np.asarray(base, dtype=float)
-    mean = float(diff.mean()) if diff.size else math.nan
-    if diff.size < 2:
-        return mean, math.nan, math.nan
-    ci = scipy.stats.bootstrap((diff,), np.mean, n_resamples=n_resamples, vectorized=True,
-                               confidence_level=confidence, method="percentile",
-                               rng=np.random.default_rng(seed)).confidence_interval
-    return mean, float(ci.low), float(ci.high)
+    rows = np.stack([np.asarray(base, dtype=float)[None], np.asarray(now, dtype=float)[None]])
+    if rows.shape[-1] == 0:
+        return math.nan, math.nan, math.nan
+    boot = paired_window_bootstrap(rows, leader=0, n_resamples=n_resamples,
+                                   confidence_level=confidence, random_seed=seed)
+    return float(boot.diff[1]), float(boot.diff_lo[1]), float(boot.diff_hi[1])
 
 
 def aligned(a: dict, b: dict, space: str) -> tuple[np.ndarray, np.ndarray]:
@@ -191,7 +192,7 @@ def snapshot(records: Sequence[dict], name: str, *, created: str, git_commit: st
     """The baseline file's content for `records` (finished cell records)."""
     hashes = sorted({r["protocol_hash"] for r in records})
     return {
-        "schema": SCHEMA, "name": name, "created": created, "git_commit": git_commit,
+        "schema": BASELINE_SCHEMA, "name": name, "created": created, "git_commit": git_commit,
         "protocol_hash": hashes[0] if len(hashes) == 1 else None, "protocol_hashes": hashes,
         "protocol": records[0].get("protocol") if len(hashes) == 1 and records else None,
         "profile": records[0].get("profile") if records else None,
@@ -215,8 +216,8 @@ def load_baseline(path: Path) -> dict:
         raise BaselineError(f"baseline file {path} is unreadable ({str(e).splitlines()[0]}); "
                             f"{hint}") from None
     cells = data.get("cells") if isinstance(data, dict) else None
-    if not isinstance(cells, dict) or data.get("schema") != SCHEMA:
-        raise BaselineError(f"baseline file {path} is not a schema-{SCHEMA} graftbench baseline; "
+    if not isinstance(cells, dict) or data.get("schema") != BASELINE_SCHEMA:
+        raise BaselineError(f"baseline file {path} is not a schema-{BASELINE_SCHEMA} graftbench baseline; "
                             f"{hint}")
     for cid, cell in cells.items():
         try:
@@ -327,7 +328,7 @@ def compare_run(name: str, baseline: dict, selected: Sequence[str], records: dic
         base_groups: dict[str, dict] = {}
         now_groups: dict[str, dict] = {}
         for cid in compared:
-            if cells[cid].get("kind") == "graft":
+            if cells[cid].get("kind") == GRAFT:
                 gid = group_id(cells[cid])
                 base_groups.setdefault(gid, {})[cells[cid]["encoder"]] = cells[cid]
                 now_groups.setdefault(gid, {})[cells[cid]["encoder"]] = records[cid]

@@ -19,6 +19,8 @@ from torch import Tensor
 from bench.provenance import stable_seed
 from bench.suites.base import LIBERO_ACTION_DIM, STATE_KEY
 from bench.evaluate import sample_grafted
+from bench.kinds import NO_CLOSED_LOOP, ZERO
+from bench.suites.libero import LIBERO_SUITES
 
 ImagesFn = Callable[[dict[str, Tensor]], dict[str, Tensor]]
 
@@ -70,17 +72,10 @@ def make_act(backbone, *, noise_seed: int, feed=None, features_from_images: Imag
 
 
 ROLLOUT_SEED = 0  # env seeds of rollout episodes (init states are fixed by the episode index)
-# Control steps per episode: LeRobot's LiberoEnv limits for these suites (lerobot.envs.libero).
-ROLLOUT_MAX_STEPS = {"spatial": 280, "object": 280}
-
-# Cells whose control has no closed-loop meaning: "another window's images" needs a recorded
-# episode to borrow from, and a live scene has none.
-NO_CLOSED_LOOP = {"shuffled_image": "shuffled images have no closed-loop counterpart"}
-
 
 def cell_act(cell, backbone, *, noise_seed: int, feed=None, encoder=None, grid=None):
     """`make_act` for a cell: native cells sample as released; grafts encode live pixels."""
-    zero = cell.kind == "zero_image"
+    zero = cell.spec.eval_inputs == ZERO
     transform = (lambda images: {k: torch.zeros_like(v) for k, v in images.items()}) if zero else None
     if feed is None:
         return make_act(backbone, noise_seed=noise_seed, images_transform=transform)
@@ -109,7 +104,7 @@ def rollout_spec(suite, episodes_per_task: int, n_action_steps: int):
                          "rollouts need the LIBERO-backed suite (--profile sim or paper)")
     tasks = tuple(sorted({ids[t.strip().lower()] for t in suite.tasks}))
     return RolloutSpec(suite=suite.name, tasks=tasks, episodes_per_task=episodes_per_task,
-                       seed=ROLLOUT_SEED, max_steps=ROLLOUT_MAX_STEPS[suite.name],
+                       seed=ROLLOUT_SEED, max_steps=LIBERO_SUITES[suite.name].max_steps,
                        n_action_steps=n_action_steps)
 
 
@@ -124,8 +119,8 @@ def has_rollouts(record: dict, episodes_per_task: int) -> bool:
 def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, encoder=None,
                   grid=None, progress: bool = True) -> dict:
     """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts"."""
-    if cell.kind in NO_CLOSED_LOOP:
-        return {"skipped": NO_CLOSED_LOOP[cell.kind]}
+    if cell.spec.eval_inputs in NO_CLOSED_LOOP:
+        return {"skipped": NO_CLOSED_LOOP[cell.spec.eval_inputs]}
     from dataclasses import asdict
 
     from bench.sim.rollout import run_rollouts

@@ -21,6 +21,7 @@ from typing import Callable, Iterator
 from bench.cells import CellSpec
 from bench.paths import REPO_ROOT
 from bench.protocol import Profile
+from bench.record import failure_record
 
 EXECUTORS = ("local", "slurm", "submitit-local")
 
@@ -66,18 +67,8 @@ def run_cell_job(job: CellJob) -> dict:
     try:
         return run_cell(job.cell, ws, features_mode=job.features_mode)
     except Exception as e:
-        store.write_failure(failure_record(job.cell, job.profile, e))
+        store.write_failure(failure_record(job.cell, job.profile.protocol.hash, e))
         raise
-
-
-def failure_record(cell: CellSpec, profile: Profile, error: BaseException) -> dict:
-    """The record a failed cell leaves in the store (same fields, whichever executor ran it)."""
-    return {
-        "cell_id": cell.id, "kind": cell.kind, "backbone": cell.backbone,
-        "suite": cell.suite, "encoder": cell.encoder, "seed": cell.seed,
-        "variant": cell.variant, "error": f"{type(error).__name__}: {error}",
-        "protocol_hash": profile.protocol.hash,
-    }
 
 
 def make_executor(kind: str, folder: Path, slurm: SlurmOptions):

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from bench.paths import REPO_ROOT
-from bench.protocol import ALL_CONTROLS, get_profile, with_overrides
+from bench.kinds import control_kinds
+from bench.protocol import get_profile, with_overrides
 
 
 def _csv(value: str | None) -> tuple[str, ...] | None:
@@ -25,7 +26,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--encoders", help="comma list of registry names or timm:<model>")
     g.addoption("--suites", help="comma list, e.g. spatial,object")
     g.addoption("--seeds", help="comma list of ints, e.g. 0,1,2")
-    g.addoption("--controls", help=f"comma list of control kinds ({','.join(ALL_CONTROLS)}) or none")
+    g.addoption("--controls", help=f"comma list of control kinds ({','.join(control_kinds())}) or none")
     g.addoption("--steps", type=int, help="projector steps (overrides the profile's protocol)")
     g.addoption("--results-dir", help="results store (default .graftbench/results/<profile>)")
     g.addoption("--report", help="where REPORT.md goes (default: REPORT.md at the repo root)")
@@ -36,6 +37,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--features", default="cache", choices=("cache", "loop"),
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
     _add_executor_options(g)
+    from bench.regression_run import add_baseline_options
+
+    add_baseline_options(parser)
 
 
 def _add_executor_options(g) -> None:
@@ -74,9 +78,10 @@ def build_profile(config: pytest.Config):
         controls = _csv(opt("--controls"))
         if controls == ("none",):
             controls = ()
-        bad = [c for c in controls or () if c not in ALL_CONTROLS]
+        valid = control_kinds()
+        bad = [c for c in controls or () if c not in valid]
         if bad:
-            raise ValueError(f"unknown control kind(s) {bad}; valid: {', '.join(ALL_CONTROLS)}")
+            raise ValueError(f"unknown control kind(s) {bad}; valid: {', '.join(valid)}")
         return with_overrides(
             profile,
             backbones=_csv(opt("--backbones")),

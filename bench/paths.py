@@ -18,10 +18,6 @@ def cache_dir() -> Path:
     return path
 
 
-def default_results_dir() -> Path:
-    return REPO_ROOT / ".graftbench" / "results"
-
-
 def build_dataset_dir(final: Path, build: Callable[[Path], object]) -> Path:
     """`build(tmp)` writes a dataset folder into a private temp folder beside `final`, which is
     then renamed to `final`: a crash never leaves a half dataset there, and when another

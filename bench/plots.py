@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 
 from bench.analysis import PRIMARY, Ranking, backbone_order
 from bench.analysis_transfer import Transfer
-from bench.records import GRAFT
+from bench.kinds import CELL_KINDS, column_label
 
 
 def _figure(n_panels: int, width: float = 4.2, height: float = 3.4):
@@ -89,20 +89,21 @@ def plot_horizon_curves(records: Sequence[dict], path: Path) -> Path | None:
     groups: dict[tuple[str, str], dict[str, list[list[float]]]] = {}
     for r in records:
         curve = (r.get("per_horizon") or {}).get(PRIMARY)
-        if not curve or r["kind"] not in (GRAFT, "native", "native_wrapped"):
+        label = column_label(r)
+        if not curve or label is None:
             continue
-        label = r["encoder"] if r["kind"] == GRAFT else r["kind"]
         groups.setdefault((r["backbone"], r["suite"]), {}).setdefault(label, []).append(curve)
     if not groups:
         return None
     fig, axes = _figure(len(groups))
     order = backbone_order([b for b, _ in groups])
     panels = sorted(groups.items(), key=lambda kv: (kv[0][1], order.index(kv[0][0])))
+    native_columns = {k.name for k in CELL_KINDS.values() if k.encoder == "none"}
     for ax, ((backbone, suite), curves) in zip(axes, panels):
         for label, runs in sorted(curves.items()):
             length = min(len(c) for c in runs)
             mean = np.mean([c[:length] for c in runs], axis=0)
-            style = "--" if label.startswith("native") else "-"
+            style = "--" if label in native_columns else "-"
             ax.plot(np.arange(1, length + 1), mean, style, label=label)
         ax.set_title(f"{backbone} x {suite}", fontsize=9)
         ax.set_xlabel("action-chunk step")

@@ -43,7 +43,7 @@ def _merged(artifacts: Sequence[Artifact]) -> list[Artifact]:
 def cells_artifacts(cells) -> list[Artifact]:
     """Artifacts of the selected cells (after -k): their backbones, encoders and suites."""
     cells = list(cells)
-    encoders = [c.encoder for c in cells if c.encoder and c.encoder != "native"]
+    encoders = [c.encoder for c in cells if c.encoder]
     return grid_artifacts([c.backbone for c in cells], encoders, [c.suite for c in cells])
 
 

@@ -11,6 +11,8 @@ import hashlib
 import json
 from dataclasses import dataclass
 
+from bench.kinds import control_kinds
+
 
 @dataclass(frozen=True)
 class Protocol:
@@ -62,7 +64,7 @@ class Protocol:
 
 
 PAPER_ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
-ALL_CONTROLS = ("native", "native_wrapped", "lora", "pooling", "zero_image", "shuffled_image")
+ALL_CONTROLS = control_kinds()  # the kinds of bench.kinds's table, graft aside
 
 
 @dataclass(frozen=True)

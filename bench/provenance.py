@@ -80,10 +80,6 @@ def hardware() -> str:
     return cpu
 
 
-def device_name(device: torch.device) -> str:
-    return str(device)
-
-
 def reset_peak_memory(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)

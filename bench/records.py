@@ -10,24 +10,14 @@ Layout of a results dir (one JSON file per cell; nothing here reads in-memory ru
 from __future__ import annotations
 
 import json
-import math
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-SCHEMA_VERSION = 1
-GRAFT = "graft"
-NATIVE_KINDS = ("native", "native_wrapped")
-CONTROL_KINDS = ("native_wrapped", "lora", "pooling", "zero_image", "shuffled_image")
-KINDS = ("graft", "native") + CONTROL_KINDS
-
-REQUIRED_KEYS = (
-    "cell_id", "kind", "backbone", "suite", "encoder", "seed", "mse", "per_window",
-    "window_ids", "n_windows",
-)
-
+from bench.kinds import GRAFT, NATIVE, NATIVE_WRAPPED, get_kind
+from bench.record import SCHEMA_VERSION, cell_id, validate_record
 
 @dataclass
 class Results:
@@ -47,34 +37,6 @@ class Results:
             return []
         seen = {r["cell_id"] for r in self.records} | {f["cell_id"] for f in self.failed}
         return [cid for cid in self.expected if cid not in seen]
-
-
-def validate_record(record: dict) -> None:
-    """Raise ValueError naming the first problem of a finished-cell record."""
-    if not isinstance(record, dict):
-        raise ValueError(f"record is a {type(record).__name__}, expected a JSON object")
-    if record.get("schema") != SCHEMA_VERSION:
-        raise ValueError(f"schema {record.get('schema')!r}, this reader knows {SCHEMA_VERSION}")
-    if record.get("status") != "ok":
-        raise ValueError(f"status {record.get('status')!r} in cells/, expected 'ok'")
-    missing = [k for k in REQUIRED_KEYS if k not in record]
-    if missing:
-        raise ValueError(f"missing keys {missing}")
-    if record["kind"] not in KINDS:
-        raise ValueError(f"kind {record['kind']!r} not one of {list(KINDS)}")
-    n = record["n_windows"]
-    for metric in ("normalized", "raw"):
-        values = record["per_window"].get(metric)
-        if values is None or len(values) != n:
-            raise ValueError(f"per_window.{metric} has {None if values is None else len(values)} "
-                             f"values, n_windows is {n}")
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
-            raise ValueError(f"per_window.{metric} holds non-finite values (diverged cell?)")
-        mse = record["mse"].get(metric)
-        if not isinstance(mse, (int, float)) or not math.isfinite(mse):
-            raise ValueError(f"mse.{metric} is {mse!r}, expected a finite number")
-    if len(record["window_ids"]) != n:
-        raise ValueError(f"window_ids has {len(record['window_ids'])} values, n_windows is {n}")
 
 
 def _read_json(path: Path) -> dict:
@@ -121,11 +83,6 @@ def load_results(results_dir: str | Path) -> Results:
     return results
 
 
-def load_records(results_dir: str | Path) -> list[dict]:
-    """The valid finished-cell records under `results_dir` (unreadable files are skipped)."""
-    return load_results(results_dir).records
-
-
 def save_record(results_dir: str | Path, record: dict) -> Path:
     """Write one record to cells/ (status ok) or failed/ (status failed); returns the path."""
     sub = "failed" if record.get("status") == "failed" else "cells"
@@ -139,25 +96,12 @@ def save_record(results_dir: str | Path, record: dict) -> Path:
 # Fabricated records (tests, demos). Real records are written by the cell runner.
 
 
-def fake_cell_id(kind: str, backbone: str, suite: str, encoder: str | None, seed: int,
-                 variant: str | None = None) -> str:
-    """The cell-id convention of the runner, e.g. 'smolvla-spatial-pixels-pool1x1-seed0'."""
-    head = f"{backbone}-{suite}"
-    if kind == GRAFT:
-        return f"{head}-{encoder}-seed{seed}"
-    if kind in NATIVE_KINDS:
-        return f"{head}-{kind}-seed{seed}"
-    tag = {"lora": "lora", "pooling": f"pool{variant}"}.get(kind, kind)
-    return f"{head}-{encoder or 'native'}-{tag}-seed{seed}"
-
-
 def _default_reference(kind: str, backbone: str, suite: str, encoder: str | None,
                        seed: int) -> str | None:
-    if kind in (GRAFT, "native"):
+    ref = get_kind(kind).reference(encoder)
+    if ref is None:
         return None
-    if kind == "native_wrapped" or encoder is None:
-        return fake_cell_id("native", backbone, suite, None, seed)
-    return fake_cell_id(GRAFT, backbone, suite, encoder, seed)
+    return cell_id(ref, backbone, suite, encoder if ref == GRAFT else None, seed)
 
 
 def make_record(*, kind: str = GRAFT, backbone: str = "smolvla", suite: str = "spatial",
@@ -172,12 +116,13 @@ def make_record(*, kind: str = GRAFT, backbone: str = "smolvla", suite: str = "s
     per-window jitter seeded by the cell id and centred, so the cell mean stays `level`.
     `per_window` replaces all of this. Raw values are `raw_scale` x normalised.
     """
-    if kind in NATIVE_KINDS:
+    if get_kind(kind).encoder == "none":
         encoder = None
-    cell_id = fake_cell_id(kind, backbone, suite, encoder, seed, variant)
+    get_kind(kind).check(encoder, variant)  # only cells the runner could write
+    this_id = cell_id(kind, backbone, suite, encoder, seed, variant)
     if per_window is None:
         difficulty = np.linspace(0.5, 1.5, n_windows)
-        rng = np.random.default_rng(zlib.crc32(cell_id.encode()))
+        rng = np.random.default_rng(zlib.crc32(this_id.encode()))
         jitter = rng.standard_normal(n_windows)
         values = level * difficulty + noise * (jitter - jitter.mean())
     else:
@@ -195,7 +140,7 @@ def make_record(*, kind: str = GRAFT, backbone: str = "smolvla", suite: str = "s
     from bench.protocol import TINY  # local import: records stay readable without the runner
 
     record = {
-        "schema": SCHEMA_VERSION, "status": "ok", "cell_id": cell_id, "kind": kind,
+        "schema": SCHEMA_VERSION, "status": "ok", "cell_id": this_id, "kind": kind,
         "backbone": backbone, "suite": suite, "encoder": encoder, "seed": seed,
         "variant": variant, "reference": _default_reference(kind, backbone, suite, encoder, seed),
         "profile": "tiny", "protocol": TINY.protocol.to_dict(),
@@ -221,7 +166,7 @@ def make_failed(*, kind: str = GRAFT, backbone: str = "smolvla", suite: str = "s
                 encoder: str | None = "dinov2_s", seed: int = 0, variant: str | None = None,
                 error: str = "RuntimeError: boom") -> dict:
     """A failed-cell record as the runner writes it to failed/."""
-    return {"cell_id": fake_cell_id(kind, backbone, suite, encoder, seed, variant), "kind": kind,
+    return {"cell_id": cell_id(kind, backbone, suite, encoder, seed, variant), "kind": kind,
             "backbone": backbone, "suite": suite, "encoder": encoder, "seed": seed,
             "variant": variant, "error": error, "status": "failed"}
 
@@ -240,7 +185,7 @@ def make_grid(levels: dict[tuple[str, str, str], float], seeds: tuple[int, ...] 
                                        **record_kwargs))
     for (backbone, suite), (native_level, wrapped_level) in (native or {}).items():
         for seed in seeds:
-            for kind, level in (("native", native_level), ("native_wrapped", wrapped_level)):
+            for kind, level in ((NATIVE, native_level), (NATIVE_WRAPPED, wrapped_level)):
                 records.append(make_record(kind=kind, backbone=backbone, suite=suite, seed=seed,
                                            level=level, **record_kwargs))
     return records

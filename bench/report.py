@@ -16,7 +16,7 @@ import math
 import sys
 import traceback
 from pathlib import Path
-from typing import Callable, NamedTuple, Sequence
+from typing import Callable, Sequence
 
 from bench.analysis import DEFAULT_RESAMPLES, rank_all
 from bench.analysis_controls import control_deltas, vision_checks, wrapper_neutrality
@@ -29,13 +29,6 @@ from bench.report_sections import (
     rankings_section, seed_section, tie_section, transfer_section, vision_section,
     wrapper_section,
 )
-
-
-class ReportSection(NamedTuple):
-    """An extra markdown section appended after the built-in ones (e.g. against a baseline)."""
-
-    title: str
-    body: str
 
 
 SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.analysis import PRIMARY
-from bench.records import GRAFT
+from bench.kinds import column_label
 from bench.report_format import bullets, num, table
 from bench.report_sections import ReportContext
 from bench.study import DISAGREES, NOT_RECORDED, OURS, STUDY, STUDY_SOURCE, compare_records
@@ -22,9 +22,9 @@ def per_task_section(ctx: ReportContext) -> str:
     """Mean normalised MSE per task (rows) and encoder / native cell (columns), over seeds."""
     groups: dict[tuple[str, str], dict[str, dict[str, list[float]]]] = {}
     for r in ctx.records:
-        if r["kind"] not in (GRAFT, "native", "native_wrapped"):
+        column = column_label(r)
+        if column is None:
             continue
-        column = r["encoder"] if r["kind"] == GRAFT else r["kind"]
         cols = groups.setdefault((r["backbone"], r["suite"]), {})
         for task, values in (r.get("per_task") or {}).items():
             cols.setdefault(column, {}).setdefault(task, []).append(values.get(PRIMARY))

@@ -15,6 +15,7 @@ from bench.analysis_controls import (
 )
 from bench.analysis_rollouts import ClosedLoop
 from bench.analysis_transfer import SUPPORT_RULES, Transfer, min_exact_kendall_p
+from bench.kinds import get_kind
 from bench.records import Results
 from bench.report_format import bullets, half_width, interval, num, pct, table, yes_no
 from bench.study import DISAGREES, compare_records
@@ -301,7 +302,7 @@ def seed_section(ctx: ReportContext) -> str:
 def wrapper_section(ctx: ReportContext) -> str:
     rows = []
     for cd in ctx.controls:
-        if cd.kind != "native_wrapped":
+        if not get_kind(cd.kind).tower:
             continue
         rows.append([cd.backbone, cd.suite, cd.seed, num(cd.reference_mse.get(PRIMARY)),
                      num(cd.mse[PRIMARY]), pct(cd.delta.get(PRIMARY)), pct(cd.delta.get("raw")),

@@ -1,8 +1,10 @@
-"""One cell, top to bottom: build graft -> train projector -> score -> record."""
+"""One cell, top to bottom: build the graft -> train its projector -> score -> record.
+
+What a kind of cell does differently is read from its entry in bench.kinds; no branch here
+names a kind."""
 
 from __future__ import annotations
 
-import datetime as dt
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,37 +12,25 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
-from bench import cells as K
 from bench.cells import CellSpec
 from bench.evaluate import derangement, score
-from bench.features import encode_pooled
 from bench.graft import GraftFeed, Projector, assert_only_trainable, trainable_parameters
+from bench.inputs import CellInputs
+from bench.kinds import GRAFT
 from bench.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
 from backbones.released import checkpoint_id
 from bench.closed_loop import cell_rollouts
+from bench.record import ok_record
 from bench.suites.windows import raw_batch
 from bench.train import FitConfig, fit, frozen_autocast
 from bench.workspace import Workspace
-
-SCHEMA = 1
 
 
 class _Captured(Exception):
     def __init__(self, image):
         self.image = image
-
-
-def pooling_grid(native: tuple[int, int], variant: str | None) -> tuple[int, int]:
-    """The token grid per camera of a cell: native, or the pooling control's variant."""
-    rows, cols = native
-    return {
-        None: native,
-        "half": (max(1, rows // 2), max(1, cols // 2)),
-        "double": (rows * 2, cols * 2),
-        "global": (1, 1),
-    }[variant]
 
 
 def native_tower_channels(backbone, suite, frames) -> int:
@@ -93,15 +83,29 @@ class TrainedProjector:
 
 
 def shared_projector_key(cell: CellSpec, features_mode: str) -> tuple | None:
-    """Key of the projector a cell trains when its graft trains exactly the same one: the graft
-    itself, its shuffled_image control and its zero_image[eval] control (same seed, data, grid;
-    only evaluation differs). None for every other cell."""
-    same_training = cell.kind == K.GRAFT or (cell.encoder is not None and (
-        cell.kind == K.SHUFFLED_IMAGE or (cell.kind == K.ZERO_IMAGE and cell.variant == "eval")))
-    if not same_training or features_mode != "cache":
+    """Key of the projector a cell trains when its graft trains exactly the same one (the kind
+    table says which: bench.kinds `shares_graft_training`). None for every other cell."""
+    if features_mode != "cache" or not cell.spec.shares_graft_training(cell.encoder, cell.variant):
         return None
-    graft = cell if cell.kind == K.GRAFT else cell.reference
+    graft = cell if cell.kind == GRAFT else cell.reference
     return (graft.id, features_mode)
+
+
+@dataclass
+class Graft:
+    """What a training cell splices in: the projector, its feed, and what it trains with."""
+
+    projector: Projector
+    feed: GraftFeed
+    inputs: CellInputs
+    lora_params: int = 0
+
+
+@dataclass
+class Training:
+    curve: list
+    probe_losses: dict | None = None
+    projector_from: str | None = None  # the graft cell whose trained projector this cell took
 
 
 def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dict:
@@ -109,163 +113,147 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
     once per frame) or "loop" (the encoder runs inside every step: the naive reference)."""
     if features_mode not in ("cache", "loop"):
         raise ValueError(f"features_mode {features_mode!r} not in ('cache', 'loop')")
-    p = ws.profile.protocol
+    p, kind = ws.profile.protocol, cell.spec
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
-    suite = ws.suite(cell.suite)
-    split = ws.split(cell.suite)
-    backbone = (ws.fresh_backbone(cell.backbone, cell.suite) if cell.kind == K.LORA
+    suite, split = ws.suite(cell.suite), ws.split(cell.suite)
+    backbone = (ws.fresh_backbone(cell.backbone, cell.suite) if kind.lora
                 else ws.backbone(cell.backbone, cell.suite))
-    info = backbone.info
     device = next(backbone.policy.parameters()).device
     reset_peak_memory(device)
-    grid = pooling_grid(info.native_grid, cell.variant if cell.kind == K.POOLING else None)
-    perm = derangement(len(split.windows), p.split_seed)
-
-    feed = projector = projector_from = None
-    encoder = None
-    curve: list[list[float]] = []
-    lora_params = 0
+    inputs = CellInputs(suite, split.windows, derangement(len(split.windows), p.split_seed),
+                        backbone.info.chunk_size, device,
+                        kind.grid(backbone.info.native_grid, cell.variant), tower=kind.tower)
     timings["build"] = time.perf_counter() - t_start
 
+    graft, training = None, Training(curve=[])
     if cell.trains_projector:
         t0 = time.perf_counter()
-        if cell.kind == K.NATIVE_WRAPPED:
-            channels = native_tower_channels(backbone, suite, split.train_frames)
-            tower = backbone.native_tower_grid
-            features = None
-        else:
-            encoder = ws.encoder(cell.encoder)
-            tower = None
-            features = ws.features(cell.encoder, cell.suite, grid) if features_mode == "cache" else None
-            channels = int(next(iter(features.values())).shape[-1]) if features else encoder.channels
+        graft = build_graft(cell, ws, backbone, inputs, features_mode)
         timings["features"] = time.perf_counter() - t0
-
-        def pooled(frames, source_frames=None):
-            """Graft features of `frames` (from `source_frames`' pixels for shuffled images)."""
-            src = frames if source_frames is None else source_frames
-            if features is not None:
-                picked = {k: v[src] for k, v in features.items()}
-                if device.type == "cuda":  # pinned host memory: the copy overlaps the compute
-                    picked = {k: v.pin_memory().to(device, non_blocking=True) for k, v in picked.items()}
-                return picked
-            return encode_pooled(encoder, suite.images(src), grid)
-
-        def zero_pooled(n):
-            blank = {k: torch.zeros((1, *suite.image_shape)) for k in suite.camera_keys}
-            return {k: v.expand(n, -1, -1) for k, v in encode_pooled(encoder, blank, grid).items()}
-
-        with torch.random.fork_rng():
-            torch.manual_seed(stable_seed(cell.seed, "projector-init"))
-            projector = Projector(channels, info.lm_width).to(device)
-        if cell.kind == K.LORA:
-            with torch.random.fork_rng():  # peft draws lora_A's init from the global generator
-                torch.manual_seed(stable_seed(cell.seed, "lora-init"))
-                lora_params = _add_lora(backbone, p)
-        expected = trainable_parameters(projector) + lora_params
-        frozen = [backbone.policy] + ([encoder] if encoder is not None else [])
-        assert_only_trainable(expected, projector, *frozen,
-                              what="projector + LoRA" if lora_params else "projector")
-        feed = GraftFeed(projector, backbone.camera_keys, grid, tower=tower)
-        train_zero = cell.kind == K.ZERO_IMAGE and cell.variant == "train"
-        needs_pixels = tower is not None or features is None
-
-        def next_batch(frames):
-            raw = raw_batch(suite, frames, info.chunk_size, with_images=needs_pixels)
-            for k in suite.camera_keys:  # the graft ignores them; the policy's pipeline wants them
-                raw.setdefault(k, torch.zeros((len(frames), *suite.image_shape)))
-            if tower is not None:
-                return raw, None
-            return raw, zero_pooled(len(frames)) if train_zero else pooled(frames)
-
-        # A test or --degrade-encoder transform changes the features: never share across it.
-        share = (shared_projector_key(cell, features_mode)
-                 if cell.encoder not in ws.feature_transforms else None)
-        trained = ws.trained_projectors.get(share) if cell.kind != K.GRAFT else None
         t0 = time.perf_counter()
-        if trained is not None:
-            # The same seed, data and code train the identical projector: take the graft's.
-            projector.load_state_dict(load_file(trained.path, device=str(device)))
-            curve, probe_losses, projector_from = trained.curve, trained.probe_losses, trained.cell_id
-        else:
-            probe = probe_frames(split.train_frames)
-            probe_before = probe_loss(backbone, feed, next_batch, probe, p.split_seed)
-            params = list(projector.parameters()) + [
-                q for q in backbone.policy.parameters() if q.requires_grad
-            ]
-            fit_cfg = FitConfig(p.steps, p.batch_size, p.lr, p.weight_decay, p.warmup_steps,
-                                p.grad_clip, p.loss_log_every)
-            curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
-                        feed=feed, label=cell.id, progress=ws.progress)
-            probe_losses = {"before": probe_before,
-                            "after": probe_loss(backbone, feed, next_batch, probe, p.split_seed)}
-            if share is not None:
-                path = ws.session_dir() / f"projector-{cell.id}.safetensors"
-                save_file({k: v.detach().cpu().contiguous() for k, v in projector.state_dict().items()},
-                          path)
-                ws.trained_projectors[share] = TrainedProjector(path, curve, probe_losses, cell.id)
+        training = train_graft(cell, ws, backbone, graft, features_mode)
         timings["train"] = time.perf_counter() - t0
-        projector.eval()
-
-        if tower is not None:
-            features_for = None
-        elif cell.kind == K.ZERO_IMAGE:
-            features_for = lambda pos, frames: zero_pooled(len(frames))  # noqa: E731
-        elif cell.kind == K.SHUFFLED_IMAGE:
-            features_for = lambda pos, frames: pooled(frames, split.windows[perm[pos]])  # noqa: E731
-        else:
-            features_for = lambda pos, frames: pooled(frames)  # noqa: E731
-        images_for = None
     else:
         timings["features"] = timings["train"] = 0.0
-        probe_losses = None
-        features_for = None
-        if cell.kind == K.ZERO_IMAGE:
-            images_for = lambda pos, frames, imgs: {k: torch.zeros_like(v) for k, v in imgs.items()}  # noqa: E731
-        elif cell.kind == K.SHUFFLED_IMAGE:
-            images_for = lambda pos, frames, imgs: suite.images(split.windows[perm[pos]])  # noqa: E731
-        else:
-            images_for = None
 
     t0 = time.perf_counter()
     scores = score(backbone, suite, split.windows, p.eval_batch_size, p.eval_noise_seed,
-                   feed=feed, features_for=features_for, images_for=images_for)
+                   feed=graft.feed if graft else None,
+                   features_for=inputs.eval_features(kind.eval_inputs),
+                   images_for=inputs.eval_images(kind.eval_inputs))
     timings["eval"] = time.perf_counter() - t0
     rollouts = None
     if ws.rollouts:
         t0 = time.perf_counter()
-        rollouts = cell_rollouts(cell, suite, backbone, ws.rollouts, feed=feed, encoder=encoder,
-                                 grid=grid, progress=ws.progress)
+        rollouts = cell_rollouts(cell, suite, backbone, ws.rollouts,
+                                 feed=graft.feed if graft else None, encoder=inputs.encoder,
+                                 grid=inputs.grid, progress=ws.progress)
         timings["rollouts"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
 
-    ref = cell.reference
-    record = {
-        "schema": SCHEMA, "status": "ok", "cell_id": cell.id, "kind": cell.kind,
-        "backbone": cell.backbone, "suite": cell.suite, "encoder": cell.encoder,
-        "seed": cell.seed, "variant": cell.variant, "reference": ref.id if ref else None,
-        "grid": list(grid), "features_mode": features_mode if encoder is not None else None,
+    record = ok_record(
+        cell,
+        measured_under=measured_under(cell, ws, backbone, inputs, features_mode),
+        scores=scores,
+        training=training_fields(backbone, graft, training, inputs.encoder),
+        run={"timings_s": {k: round(v, 3) for k, v in timings.items()},
+             "peak_memory_mb": peak_memory_mb(device), "device": str(device),
+             "hardware": hardware(), "versions": versions(), "git_commit": git_commit(),
+             "rollouts": rollouts})
+    ws.store.write(record)
+    return record
+
+
+def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
+                features_mode: str) -> Graft:
+    """The projector (seeded init), LoRA when the kind asks for it, the feed; frozen by
+    construction and checked: only the projector (+ LoRA) trains."""
+    p, info = ws.profile.protocol, backbone.info
+    if inputs.tower:
+        channels = native_tower_channels(backbone, inputs.suite, ws.split(cell.suite).train_frames)
+    else:
+        inputs.encoder = ws.encoder(cell.encoder)
+        if features_mode == "cache":
+            inputs.features = ws.features(cell.encoder, cell.suite, inputs.grid)
+        channels = (int(next(iter(inputs.features.values())).shape[-1]) if inputs.features
+                    else inputs.encoder.channels)
+    with torch.random.fork_rng():
+        torch.manual_seed(stable_seed(cell.seed, "projector-init"))
+        projector = Projector(channels, info.lm_width).to(inputs.device)
+    lora_params = 0
+    if cell.spec.lora:
+        with torch.random.fork_rng():  # peft draws lora_A's init from the global generator
+            torch.manual_seed(stable_seed(cell.seed, "lora-init"))
+            lora_params = _add_lora(backbone, p)
+    frozen = [backbone.policy] + ([inputs.encoder] if inputs.encoder is not None else [])
+    assert_only_trainable(trainable_parameters(projector) + lora_params, projector, *frozen,
+                          what="projector + LoRA" if lora_params else "projector")
+    feed = GraftFeed(projector, backbone.camera_keys, inputs.grid,
+                     tower=backbone.native_tower_grid if inputs.tower else None)
+    return Graft(projector, feed, inputs, lora_params)
+
+
+def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
+                features_mode: str) -> Training:
+    """Fit the projector, or take the identical one its graft trained this session."""
+    p, split = ws.profile.protocol, ws.split(cell.suite)
+    device = graft.inputs.device
+    next_batch = graft.inputs.train_batches(cell.spec.train_rule(cell.variant))
+    # A test or --degrade-encoder transform changes the features: never share across it.
+    share = (shared_projector_key(cell, features_mode)
+             if cell.encoder not in ws.feature_transforms else None)
+    trained = ws.trained_projectors.get(share) if cell.kind != GRAFT else None
+    if trained is not None:
+        graft.projector.load_state_dict(load_file(trained.path, device=str(device)))
+        graft.projector.eval()
+        return Training(trained.curve, trained.probe_losses, trained.cell_id)
+    probe = probe_frames(split.train_frames)
+    before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
+    params = list(graft.projector.parameters()) + [
+        q for q in backbone.policy.parameters() if q.requires_grad]
+    fit_cfg = FitConfig(p.steps, p.batch_size, p.lr, p.weight_decay, p.warmup_steps,
+                        p.grad_clip, p.loss_log_every)
+    curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
+                feed=graft.feed, label=cell.id, progress=ws.progress)
+    probe_losses = {"before": before,
+                    "after": probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)}
+    if share is not None:
+        path = ws.session_dir() / f"projector-{cell.id}.safetensors"
+        save_file({k: v.detach().cpu().contiguous()
+                   for k, v in graft.projector.state_dict().items()}, path)
+        ws.trained_projectors[share] = TrainedProjector(path, curve, probe_losses, cell.id)
+    graft.projector.eval()
+    return Training(curve, probe_losses)
+
+
+def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
+                   features_mode: str) -> dict:
+    p = ws.profile.protocol
+    transform = ws.feature_transforms.get(cell.encoder) if inputs.encoder is not None else None
+    noted = {"feature_transform": getattr(transform, "description", "a feature transform")}
+    return {
+        **(noted if transform is not None else {}),  # never resumed, never a baseline
+        "grid": list(inputs.grid),
+        "features_mode": features_mode if inputs.encoder is not None else None,
         "profile": ws.profile.name, "protocol": p.to_dict(), "protocol_hash": p.hash,
         "checkpoint": {**checkpoint_id(cell.backbone, ws.profile),
                        "normalizer": ws.normalizer(cell.backbone, cell.suite).source,
                        "normalizer_fingerprint": backbone.normalizer_fingerprint()},
-        **scores,
+    }
+
+
+def training_fields(backbone, graft: Graft | None, training: Training, encoder) -> dict:
+    projector = graft.projector if graft else None
+    return {
         "trainable_params": trainable_parameters(projector, backbone.policy) if projector else 0,
         "projector_params": trainable_parameters(projector) if projector else 0,
-        "lora_params": lora_params,
-        "projector_from": projector_from,
-        "loss_curve": curve,
-        "probe_loss": probe_losses,
+        "lora_params": graft.lora_params if graft else 0,
+        "projector_from": training.projector_from,
+        "loss_curve": training.curve,
+        "probe_loss": training.probe_losses,
         "encoder_weights": getattr(encoder, "weights_id", None),
-        "timings_s": {k: round(v, 3) for k, v in timings.items()},
-        "peak_memory_mb": peak_memory_mb(device), "device": str(device), "hardware": hardware(),
-        "versions": versions(), "git_commit": git_commit(),
-        "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
     }
-    if rollouts is not None:
-        record["rollouts"] = rollouts
-    ws.store.write(record)
-    return record
 
 
 def _add_lora(backbone, p) -> int:

@@ -174,7 +174,9 @@ def observed_from_records(records: Sequence[dict]) -> dict[str, Any]:
     from bench.protocol import PROFILES  # plain dataclasses: no model, no runner
 
     out: dict[str, Any] = {"optimiser": OUR_CODE["optimiser"]}
-    grafts = [r for r in records if r.get("kind") == "graft"]
+    from bench.kinds import GRAFT
+
+    grafts = [r for r in records if r.get("kind") == GRAFT]
     devices = {str(r.get("device")) for r in records if r.get("device")}
     on_cuda = {d.startswith("cuda") for d in devices}
     if on_cuda:

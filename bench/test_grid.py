@@ -5,29 +5,23 @@ A case asserts what must hold of any cell (finite loss that went down, the freez
 recorded MSE); it never asserts a ranking: rankings are the report's business.
 """
 
-import math
-
+from bench.record import validate_record
 from bench.summary import OUTCOME_PROPERTY
 
 
 def _check_record(record: dict, cell) -> None:
+    """What the runner cannot check while it runs: a record resumed from disk is checked like a
+    new one (the runner validates what it writes: finite scores, counts, the freeze), and
+    training must have lowered the probe loss (fixed frames, noise and time, before vs after;
+    the training curve itself is noisy)."""
+    validate_record(record)
     assert record["cell_id"] == cell.id
-    for space in ("normalized", "raw"):
-        assert math.isfinite(record["mse"][space]), f"{cell.id}: {space} MSE not finite"
-    assert record["n_windows"] == len(record["per_window"]["normalized"]) > 0
     if cell.trains_projector:
-        # Freeze by construction, verified: trainable = projector (+ LoRA adapters).
-        assert record["trainable_params"] == record["projector_params"] + record["lora_params"]
-        assert all(math.isfinite(v) for _, v in record["loss_curve"])
-        # The training curve is noisy (fresh flow noise each step); the probe loss is measured
-        # on fixed frames, noise and time before and after training.
         probe = record["probe_loss"]
         assert probe["after"] < probe["before"], (
             f"{cell.id}: training did not reduce the probe loss ({probe['before']:.4f} -> "
             f"{probe['after']:.4f})"
         )
-    else:
-        assert record["trainable_params"] == 0
 
 
 def test_graft(graft_cell, graft_session, record_property):

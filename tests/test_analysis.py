@@ -214,12 +214,12 @@ def test_wrapper_neutrality_known_sign_and_size():
 def test_control_deltas_against_reference_and_missing_reference():
     records = [make_record(encoder="pixels", level=0.2),
                make_record(kind="lora", encoder="pixels", level=0.1),
-               make_record(kind="pooling", encoder="pixels", variant="1x1", level=0.3),
-               make_record(kind="zero_image", encoder=None, level=0.4)]  # its native is absent
+               make_record(kind="pooling", encoder="pixels", variant="global", level=0.3),
+               make_record(kind="zero_image", encoder=None, variant="eval", level=0.4)]  # its native is absent
     deltas = {cd.cell_id: cd for cd in control_deltas(records)}
     assert deltas["smolvla-spatial-pixels-lora-seed0"].delta["normalized"] == pytest.approx(-0.5)
-    assert deltas["smolvla-spatial-pixels-pool1x1-seed0"].delta["raw"] == pytest.approx(0.5)
-    zero = deltas["smolvla-spatial-native-zero_image-seed0"]
+    assert deltas["smolvla-spatial-pixels-pool_global-seed0"].delta["raw"] == pytest.approx(0.5)
+    zero = deltas["smolvla-spatial-native-zero_image_eval-seed0"]
     assert not zero.reference_found and zero.reference_id == "smolvla-spatial-native-seed0"
 
 

@@ -8,7 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from bench.analysis_rollouts import closed_loop, closed_loop_all, item_label, wilson_interval
+from bench.analysis_rollouts import closed_loop, closed_loop_all, wilson_interval
+from bench.kinds import record_label
 from bench.records import make_record
 from bench.report import build_report
 
@@ -70,9 +71,11 @@ def test_wilson_interval_and_labels():
     lo, hi = wilson_interval(0, 10)
     assert lo == 0.0 and 0.2 < hi < 0.35  # 0/10 is not "certainly 0%"
     assert all(math.isnan(x) for x in wilson_interval(0, 0))
-    assert item_label(make_record(kind="native")) == "native"
-    assert item_label(make_record(kind="zero_image", encoder="pixels", variant="eval")) == \
-        "pixels zero_image/eval"
+    assert record_label(make_record(kind="native")) == "native"
+    assert record_label(make_record(kind="zero_image", encoder="pixels", variant="eval")) == \
+        "zero_image[eval] of pixels"
+    assert record_label(make_record(kind="zero_image", encoder=None, variant="eval")) == \
+        "zero_image[eval] of native"
     assert closed_loop_all([make_record()]) == []  # no rollouts anywhere: no section rows
 
 

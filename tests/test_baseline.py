@@ -1,5 +1,5 @@
 """CI regression mode: known-answer checks on hand-made records, then the plugin end to end
-(pytester, with GraftSession.run replaced by hand-made records written to the store)."""
+(pytester; the session's seams give it a model-free workspace and hand-made records)."""
 
 from __future__ import annotations
 
@@ -205,7 +205,7 @@ def test_baseline_names():
 def test_degrade_features_blinds_a_fraction_of_the_given_frames():
     import torch
 
-    from bench.baseline_plugin import degrade_features
+    from bench.regression_run import degrade_features
 
     x = torch.arange(24.0).reshape(6, 2, 2)
     full = degrade_features({"cam": x}, 1.0, [1, 3])["cam"]
@@ -229,33 +229,35 @@ import pytest
 from bench.plugin import SESSION_KEY
 from bench.records import make_record
 
-pytest_plugins = ["bench.plugin", "bench.baseline_plugin"]
+pytest_plugins = ["bench.plugin"]
 
 
 @pytest.hookimpl(trylast=True)
 def pytest_configure(config):
+    """The session's seams: a workspace with no models, a cell runner writing hand-made records
+    (marked with an installed feature transform, as bench.runner marks them), and a report
+    builder that keeps the sections it is handed (REPORT.md itself: bench.report's tests)."""
     gs = config.stash[SESSION_KEY]
     levels = json.loads(Path("levels.json").read_text())
-    gs._workspace = types.SimpleNamespace(feature_transforms={})
+    gs.workspace_factory = lambda session: types.SimpleNamespace(feature_transforms={},
+                                                                 progress=False)
 
-    def fake_run(cell):
+    def fake_runner(cell, ws, features_mode):
         record = make_record(kind=cell.kind, backbone=cell.backbone, suite=cell.suite,
-                             encoder=cell.encoder, seed=cell.seed, cell_id=cell.id,
+                             encoder=cell.encoder, seed=cell.seed, variant=cell.variant,
                              level=levels.get(cell.id, 0.05))
+        if cell.encoder in ws.feature_transforms:
+            record["feature_transform"] = ws.feature_transforms[cell.encoder].description
         gs.store.write(record)
-        gs.outcomes[cell.id] = "measured"
         return record
 
-    gs.run = fake_run
-    gs.finish = lambda: None  # REPORT.md itself is bench.report's business (and slow: plots)
+    def keep_sections(results_dir, path, extra_sections=()):
+        Path("out.json").write_text(json.dumps({
+            "sections": list(extra_sections),
+            "transforms": sorted(gs.workspace().feature_transforms)}))
 
-
-@pytest.hookimpl(trylast=True)
-def pytest_sessionfinish(session):
-    gs = session.config.stash[SESSION_KEY]
-    Path("out.json").write_text(json.dumps({
-        "sections": gs.extra_sections,
-        "transforms": sorted(gs._workspace.feature_transforms)}))
+    gs.cell_runner = fake_runner
+    gs.report_builder = keep_sections
 '''
 
 GRID = '''
@@ -281,8 +283,8 @@ def grid(pytester):
     def run(*args, encoders="siglip,dinov2_s,fastvit", levels=None):
         if levels is not None:
             pytester.path.joinpath("levels.json").write_text(json.dumps(levels))
-        return pytester.runpytest(
-            "-p", "no:cacheprovider", "-W", "ignore::pytest.PytestAssertRewriteWarning",
+        return pytester.runpytest(  # --rerun: every run measures (the fake cells, new levels)
+            "-p", "no:cacheprovider", "-W", "ignore::pytest.PytestAssertRewriteWarning", "--rerun",
             "--backbones", "smolvla", "--suites", "spatial",
             "--seeds", "0", "--controls", "native", "--encoders", encoders,
             "--results-dir", str(pytester.path / "results"), "--report",
@@ -400,4 +402,4 @@ def test_degrade_encoder_installs_its_feature_transform(grid):
     grid("--degrade-encoder", "siglip:1.0").assert_outcomes(passed=4)
     assert json.loads((grid.path / "out.json").read_text())["transforms"] == ["siglip"]
     record = json.loads((grid.path / "results" / "cells" / f"{SIGLIP}.json").read_text())
-    assert record["degraded"] == "siglip:1.0"
+    assert record["feature_transform"] == "degraded siglip:1.0"

@@ -91,4 +91,4 @@ def test_resume_rule_for_rollouts():
     assert not has_rollouts({}, 5)
     assert has_rollouts({"rollouts": {"spec": {"episodes_per_task": 5}}}, 5)
     assert not has_rollouts({"rollouts": {"spec": {"episodes_per_task": 2}}}, 5)
-    assert has_rollouts({"rollouts": {"skipped": NO_CLOSED_LOOP["shuffled_image"]}}, 5)
+    assert has_rollouts({"rollouts": {"skipped": NO_CLOSED_LOOP["shuffled"]}}, 5)

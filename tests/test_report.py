@@ -29,8 +29,8 @@ def full_grid() -> list[dict]:
                         native={("smolvla", "spatial"): (0.10, 0.15),
                                 ("pi05", "spatial"): (0.02, 0.01)})
     records += [make_record(kind="lora", encoder="dinov2_s", level=0.068),
-                make_record(kind="pooling", encoder="dinov2_s", variant="1x1", level=0.09),
-                make_record(kind="zero_image", encoder="dinov2_s", level=0.2),
+                make_record(kind="pooling", encoder="dinov2_s", variant="global", level=0.09),
+                make_record(kind="zero_image", encoder="dinov2_s", variant="eval", level=0.2),
                 make_record(kind="shuffled_image", encoder=None, level=0.3)]
     return records
 

@@ -27,14 +27,9 @@ def run_grid(results: Path, *extra: str) -> str:
     cmd = [sys.executable, "-m", "pytest", "bench", "-p", "no:randomly", "-p", "no:cacheprovider",
            *SLICE, "--results-dir", str(results), "--report", str(results / "REPORT.md"), *extra]
     done = subprocess.run(cmd, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=600)
-    # 1 = some grid case failed its own checks (e.g. a loss that did not go down): still a run
-    # whose numbers must match; compared below, as are the failing cases.
-    assert done.returncode in (0, 1), done.stdout[-3000:] + done.stderr[-3000:]
+    # Every case must pass: two runs that fail alike are not two runs that agree.
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     return done.stdout
-
-
-def failed_cases(out: str) -> set[str]:
-    return set(re.findall(r"^FAILED (\S+)", out, flags=re.M))
 
 
 def numbers(results: Path) -> dict:
@@ -56,12 +51,11 @@ def serial_and_parallel(tmp_path_factory):
 
 
 def test_parallel_records_equal_serial_records(serial_and_parallel):
-    serial, parallel, serial_out, parallel_out = serial_and_parallel
+    serial, parallel, _, _ = serial_and_parallel
     a, b = numbers(serial), numbers(parallel)
     assert len(a) == 4 and sorted(a) == sorted(b)
     for cell_id in a:
         assert a[cell_id] == b[cell_id], f"{cell_id}: -n 2 changed the numbers"
-    assert failed_cases(serial_out) == failed_cases(parallel_out)
     # The controller collects nothing itself: it takes the selection from its workers.
     grids = [json.loads((r / "grid.json").read_text())["expected"] for r in (serial, parallel)]
     assert sorted(grids[0]) == sorted(grids[1]) == sorted(a)
@@ -78,7 +72,7 @@ def test_one_backbone_per_worker(serial_and_parallel):
     """-n implies --dist loadgroup: a backbone's cells share a worker, backbones do not."""
     _, _, _, out = serial_and_parallel
     workers: dict[str, set[str]] = {}
-    ran_on = r"\[(gw\d+)\].*(?:PASSED|FAILED) bench/test_grid.py::test_graft\[(\w+)-"
+    ran_on = r"\[(gw\d+)\].*PASSED bench/test_grid.py::test_graft\[(\w+)-"
     for worker, backbone in re.findall(ran_on, out):
         workers.setdefault(backbone, set()).add(worker)
     assert sorted(workers) == ["pi05", "smolvla"], out[-2000:]

@@ -21,10 +21,13 @@ import numpy as np
 import torch
 
 from bench.paths import cache_dir
+from bench.suites import libero
 from bench.suites.base import IMAGE_KEYS, STATE_KEY
 
-# graftbench suite name -> LIBERO benchmark name.
-LIBERO_SUITES = {"spatial": "libero_spatial", "object": "libero_object"}
+# graftbench suite name -> LIBERO benchmark name, for the suites the scripted expert and demos
+# cover (bench.sim.expert): the others' scenes are not exercised here.
+SIMULATED = ("spatial", "object")
+LIBERO_SUITES = {name: libero.LIBERO_SUITES[name].benchmark for name in SIMULATED}
 # LIBERO camera -> LeRobot image key suffix (the public datasets' names: image, wrist_image).
 CAMERA_MAPPING = {"agentview_image": "image", "robot0_eye_in_hand_image": "wrist_image"}
 CONTROL_HZ = 20  # LiberoEnv / robosuite default control frequency (the datasets' fps)

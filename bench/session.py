@@ -1,0 +1,266 @@
+"""One pytest run of the grid: `GraftSession` holds the profile, the results store, the
+workspace, the baseline work (save / compare / fail, bench.regression_run) and what ran.
+
+bench.plugin's hooks only hand work on to it. Its seams are public attributes, set before the
+first cell runs: `cell_runner(cell, workspace, features_mode) -> record` (bench.runner.run_cell),
+`workspace_factory(session) -> workspace`, `report_builder(results_dir, path, extra_sections=)`
+(bench.report.build_report). Tests replace those, never private state.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+from bench.cells import GRAFT, CellSpec
+from bench.options import check_rollouts_possible, build_profile, offline_env, report_path
+from bench.paths import REPO_ROOT
+from bench.progress import say
+from bench.regression_run import BaselineRun
+
+
+def _unavailable_errors() -> tuple[type, ...]:
+    """Errors that mean "an artifact is missing" and carry their own one-line fix."""
+    from backbones.base import BackboneUnavailable
+    from bench.suites.base import SuiteUnavailable
+    from encoders.registry import EncoderUnavailable
+
+    return (BackboneUnavailable, SuiteUnavailable, EncoderUnavailable)
+
+
+def _run_cell(cell, ws, features_mode):
+    from bench.runner import run_cell
+
+    return run_cell(cell, ws, features_mode=features_mode)
+
+
+def _build_report(results_dir, path, extra_sections=()):
+    from bench.report import build_report
+
+    return build_report(results_dir, path, extra_sections=list(extra_sections))
+
+
+class GraftSession:
+    """State of one pytest run of the grid: profile, store, workspace, baseline, what ran."""
+
+    def __init__(self, config: pytest.Config) -> None:
+        self.config = config
+        self.profile = build_profile(config)
+        offline_env(self.profile.offline)
+        results = config.getoption("--results-dir")
+        self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name
+        self.report_path = report_path(config.getoption("--report"), results, self.profile.name,
+                                       self.results_dir)
+        self.rerun = bool(config.getoption("--rerun"))
+        self.features_mode = config.getoption("--features")
+        self.rollouts = int(config.getoption("--rollouts") or 0)
+        if self.rollouts < 0:
+            raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
+        if self.rollouts:
+            check_rollouts_possible(self.profile)
+        # Seams (module docstring).
+        self.cell_runner: Callable = _run_cell
+        self.workspace_factory: Callable = _default_workspace
+        self.report_builder: Callable = _build_report
+        self.baseline = BaselineRun(config, self.profile.protocol.hash)
+        self._workspace = None
+        self._store = None
+        self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
+        self.selected: list[str] = []
+        self.report_written: Path | None = None
+        self._cell_array = None  # bench.executors.CellArray, when --executor is not local
+
+    @property
+    def store(self):
+        from bench.store import ResultsDirError, ResultStore
+
+        if self._store is None:
+            try:  # first opened at collection: a UsageError there, never an INTERNALERROR
+                self._store = ResultStore(self.results_dir)
+            except ResultsDirError as e:
+                raise pytest.UsageError(f"--results-dir: {e}") from None
+        return self._store
+
+    def workspace(self):
+        if self._workspace is None:
+            self._workspace = self.workspace_factory(self)
+        return self._workspace
+
+    def progress_sink(self):
+        """The terminal, or False: under -q, GRAFTBENCH_QUIET=1 and in xdist workers (their
+        output would interleave with the controller's)."""
+        from bench.progress import TerminalSink
+
+        quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
+        return False if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
+
+    # --- one cell ---------------------------------------------------------------------------
+    def run(self, cell: CellSpec) -> dict:
+        """The stored record when current (resume), else measure the cell now; then the
+        baseline's cell checks (a regression fails this case in one line)."""
+        self.baseline.before_cell(cell, self.store, self.workspace)
+        record = self._resume_or_measure(cell)
+        self.baseline.check_cell(cell, record)
+        return record
+
+    def _resume_or_measure(self, cell: CellSpec) -> dict:
+        if not self.rerun:
+            record = self._current(cell)
+            if record is not None:
+                self.outcomes[cell.id] = "resumed"
+                return record
+        self._say_start(cell)
+        if self.config.getoption("--executor") != "local":
+            record = self._run_submitted(cell)
+            self.outcomes[cell.id] = "measured"
+            return record
+        try:
+            record = self.cell_runner(cell, self.workspace(), self.features_mode)
+        except Exception as e:
+            from bench.record import failure_record
+
+            self.store.write_failure(failure_record(cell, self.profile.protocol.hash, e))
+            if isinstance(e, _unavailable_errors()):  # a missing artifact: its line, no traceback
+                pytest.fail(f"{cell.id}: {type(e).__name__}: {e}", pytrace=False)
+            raise
+        self.outcomes[cell.id] = "measured"
+        say(self.workspace().progress, f"{cell.id}: MSE {record['mse']['normalized']:.4f} "
+                                       f"normalised ({record['timings_s']['total']:.1f} s)")
+        return record
+
+    def pytest_runtest_logreport(self, report) -> None:
+        """Each grid case's outcome, serial or from xdist workers (user_properties travel)."""
+        from bench.summary import OUTCOME_PROPERTY, cell_id_of, failure_line
+
+        cell = cell_id_of(report.nodeid)
+        if cell is None or cell not in self.selected or report.when != "call":
+            return
+        if report.passed:
+            outcome = dict(report.user_properties).get(OUTCOME_PROPERTY)
+            self.outcomes[cell] = outcome or self.outcomes.get(cell, "measured")
+        elif report.failed:
+            self.outcomes[cell] = failure_line(self.results_dir, cell, report.longreprtext)
+
+    def _say_start(self, cell: CellSpec) -> None:
+        from bench.runner import shared_projector_key
+
+        ws = self.workspace()
+        position = self.selected.index(cell.id) + 1 if cell.id in self.selected else "?"
+        if not cell.trains_projector:
+            work = "no training,"
+        elif cell.kind != GRAFT and shared_projector_key(cell, self.features_mode) in ws.trained_projectors:
+            work = "its graft's trained projector, then"
+        else:
+            work = f"{self.profile.protocol.steps} projector steps, then"
+        say(ws.progress, f"cell {position}/{len(self.selected)} {cell.id}: {work} "
+                         "offline MSE on the held-out windows")
+
+    def _current(self, cell: CellSpec) -> dict | None:
+        """The stored record of `cell` if it is current: same protocol hash and, with
+        --rollouts, closed-loop episodes of the requested size."""
+        from bench.closed_loop import has_rollouts
+
+        record = self.store.current(cell.id, self.profile.protocol.hash)
+        if record is not None and self.rollouts and not has_rollouts(record, self.rollouts):
+            return None  # the offline part is current, the closed loop is not: measure again
+        if record is not None:
+            # Measured with another normaliser (other stats or checkpoint): measure again.
+            expected = self.workspace().normalizer(cell.backbone, cell.suite).fingerprint
+            if (record.get("checkpoint") or {}).get("normalizer_fingerprint") != expected:
+                return None
+        return record
+
+    def _run_submitted(self, cell: CellSpec) -> dict:
+        """--executor slurm|submitit-local: the first case submits every selected cell that has
+        no current record as ONE job array; each case then waits for its own task."""
+        from bench.executors import CellArray, CellJob, SlurmOptions
+        from bench.paths import cache_dir
+        from bench.record import failure_record
+
+        if self._cell_array is None:
+            opt = self.config.getoption
+            slurm = SlurmOptions(
+                partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
+                gpus_per_task=opt("--slurm-gpus-per-task"),
+                array_parallelism=opt("--slurm-array-parallelism"),
+            )
+            self._cell_array = CellArray(opt("--executor"), self.results_dir / "submitit", slurm)
+            items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
+            params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
+            cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
+            todo = [c for c in cells if isinstance(c, CellSpec) and (
+                self.rerun or not self._current(c))]
+            paths = (str(self.results_dir), str(cache_dir()))
+            self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
+                                             self.rollouts) for c in todo])
+        try:
+            return self._cell_array.result(cell.id)
+        except Exception as e:  # the task died before writing its own failure record
+            self.store.write_failure(failure_record(cell, self.profile.protocol.hash, e))
+            raise
+
+    # --- the session's ends -----------------------------------------------------------------
+    def preflight(self, cells: list[CellSpec]) -> None:
+        """Hub grids: list every artifact the selected cells read; stop (UsageError, no cell
+        run) when one is missing. --collect-only shows the list and stops anyway."""
+        if self.profile.source != "hub" or not cells:
+            return
+        from bench.preflight import cells_artifacts, missing_summary, render
+
+        artifacts = cells_artifacts(cells)
+        reporter = self.config.pluginmanager.get_plugin("terminalreporter")
+        screen = render(artifacts)
+        if reporter is not None:
+            reporter.write_line(screen)
+        else:
+            sys.stderr.write(screen + "\n")
+        if any(not a.present for a in artifacts) and not self.config.option.collectonly:
+            raise pytest.UsageError(missing_summary(artifacts))
+
+    def finish_baseline(self) -> list[tuple[str, str]]:
+        """The baseline's save / compare over the stored records; the report sections it adds."""
+        records = {cid: r for cid in self.selected
+                   if (r := self.store.load(cid)) and r.get("status") == "ok"}
+        return self.baseline.finish(self.selected, records)
+
+    def finish(self, sections: list[tuple[str, str]] = ()) -> Path | None:
+        """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
+        nothing new finished (an existing report is left as it is)."""
+        measured = any(o == "measured" for o in self.outcomes.values())
+        resumed = any(o == "resumed" for o in self.outcomes.values())
+        if not self.selected or not (measured or (resumed and not self.report_path.exists())):
+            return None
+        self.report_written = self.report_builder(self.results_dir, self.report_path,
+                                                  extra_sections=sections)
+        return self.report_written
+
+
+def _default_workspace(session: GraftSession):
+    """The real workspace, with this process's torch threads set first."""
+    from bench.workspace import Workspace
+
+    sink = session.progress_sink()
+    if not hasattr(session.config, "workerinput"):  # workers: bench.plugin split the CPUs
+        import torch
+
+        threads, why = serial_threads()
+        torch.set_num_threads(threads)
+        say(sink, f"torch threads: {threads} ({why})")
+    return Workspace(session.profile, session.store, progress=sink, rollouts=session.rollouts)
+
+
+def serial_threads() -> tuple[int, str]:
+    """Torch threads for a serial run, and why: OMP_NUM_THREADS when set, else the CPUs the
+    1-minute load leaves free (at least 1). torch's default (every CPU) against one other busy
+    process made the tiny grid's steps 20x slower (docs/SCALING.md: 4.3 s -> 88-99 s)."""
+    cpus = len(os.sched_getaffinity(0))
+    if os.environ.get("OMP_NUM_THREADS"):
+        return max(1, int(os.environ["OMP_NUM_THREADS"])), "OMP_NUM_THREADS"
+    load = os.getloadavg()[0]
+    # Whole busy CPUs only: the load a finished job leaves behind decays over minutes.
+    free = max(1, min(cpus, cpus - int(load)))
+    return free, f"{cpus} CPUs, 1-min load {load:.1f}; set OMP_NUM_THREADS to choose"
