@@ -8,13 +8,24 @@ import os
 import sys
 
 
-def _profile_from_argv(argv: list[str]) -> str:
+def _option_from_argv(argv: list[str], option: str) -> str | None:
     for i, arg in enumerate(argv):
-        if arg == "--profile" and i + 1 < len(argv):
+        if arg == option and i + 1 < len(argv):
             return argv[i + 1]
-        if arg.startswith("--profile="):
+        if arg.startswith(option + "="):
             return arg.split("=", 1)[1]
-    return "tiny"
+    return None
+
+
+def _profile_from_argv(argv: list[str]) -> str:
+    """--profile, else the `profile` of the --grid file (bench.gridfile), else tiny."""
+    profile = _option_from_argv(argv, "--profile")
+    grid = _option_from_argv(argv, "--grid")
+    if profile is None and grid is not None:
+        from bench.gridfile import base_profile_of
+
+        profile = base_profile_of(grid)
+    return profile or "tiny"
 
 
 if _profile_from_argv(sys.argv) != "paper":

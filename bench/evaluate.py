@@ -102,6 +102,13 @@ def score(
             horizon_sum[space] += per_step.sum(dim=0)
         horizon_n += valid.sum(dim=0)
     per_window = {k: torch.cat(v) for k, v in err.items()}
+    return summarise(suite, windows, per_window, {k: v / horizon_n.clamp(min=1)
+                                                  for k, v in horizon_sum.items()})
+
+
+def summarise(suite, windows: Tensor, per_window: dict[str, Tensor],
+              per_horizon: dict[str, Tensor]) -> dict:
+    """The score fields of a record: cell MSE, per window, per task, per horizon step."""
     tasks = suite.task_index[windows]
     per_task = {}
     for t in sorted(set(tasks.tolist())):
@@ -121,9 +128,7 @@ def score(
         "window_task": tasks.tolist(),
         "tasks": list(suite.tasks),
         "per_task": per_task,
-        "per_horizon": {
-            k: (v / horizon_n.clamp(min=1)).tolist() for k, v in horizon_sum.items()
-        },
+        "per_horizon": {k: v.tolist() for k, v in per_horizon.items()},
         "n_windows": len(windows),
     }
 

@@ -9,9 +9,12 @@ from pathlib import Path
 
 import pytest
 
+from bench.gridfile import read_grid_file
 from bench.paths import REPO_ROOT
 from bench.kinds import control_kinds
 from bench.protocol import get_profile, with_overrides
+
+DEFAULT_PROFILE = "tiny"
 
 
 def _csv(value: str | None) -> tuple[str, ...] | None:
@@ -20,10 +23,16 @@ def _csv(value: str | None) -> tuple[str, ...] | None:
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     g = parser.getgroup("graftbench", "graftbench grid")
-    g.addoption("--profile", default="tiny",
+    g.addoption("--profile",
                 help="tiny (offline default, 28 cells), tiny-full (136 cells), paper, sim")
+    g.addoption("--grid", metavar="FILE.toml",
+                help="a study in a TOML file (schema: bench/gridfile.py); its path, sha256 and "
+                     "text go into every record. Options given here override its values: "
+                     "--profile its base profile, --backbones etc. its lists, --steps its steps")
     g.addoption("--backbones", help="comma list, e.g. smolvla,pi05")
-    g.addoption("--encoders", help="comma list of registry names or timm:<model>")
+    g.addoption("--encoders", help="comma list of registry names, timm:<model> or "
+                                   "PKG.MODULE:FACTORY (an importable module of yours: "
+                                   "encoders/user_encoders.py)")
     g.addoption("--suites", help="comma list, e.g. spatial,object")
     g.addoption("--seeds", help="comma list of ints, e.g. 0,1,2")
     g.addoption("--controls", help=f"comma list of control kinds ({','.join(control_kinds())}) or none")
@@ -71,9 +80,15 @@ def _positive(option: str, value: int | None, what: str) -> int | None:
 
 
 def build_profile(config: pytest.Config):
+    """The run's Profile: --profile (else the --grid file's, else tiny), then the --grid file's
+    values, then every grid option given on the command line."""
     opt = config.getoption
     try:
-        profile = get_profile(opt("--profile"))
+        grid = read_grid_file(opt("--grid")) if opt("--grid") else None
+        base = opt("--profile") or (grid.profile if grid is not None else None)
+        profile = get_profile(base or DEFAULT_PROFILE)
+        if grid is not None:
+            profile = grid.apply(profile)
         seeds = _csv(opt("--seeds"))
         controls = _csv(opt("--controls"))
         if controls == ("none",):
@@ -105,7 +120,7 @@ def validate_names(profile) -> None:
         for b in profile.backbones:
             get_entry(b)
         for e in set(profile.encoders) | set(profile.control_encoders):
-            get_spec(e)
+            get_spec(e, profile.source)  # a user's MODULE:FACTORY is built (and checked) here
     except ValueError as e:
         raise pytest.UsageError(str(e)) from None
     for s in profile.suites:

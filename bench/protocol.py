@@ -10,8 +10,12 @@ import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from bench.kinds import control_kinds
+
+if TYPE_CHECKING:
+    from bench.gridfile import GridFileInfo
 
 
 @dataclass(frozen=True)
@@ -87,6 +91,9 @@ class Profile:
     # Where the suites come from when not `source`: "sim" = scripted demonstrations in real
     # LIBERO scenes (bench.sim, needs the libero extra) for the tiny policies.
     suite_source: str | None = None
+    # The study file (`--grid`) this profile was read from: provenance for every record. Not part
+    # of `protocol`, so not of its hash: the file's [protocol] values are, through `protocol`.
+    grid_file: GridFileInfo | None = None
 
     @property
     def data_source(self) -> str:

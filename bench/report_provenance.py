@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -110,6 +110,10 @@ def provenance_section(ctx: ReportContext) -> str:
            else " (no grid.json: missing cells cannot be listed)")
         + f", {len(res.skipped)} unreadable files skipped",
     ]
+    grid_files = Counter((g["path"], g["sha256"]) for r in records if (g := r.get("grid_file")))
+    if grid_files:  # runs without --grid: no line, the report as it was
+        lines.append("Grid file(s): " + ", ".join(f"`{path}` sha256 `{sha}` ({n} cells)"
+                                                  for (path, sha), n in sorted(grid_files.items())))
     parts.append(bullets(lines))
     for h, recs in hashes.items():
         parts.append(f"Protocol `{h}`:\n\n```json\n"

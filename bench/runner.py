@@ -232,6 +232,7 @@ def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
     p = ws.profile.protocol
     transform = ws.feature_transforms.get(cell.encoder) if inputs.encoder is not None else None
     noted = {"feature_transform": getattr(transform, "description", "a feature transform")}
+    grid_file = ws.profile.grid_file  # absent without --grid: those records stay as they were
     return {
         **(noted if transform is not None else {}),  # never resumed, never a baseline
         "grid": list(inputs.grid),
@@ -240,6 +241,7 @@ def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
         "checkpoint": {**checkpoint_id(cell.backbone, ws.profile),
                        "normalizer": ws.normalizer(cell.backbone, cell.suite).source,
                        "normalizer_fingerprint": backbone.normalizer_fingerprint()},
+        **({"grid_file": grid_file.provenance()} if grid_file is not None else {}),
     }
 
 

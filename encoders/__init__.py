@@ -1,6 +1,7 @@
 """Candidate encoders: a registry of frozen pixels -> feature-grid modules.
 
-Importing this package registers the paper's timm encoders and the known-answer encoders.
+Importing this package registers the paper's timm encoders and the known-answer encoders; a
+user's own module is named "PKG.MODULE:FACTORY" (encoders.user_encoders).
 """
 
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder
@@ -9,6 +10,7 @@ from encoders.registry import (
     EncoderUnavailable,
     build_encoder,
     get_spec,
+    is_user_encoder,
     list_encoders,
     register,
     register_prefix,
@@ -18,5 +20,5 @@ from encoders import timm_encoders as _timm_encoders  # noqa: F401  (registers t
 
 __all__ = [
     "SOURCES", "Encoder", "EncoderSpec", "EncoderUnavailable", "UnknownEncoder", "build_encoder",
-    "get_spec", "list_encoders", "register", "register_prefix",
+    "get_spec", "is_user_encoder", "list_encoders", "register", "register_prefix",
 ]

@@ -1,7 +1,9 @@
 """Encoder registry: name -> EncoderSpec + builder. Adding an encoder is one `register(...)` call.
 
 Names of the form "<prefix>:<model>" (e.g. "timm:resnet18") are resolved on the fly by the
-resolver registered for that prefix, so any timm model can be tried without an entry.
+resolver registered for that prefix, so any timm model can be tried without an entry. Names
+"PKG.MODULE:FACTORY" whose part before ':' is a module path, not a prefix, are a user's own
+encoder: encoders.user_encoders has that contract.
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ from __future__ import annotations
 import difflib
 from typing import Callable
 
+from encoders import user_encoders
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder
 
 SOURCES = ("tiny", "hub")
@@ -56,9 +59,22 @@ def _unknown(name: str) -> UnknownEncoder:
     valid = list_encoders()
     close = difflib.get_close_matches(name, valid, n=3, cutoff=0.5)
     hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
-    prefixes = ", ".join(f"'{p}:<model>'" for p in sorted(_PREFIXES))
+    prefixes = "".join(f"'{p}:<model>', " for p in sorted(_PREFIXES))
     return UnknownEncoder(f"unknown encoder {name!r}.{hint} Registered encoders: {', '.join(valid)}"
-                          + (f"; also accepted: {prefixes}." if prefixes else "."))
+                          f"; also accepted: {prefixes}'PKG.MODULE:FACTORY' (a factory in an "
+                          "importable module, encoders/user_encoders.py).")
+
+
+def is_user_encoder(name: str) -> bool:
+    """A user's "PKG.MODULE:FACTORY": a module path before ':' that is no registered prefix."""
+    prefix, _, factory = name.partition(":")
+    return (factory.isidentifier() and prefix not in _PREFIXES
+            and user_encoders.is_module_path(prefix))
+
+
+def _check_source(source: str) -> None:
+    if source not in SOURCES:
+        raise ValueError(f"encoder source {source!r} is not one of {SOURCES}")
 
 
 def _split_prefix(name: str) -> tuple[str, str] | None:
@@ -70,10 +86,15 @@ def _split_prefix(name: str) -> tuple[str, str] | None:
     return prefix, model
 
 
-def get_spec(name: str) -> EncoderSpec:
-    """The EncoderSpec of a registered name or of a "<prefix>:<model>" name."""
+def get_spec(name: str, source: str = "tiny") -> EncoderSpec:
+    """The EncoderSpec of a registered name, a "<prefix>:<model>" name or a user's
+    "PKG.MODULE:FACTORY" (only there does `source` matter: the spec is what the factory builds
+    for it, so getting it builds the encoder, once)."""
     if name in _SPECS:
         return _SPECS[name]
+    if is_user_encoder(name):
+        _check_source(source)
+        return user_encoders.build_module_encoder(name, source).spec
     split = _split_prefix(name)
     if split is None:
         raise _unknown(name)
@@ -83,9 +104,11 @@ def get_spec(name: str) -> EncoderSpec:
 
 def build_encoder(name: str, source: str) -> Encoder:
     """Frozen eval-mode encoder. source "tiny": random-init small profile (seed 0); "hub": real
-    pretrained weights from the local HF cache (raises EncoderUnavailable when absent)."""
-    if source not in SOURCES:
-        raise ValueError(f"encoder source {source!r} is not one of {SOURCES}")
+    pretrained weights from the local HF cache (raises EncoderUnavailable when absent). A user's
+    "PKG.MODULE:FACTORY" gets the source if its factory asks (encoders.user_encoders)."""
+    _check_source(source)
+    if is_user_encoder(name):
+        return user_encoders.build_module_encoder(name, source)
     spec = get_spec(name)
     split = _split_prefix(name)
     builder = _PREFIXES[split[0]][1] if split else _BUILDERS[name]

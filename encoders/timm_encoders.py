@@ -12,15 +12,15 @@ from pathlib import Path
 
 import timm
 import torch
-import torch.nn.functional as F
 from huggingface_hub import constants as hub_constants
 from huggingface_hub import try_to_load_from_cache
 from timm.models._hub import HF_WEIGHTS_NAME, _get_safe_alternatives, check_cached_file
 from torch import Tensor
 
 from bench.artifacts import Artifact
-from encoders.base import Encoder, EncoderSpec, UnknownEncoder
-from encoders.registry import EncoderUnavailable, get_spec, register, register_prefix
+from encoders.base import Encoder, EncoderSpec, UnknownEncoder, resized_normalised
+from encoders.registry import (EncoderUnavailable, get_spec, is_user_encoder, register,
+                               register_prefix)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -50,11 +50,7 @@ class TimmEncoder(Encoder):
 
     @torch.no_grad()
     def forward(self, images: Tensor) -> Tensor:
-        x = images.to(self.mean.dtype)
-        if tuple(x.shape[-2:]) != (self.input_size, self.input_size):
-            x = F.interpolate(x, size=(self.input_size, self.input_size), mode="bilinear",
-                              antialias=True, align_corners=False)
-        x = (x - self.mean) / self.std
+        x = resized_normalised(images, self.input_size, self.mean, self.std)
         feats = self.model.forward_features(x)
         if self.spec.layout == "tokens":
             return _tokens_to_grid(feats, self.spec.num_prefix_tokens).float()
@@ -126,7 +122,10 @@ def _fix(command: str) -> str:
 
 def weight_artifacts(name: str) -> list[Artifact]:
     """The pretrained weights encoder `name` (registered or "timm:<model>") reads with source
-    "hub"; [] for encoders without pretrained weights (pixels, blind)."""
+    "hub"; [] for encoders without pretrained weights (pixels, blind) and for a user's
+    "PKG.MODULE:FACTORY", whose weights are its module's business."""
+    if is_user_encoder(name):
+        return []
     spec = get_spec(name)
     if spec.timm_name is None:
         return []
