@@ -50,6 +50,11 @@ register(BackboneEntry("smolvla", "backbones.smolvla", "lerobot/smolvla_base",
 register(BackboneEntry("pi05", "backbones.pi05", "lerobot/pi05_base",
                        "pi0.5-3.3B (PaliGemma/Gemma-2B, width 2048, 256 image tokens per camera)",
                        revision="b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba"))
+# pi0: PaliGemma like pi0.5, the state a continuous token (an option beside the study's two).
+register(BackboneEntry("pi0", "backbones.pi0", "lerobot/pi0_base",
+                       "pi0-3.5B (PaliGemma/Gemma-2B, width 2048, 256 image tokens per camera, "
+                       "continuous state token)",
+                       revision="25c379b52ba2ff8788cab921758a3cc3fe3f77f2", study=False))
 # LIBERO-trained releases: a native reference that acts on LIBERO (not the study's choice).
 register(BackboneEntry("smolvla_libero", "backbones.smolvla", "HuggingFaceVLA/smolvla_libero",
                        "SmolVLA-450M fine-tuned on LIBERO (its own saved stats)",

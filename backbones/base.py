@@ -1,6 +1,6 @@
 """The small interface every backbone adapter offers the harness.
 
-An adapter wraps a REAL LeRobot policy (SmolVLAPolicy, PI05Policy) with its own pre/post
+An adapter wraps a REAL LeRobot policy (SmolVLAPolicy, PI05Policy, PI0Policy) with its own pre/post
 processors. The harness never reaches into policy internals itself: it asks the adapter.
 
 Batches:
@@ -45,7 +45,8 @@ class BackboneInfo:
 
 
 class Backbone:
-    """Adapter base. Subclasses: backbones.smolvla.SmolVLABackbone, backbones.pi05.PI05Backbone."""
+    """Adapter base. Subclasses: backbones.smolvla.SmolVLABackbone, backbones.pi05.PI05Backbone,
+    backbones.pi0.PI0Backbone (the last two through backbones.paligemma.PaliGemmaBackbone)."""
 
     info: BackboneInfo
     policy: torch.nn.Module

@@ -18,6 +18,12 @@ for exactly those lines (lerobot/policies/pi05/, lerobot 0.6.1):
    3b-pt-224")`, the only hub access when building; we point it at a local WordLevel tokenizer.
 
 Nothing here touches the forward pass: the built model runs LeRobot's own code unchanged.
+
+pi0 (lerobot/policies/pi0/) is built from the same lines under the same names, so every patch
+takes `policy_type` ("pi05" or "pi0"): modeling_pi0.py:161-182 `get_gemma_config`, :124 the 8
+heads, :203-222,240 PaliGemma sizes and constructor, :233,241 the expert vocab, and
+processor_pi0.py:140-145 the tokenizer step. pi0's own extra layer, `state_proj`
+(Linear(max_state_dim -> expert width), :433), needs no patch.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import importlib
 import os
 import shutil
 import tempfile
@@ -76,6 +83,17 @@ class TinyPI05Arch:
         return cls(**values)
 
 
+# LeRobot policies built on the patched lines (lerobot.policies.<type>.modeling_<type>).
+POLICY_TYPES = ("pi05", "pi0")
+
+
+def _lerobot_module(policy_type: str, kind: str) -> Any:
+    """lerobot.policies.<policy_type>.<kind>_<policy_type> (kind: "modeling" or "processor")."""
+    if policy_type not in POLICY_TYPES:
+        raise ValueError(f"policy_type {policy_type!r}: the tiny patches know {list(POLICY_TYPES)}")
+    return importlib.import_module(f"lerobot.policies.{policy_type}.{kind}_{policy_type}")
+
+
 @contextlib.contextmanager
 def _swapped(module: Any, name: str, replacement: Any) -> Iterator[None]:
     """Set `module.name = replacement` inside the block; restore the original on exit."""
@@ -88,9 +106,9 @@ def _swapped(module: Any, name: str, replacement: Any) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def tiny_gemma_variants(arch: TinyPI05Arch) -> Iterator[None]:
+def tiny_gemma_variants(arch: TinyPI05Arch, policy_type: str = "pi05") -> Iterator[None]:
     """modeling_pi05.get_gemma_config: "gemma_2b" -> tiny VLM, "gemma_300m" -> tiny expert."""
-    from lerobot.policies.pi05 import modeling_pi05 as m
+    m = _lerobot_module(policy_type, "modeling")
 
     sizes = {
         "gemma_2b": (arch.vlm_width, arch.vlm_mlp_dim),
@@ -115,9 +133,9 @@ def tiny_gemma_variants(arch: TinyPI05Arch) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def tiny_paligemma(arch: TinyPI05Arch) -> Iterator[None]:
+def tiny_paligemma(arch: TinyPI05Arch, policy_type: str = "pi05") -> Iterator[None]:
     """Shrink SigLIP, its projection (-> the tiny text width) and the vocab before PaliGemma is built."""
-    from lerobot.policies.pi05 import modeling_pi05 as m
+    m = _lerobot_module(policy_type, "modeling")
 
     real_cls = m.PaliGemmaForConditionalGenerationWithPiGemma
 
@@ -146,9 +164,9 @@ def tiny_paligemma(arch: TinyPI05Arch) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def tiny_expert_vocab(arch: TinyPI05Arch) -> Iterator[None]:
+def tiny_expert_vocab(arch: TinyPI05Arch, policy_type: str = "pi05") -> Iterator[None]:
     """The action expert's (unused) output vocabulary: arch.expert_vocab_size rows, not 257152."""
-    from lerobot.policies.pi05 import modeling_pi05 as m
+    m = _lerobot_module(policy_type, "modeling")
 
     real_cls = m.PiGemmaForCausalLM
 
@@ -162,9 +180,9 @@ def tiny_expert_vocab(arch: TinyPI05Arch) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def local_tokenizer(tokenizer_dir: str | os.PathLike) -> Iterator[None]:
-    """processor_pi05's TokenizerProcessorStep loads `tokenizer_dir` instead of the hub tokenizer."""
-    from lerobot.policies.pi05 import processor_pi05 as p
+def local_tokenizer(tokenizer_dir: str | os.PathLike, policy_type: str = "pi05") -> Iterator[None]:
+    """processor_<type>'s TokenizerProcessorStep loads `tokenizer_dir` instead of the hub tokenizer."""
+    p = _lerobot_module(policy_type, "processor")
 
     real_cls = p.TokenizerProcessorStep
 
@@ -178,15 +196,17 @@ def local_tokenizer(tokenizer_dir: str | os.PathLike) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def tiny_pi05_patches(arch: TinyPI05Arch, tokenizer_dir: str | os.PathLike | None = None):
-    """All construction patches at once (tokenizer only when `tokenizer_dir` is given)."""
+def tiny_pi05_patches(arch: TinyPI05Arch, tokenizer_dir: str | os.PathLike | None = None,
+                      policy_type: str = "pi05"):
+    """All construction patches at once (tokenizer only when `tokenizer_dir` is given), for
+    LeRobot's `policy_type` ("pi05", or "pi0", built from the same lines)."""
     require_pinned_lerobot()
     with contextlib.ExitStack() as stack:
-        stack.enter_context(tiny_gemma_variants(arch))
-        stack.enter_context(tiny_paligemma(arch))
-        stack.enter_context(tiny_expert_vocab(arch))
+        stack.enter_context(tiny_gemma_variants(arch, policy_type))
+        stack.enter_context(tiny_paligemma(arch, policy_type))
+        stack.enter_context(tiny_expert_vocab(arch, policy_type))
         if tokenizer_dir is not None:
-            stack.enter_context(local_tokenizer(tokenizer_dir))
+            stack.enter_context(local_tokenizer(tokenizer_dir, policy_type))
         yield
 
 

@@ -6,15 +6,17 @@ LeRobotDataset / timm loading code as on a GPU box with the real cache.
 
 What is real: repo ids, revisions (the pinned ones), the cache layout (`models--ORG--NAME/refs`,
 `snapshots/<rev>/`), file names, config fields, camera names and widths of the releases
-(smolvla_base: camera1/2/3, 6-dim SO-100 state/action; pi05_base: base_0_rgb / left_wrist_0_rgb /
-right_wrist_0_rgb, 32-dim), the hub processor-JSON quirks (pi05_base: normaliser `features: {}`,
-no stats file, device cpu; smolvla_base: device cuda, stats under SO-100 keys only), LIBERO's
+(smolvla_base: camera1/2/3, 6-dim SO-100 state/action; pi05_base and pi0_base: base_0_rgb /
+left_wrist_0_rgb / right_wrist_0_rgb, 32-dim), the hub processor-JSON quirks (pi05_base and
+pi0_base: normaliser `features: {}`, no stats file; device cpu for pi05_base, cuda for pi0_base;
+smolvla_base: device cuda, stats under SO-100 keys only), LIBERO's
 v3.0 dataset layout and feature names. What is tiny, and the only construction patches it forces
 (nothing else is bypassed):
 1. SmolVLM2: its config.json is a tiny SmolVLM (no patch: SmolVLA reads the VLM's config).
-2. pi0.5: `graftbench_pi05.json` in the snapshot names the tiny arch; the adapter then builds
-   under backbones.tiny_pi05's three model patches (Gemma variants, PaliGemma sizes, expert vocab).
-   The tokenizer is read from google/paligemma-3b-pt-224 in the cache, unpatched.
+2. pi0.5 and pi0: `graftbench_pi05.json` / `graftbench_pi0.json` in the snapshot names the tiny
+   arch; the adapter then builds under backbones.tiny_pi05's three model patches (Gemma variants,
+   PaliGemma sizes, expert vocab). The tokenizer is read from google/paligemma-3b-pt-224 in the
+   cache, unpatched.
 3. timm: each weight repo's config.json carries `model_args` (the tiny architecture) and its
    pretrained_cfg input size; encoders.timm_encoders passes them to create_model(pretrained=True).
 4. Data: the generated LIBERO-format suites (64 px images, 16 episodes per task) under the
@@ -32,7 +34,7 @@ import numpy as np
 import torch
 
 from backbones import get_entry
-from backbones.pi05 import MARKER_FILE, PALIGEMMA_TOKENIZER_REPO, TOKENIZER_SUBDIR
+from backbones.paligemma import PALIGEMMA_TOKENIZER_REPO, TOKENIZER_SUBDIR
 from backbones.smolvla import VENDORED_VLM_DIR, VLM_REPO_ID
 
 FAKE_SHA = {  # commits for repos graftbench does not pin (the cache's main points at them)
@@ -41,8 +43,8 @@ FAKE_SHA = {  # commits for repos graftbench does not pin (the cache's main poin
 }
 DEFAULT_SHA = "0" * 40
 SMOLVLA_BASE_CAMERAS = tuple(f"observation.images.camera{i}" for i in (1, 2, 3))
-PI05_BASE_CAMERAS = tuple(f"observation.images.{c}"
-                          for c in ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"))
+PALIGEMMA_BASE_CAMERAS = tuple(f"observation.images.{c}"  # pi05_base and pi0_base
+                               for c in ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"))
 PAPER_SUITES = ("spatial", "object")
 
 
@@ -122,30 +124,44 @@ def write_smolvla_base(hub_cache: Path) -> None:
     _so100_keyed_stats(snap)
 
 
-def write_pi05_base(hub_cache: Path) -> None:
-    """lerobot/pi05_base shaped: DROID-style cameras, 32 dims, `features: {}`, no stats file."""
-    from backbones import pi05
+def write_paligemma_base(hub_cache: Path, name: str, device: str) -> None:
+    """The base release of PaliGemma backbone `name` (pi05, pi0) shaped as the hub's: DROID-style
+    cameras, 32 dims, `features: {}`, no stats file, its saved `device`, tokenizer by hub id."""
+    from backbones import adapter_module
 
-    entry = get_entry("pi05")
+    module = adapter_module(name)
+    entry = get_entry(name)
     snap = snapshot_dir(hub_cache, entry.repo_id, entry.revision)
-    tiny = pi05.build_tiny_policy(_release_stats(PI05_BASE_CAMERAS, 32), PI05_BASE_CAMERAS,
-                                  state_dim=32, action_dim=32, chunk_size=10, seed=0)
-    pi05.save_pretrained(tiny, snap)
-    tokenizer = snapshot_dir(hub_cache, PALIGEMMA_TOKENIZER_REPO, None)
+    cameras = PALIGEMMA_BASE_CAMERAS
+    tiny = module.build_tiny_policy(_release_stats(cameras, 32), cameras, state_dim=32,
+                                    action_dim=32, chunk_size=10, seed=0)
+    module.save_pretrained(tiny, snap)
+    tokenizer = snapshot_dir(hub_cache, PALIGEMMA_TOKENIZER_REPO, None)  # shared by both families
     shutil.copytree(snap / TOKENIZER_SUBDIR, tokenizer, dirs_exist_ok=True)
     shutil.rmtree(snap / TOKENIZER_SUBDIR)
     (tokenizer / "config.json").write_text(json.dumps(  # AutoTokenizer reads it first
         {"architectures": ["PaliGemmaForConditionalGeneration"], "model_type": "paligemma"}))
-    marker = json.loads((snap / MARKER_FILE).read_text())
-    (snap / MARKER_FILE).write_text(json.dumps({"tiny_arch": marker["tiny_arch"]}, indent=2))
+    marker = json.loads((snap / module.MARKER_FILE).read_text())
+    (snap / module.MARKER_FILE).write_text(json.dumps({"tiny_arch": marker["tiny_arch"]}, indent=2))
     for stats_file in snap.glob("policy_*processor_step_*.safetensors"):
         stats_file.unlink()
 
     hub_steps = {"normalizer_processor": {"features": {}}, "unnormalizer_processor": {"features": {}},
-                 "device_processor": {"device": "cpu"},
+                 "device_processor": {"device": device},
                  "tokenizer_processor": {"tokenizer_name": PALIGEMMA_TOKENIZER_REPO}}
     _edit_steps(snap / "policy_preprocessor.json", hub_steps, drop_state_files=True)
-    _edit_steps(snap / "policy_postprocessor.json", hub_steps, drop_state_files=True)
+    _edit_steps(snap / "policy_postprocessor.json", {**hub_steps, "device_processor": {"device": "cpu"}},
+                drop_state_files=True)
+
+
+def write_pi05_base(hub_cache: Path) -> None:
+    """lerobot/pi05_base shaped: its processors saved with device cpu (docs/HUB_FACTS.md)."""
+    write_paligemma_base(hub_cache, "pi05", device="cpu")
+
+
+def write_pi0_base(hub_cache: Path) -> None:
+    """lerobot/pi0_base shaped: its pre-processor saved with device cuda (docs/HUB_FACTS.md)."""
+    write_paligemma_base(hub_cache, "pi0", device="cuda")
 
 
 def write_timm_weights(hub_cache: Path, names=("siglip", "dinov2_s", "fastvit", "repvit")) -> None:
@@ -200,6 +216,7 @@ def build(root: Path) -> dict[str, str]:
     write_timm_weights(hub_cache)
     write_smolvla_base(hub_cache)
     write_pi05_base(hub_cache)
+    write_pi0_base(hub_cache)
     (root / "lerobot").mkdir(parents=True, exist_ok=True)
     done.write_text(json.dumps(env, indent=2))
     return env

@@ -15,7 +15,7 @@ import contextlib
 import pytest
 import torch
 
-from backbones import pi05, smolvla
+from backbones import pi0, pi05, smolvla
 from tests import test_backbone_pi05 as tp
 from tests import test_backbone_smolvla as ts
 
@@ -62,7 +62,7 @@ def entry_checked(policy, method: str):
         delattr(policy, method)
 
 
-@pytest.fixture(params=["smolvla", "pi05"])
+@pytest.fixture(params=["smolvla", "pi05", "pi0"])
 def meta_backbone(request):
     # SmolVLM's patch embedding indexes by its all-True patch mask (nonzero): on meta, assume it.
     import torch.fx.experimental._config as fx_config
@@ -75,8 +75,9 @@ def _meta_backbone(name: str):
     if name == "smolvla":
         backbone = smolvla.build_tiny_policy(ts.make_stats(), ts.CAMERAS, chunk_size=CHUNK, seed=0)
         raw = ts.make_raw()
-    else:
-        backbone = pi05.build_tiny_policy(tp.make_stats(), tp.CAMERAS, chunk_size=CHUNK, seed=0)
+    else:  # pi0 and pi0.5 share the tiny PaliGemma test data
+        module = {"pi05": pi05, "pi0": pi0}[name]
+        backbone = module.build_tiny_policy(tp.make_stats(), tp.CAMERAS, chunk_size=CHUNK, seed=0)
         raw = tp.make_raw()
     backbone.freeze()
     return on_meta(backbone), raw
@@ -125,11 +126,13 @@ def test_graft_feed_returns_tokens_on_the_device_of_the_image(meta_backbone):
     assert all(t.device.type == "meta" for t in out)
 
 
-def test_pi05_grafted_loss_and_sampler_run_whole_on_meta():
-    # pi0.5's forward and sampler need no data-dependent value: run them whole on meta.
+@pytest.mark.parametrize("name", ["pi05", "pi0"])
+def test_paligemma_grafted_loss_and_sampler_run_whole_on_meta(name):
+    # pi0.5's and pi0's forward and sampler need no data-dependent value: run them whole on meta
+    # (pi0's state token included).
     from bench.graft import GraftFeed, Projector
 
-    backbone, raw = _meta_backbone("pi05")
+    backbone, raw = _meta_backbone(name)
     projector = Projector(16, backbone.info.lm_width).to("meta")
     feed = GraftFeed(projector, backbone.camera_keys, backbone.info.native_grid)
     tokens = backbone.info.native_grid[0] * backbone.info.native_grid[1]

@@ -17,7 +17,7 @@ import torch
 from bench import hubworld
 from bench.paths import REPO_ROOT
 
-SLICE = ["--profile", "paper", "--steps", "3", "--backbones", "smolvla,pi05", "--suites", "spatial",
+SLICE = ["--profile", "paper", "--steps", "3", "--backbones", "smolvla,pi05,pi0", "--suites", "spatial",
          "--seeds", "0", "--encoders", "dinov2_s", "--controls", "native,zero_image"]
 
 
@@ -47,14 +47,15 @@ def run_bench(world: dict, tmp_path: Path, *extra: str) -> subprocess.CompletedP
     return subprocess.run(args, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=900)
 
 
-def test_paper_profile_runs_end_to_end_offline_on_both_backbones(world, tmp_path):
+def test_paper_profile_runs_end_to_end_offline_on_every_backbone(world, tmp_path):
     out = run_bench(world, tmp_path)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
-    assert "9 artifacts, 0 missing" in out.stdout
+    assert "10 artifacts, 0 missing" in out.stdout  # pi0 and pi0.5 share the PaliGemma tokenizer
     records = [json.loads(p.read_text()) for p in (tmp_path / "results" / "cells").glob("*.json")]
-    assert {r["backbone"] for r in records} == {"smolvla", "pi05"} and len(records) == 22
+    assert {r["backbone"] for r in records} == {"smolvla", "pi05", "pi0"} and len(records) == 33
     pinned = {"smolvla": "c83c3163b8ca9b7e67c509fffd9121e66cb96205",
-              "pi05": "b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba"}
+              "pi05": "b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba",
+              "pi0": "25c379b52ba2ff8788cab921758a3cc3fe3f77f2"}
     for r in records:
         assert r["checkpoint"]["revision"] == pinned[r["backbone"]]
         assert r["checkpoint"]["normalizer"] == "dataset:spatial"
@@ -79,12 +80,12 @@ def test_removing_any_one_artifact_makes_the_preflight_name_exactly_it(in_world,
     from bench.protocol import PAPER_ENCODERS
 
     def missing():
-        found = grid_artifacts(["smolvla", "pi05"], PAPER_ENCODERS, ["spatial", "object"])
+        found = grid_artifacts(["smolvla", "pi05", "pi0"], PAPER_ENCODERS, ["spatial", "object"])
         return [a for a in found if not a.present], found
 
     assert missing()[0] == []
     paths = _artifact_paths(Path(in_world["HF_HUB_CACHE"]))
-    assert len(paths) == len(missing()[1]) == 10
+    assert len(paths) == len(missing()[1]) == 11
     for repo_id, snapshot in paths.items():
         aside = tmp_path / "aside"
         shutil.move(snapshot, aside)
@@ -132,6 +133,37 @@ def test_pi05_hub_processors_normalise_the_state_they_pass_through_untouched(in_
     assert torch.allclose(batch["observation.state"].float(), expected, atol=1e-5)
     device = next(backbone.policy.parameters()).device
     assert all(v.device == device for v in batch.values() if torch.is_tensor(v))
+
+
+def test_pi0_hub_release_loads_as_libero_with_mean_std_state_and_its_own_device(in_world):
+    # pi0_base's hub pre-processor: `features: {}`, no stats, saved for CUDA, a relative-actions
+    # step (disabled). Loaded with dataset stats it normalises state and action by mean/std, on
+    # the device we ask for, and feeds LIBERO's two cameras to base_0_rgb / left_wrist_0_rgb.
+    from backbones import get_entry, pi0
+
+    entry = get_entry("pi0")
+    saved = json.loads(Path(hubworld.snapshot_dir(Path(in_world["HF_HUB_CACHE"]), entry.repo_id,
+                                                  entry.revision), "policy_preprocessor.json")
+                       .read_text())
+    steps = {s["registry_name"]: s for s in saved["steps"]}
+    assert steps["device_processor"]["config"]["device"] == "cuda"
+    assert steps["normalizer_processor"]["config"]["features"] == {}
+    assert steps["relative_actions_processor"]["config"]["enabled"] is False
+    stats = hubworld._release_stats((), 8)
+    stats["action"] = hubworld._stats(7, 0.5)
+    backbone = pi0.load_policy(entry.repo_id, stats=stats, revision=entry.revision, device="cpu")
+    assert backbone.rename_map == {"observation.images.image": "observation.images.base_0_rgb",
+                                   "observation.images.wrist_image": "observation.images.left_wrist_0_rgb"}
+    state = torch.linspace(-1.5, 1.5, 16).reshape(2, 8)
+    raw = {cam: torch.rand(2, 3, 64, 64) for cam in backbone.camera_keys}
+    raw.update({"observation.state": state.clone(), "action": torch.zeros(2, 10, 7),
+                "action_is_pad": torch.zeros(2, 10, dtype=torch.bool), "task": ["a", "b"]})
+    batch = backbone.preprocess(raw)
+    mean, std = (torch.tensor(stats["observation.state"][k], dtype=torch.float32) for k in ("mean", "std"))
+    assert torch.allclose(batch["observation.state"].float(), (state - mean) / std, atol=1e-5)
+    assert all(v.device.type == "cpu" for v in batch.values() if torch.is_tensor(v))
+    noise = torch.zeros(2, 10, backbone.info.max_action_dim)
+    assert backbone.sample_actions(batch, noise).shape == (2, 10, 7)
 
 
 def test_smolvla_base_saved_stats_do_not_cover_libero_so_dataset_stats_are_required(in_world):

@@ -17,7 +17,7 @@ from bench.cells import CellSpec
 from bench.runner import run_cell
 from bench.train import NonFiniteLoss
 
-BACKBONES = ("smolvla", "pi05")
+BACKBONES = ("smolvla", "pi05", "pi0")
 
 
 def paired(better: dict, worse: dict, margin: float = 0.05) -> tuple[float, float]:
@@ -128,7 +128,8 @@ def test_same_cell_twice_gives_the_same_mse(tiny_ws):
 
 
 def test_nan_features_fail_the_cell_naming_the_step(tiny_ws):
-    tiny_ws.feature_transforms["blind"] = lambda f: {k: v * float("nan") for k, v in f.items()}
+    tiny_ws.feature_transforms["blind"] = lambda f, _rows: {k: v * float("nan")
+                                                            for k, v in f.items()}
     try:
         with pytest.raises(NonFiniteLoss, match=r"loss is nan at step 0 of"):
             cell(tiny_ws, "graft", "pi05", "blind", seed=7)

@@ -1,0 +1,97 @@
+"""pi0 (LeRobot 0.6.1 `PI0Policy`) behind the `Backbone` interface, real or tiny.
+
+The adapter is backbones.paligemma's (loading: paligemma_load), shared with pi0.5: the graft point is
+`PaliGemmaWithExpertModel.embed_image` (modeling_pi0.py:287-296), SigLIP -> multi_modal_projector,
+with no scaling of image embeddings afterwards (embed_prefix :487-527); the loss calls the INNER
+`PI0Pytorch.forward` (:592-641), because `PI0Policy.forward` (:1094-1131) takes no noise/time and
+counts padded chunk steps. pi0's own: the state is ONE continuous token, `state_proj` of the padded
+normalised state at the head of the action expert's suffix (:529-549), so the inner forward takes
+it (the adapter pads it with the policy's own `prepare_state`, :1048-1051); the time is
+concatenated with each action token and mixed by an MLP (:558-575; no adaRMS); MEAN_STD
+normalisation of state and action (configuration_pi0.py:71-77); tokenizer length 48 (:103).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from backbones import paligemma, paligemma_load
+from backbones.base import BackboneInfo
+from backbones.paligemma import PaliGemmaBackbone
+
+REAL_REPO_ID = "lerobot/pi0_base"
+MARKER_FILE = "graftbench_pi0.json"  # written by save_pretrained: tiny arch, cameras, rename map
+
+NATIVE_FEATURE_DOC = (
+    "SigLIP vision tower last_hidden_state (after its post-layernorm, BEFORE PaliGemma's "
+    "multi_modal_projector), computed from the image the policy feeds embed_image (resized with "
+    "padding to config.image_resolution, scaled to [-1, 1]); tokens reshaped row-major to "
+    "(B, C, h, w): (B, 1152, 16, 16) for pi0_base, (B, 32, 4, 4) for the tiny build"
+)
+
+FAMILY = paligemma.PaliGemmaFamily(
+    name="pi0", label="pi0", policy_type="pi0", class_prefix="PI0", marker_file=MARKER_FILE,
+    normalization="MEAN_STD", stat_names=("mean", "std"),  # configuration_pi0.py:71-77
+    state_token=True, native_feature_doc=NATIVE_FEATURE_DOC,
+)
+
+INFO_REAL = BackboneInfo(
+    name="pi0",
+    native_grid=(16, 16),  # 224 px / patch 14 (configuration_pi0.py:25; SigLIP So400m)
+    lm_width=2048,  # gemma_2b width (modeling_pi0.py:172-180)
+    chunk_size=50,
+    max_action_dim=32,
+    num_denoise_steps=10,
+    native_feature_doc=NATIVE_FEATURE_DOC,
+)
+
+
+class PI0Backbone(PaliGemmaBackbone):
+    """A real `PI0Policy` with its own pre/post processors (see backbones.base for the contract)."""
+
+    family = FAMILY
+
+
+def build_tiny_policy(
+    stats: dict,
+    camera_keys=("observation.images.image", "observation.images.wrist_image"),
+    image_hw: tuple[int, int] = (64, 64),
+    state_dim: int = 8,
+    action_dim: int = 7,
+    chunk_size: int = 10,
+    seed: int = 0,
+) -> PI0Backbone:
+    """A real PI0Policy with tiny sizes (~0.2M parameters), offline, deterministic from `seed`."""
+    return paligemma.build_tiny_policy(PI0Backbone, stats, camera_keys, image_hw, state_dim,
+                                       action_dim, chunk_size, seed)
+
+
+def save_pretrained(backbone: PI0Backbone, folder: str | os.PathLike) -> Path:
+    """Policy (config + safetensors), both processors and our marker into `folder`."""
+    return paligemma.save_pretrained(backbone, folder)
+
+
+def load_policy(path_or_repo_id: str, stats: dict | None = None, *, revision: str | None = None,
+                device: str | None = None) -> PI0Backbone:
+    """A saved folder (tiny or real) or a hub repo id from the HF cache (backbones.paligemma_load)."""
+    return paligemma_load.load_policy(PI0Backbone, path_or_repo_id, stats, revision=revision,
+                                      device=device)
+
+
+def artifacts(repo_id: str, revision: str | None, needed_by: str) -> list:
+    """What loading `repo_id` reads from the hub: the checkpoint and the PaliGemma tokenizer."""
+    return paligemma_load.artifacts(repo_id, revision, needed_by)
+
+
+def check_real_shapes() -> dict[str, int]:
+    """Build the REAL pi0 model on the meta device (no weights) and embed one 224 px image.
+
+    Returns {"tokens_per_camera": 256, "lm_width": 2048} for LeRobot's default PI0Config.
+    """
+    return paligemma.check_real_shapes(FAMILY)
+
+
+def _adapt_real_config(config, stats: dict | None) -> tuple[dict[str, str], tuple[str, ...]]:
+    """LIBERO view of a released pi0 config (in place): rename map, cameras kept."""
+    return paligemma_load.adapt_real_config(config, stats, FAMILY)
