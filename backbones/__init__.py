@@ -28,6 +28,8 @@ class BackboneEntry:
     stats: str = "dataset"
     # Is this the study's choice (base releases) or an option beside it.
     study: bool = True
+    # Parameters of the real release: the report orders backbones small to large by it.
+    params: float = float("inf")
 
     def __post_init__(self) -> None:
         if self.stats not in ("dataset", "checkpoint"):
@@ -46,24 +48,25 @@ def register(entry: BackboneEntry) -> None:
 # Revisions: docs/HUB_FACTS.md (the commit most projects pin / the main seen, 2026).
 register(BackboneEntry("smolvla", "backbones.smolvla", "lerobot/smolvla_base",
                        "SmolVLA-450M (SmolVLM2 LM, width 960, 64 image tokens per camera)",
-                       revision="c83c3163b8ca9b7e67c509fffd9121e66cb96205"))
+                       revision="c83c3163b8ca9b7e67c509fffd9121e66cb96205", params=450e6))
 register(BackboneEntry("pi05", "backbones.pi05", "lerobot/pi05_base",
                        "pi0.5-3.3B (PaliGemma/Gemma-2B, width 2048, 256 image tokens per camera)",
-                       revision="b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba"))
+                       revision="b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba", params=3.3e9))
 # pi0: PaliGemma like pi0.5, the state a continuous token (an option beside the study's two).
 register(BackboneEntry("pi0", "backbones.pi0", "lerobot/pi0_base",
                        "pi0-3.5B (PaliGemma/Gemma-2B, width 2048, 256 image tokens per camera, "
                        "continuous state token)",
-                       revision="25c379b52ba2ff8788cab921758a3cc3fe3f77f2", study=False))
+                       revision="25c379b52ba2ff8788cab921758a3cc3fe3f77f2", study=False,
+                       params=3.5e9))
 # LIBERO-trained releases: a native reference that acts on LIBERO (not the study's choice).
 register(BackboneEntry("smolvla_libero", "backbones.smolvla", "HuggingFaceVLA/smolvla_libero",
                        "SmolVLA-450M fine-tuned on LIBERO (its own saved stats)",
                        revision="6721902bc4d61e50a3bfdb11dfb4cb626f05d102", stats="checkpoint",
-                       study=False))
+                       study=False, params=450e6))
 register(BackboneEntry("pi05_libero", "backbones.pi05", "lerobot/pi05_libero_finetuned",
                        "pi0.5-3.3B fine-tuned on LIBERO (its own saved stats)",
                        revision="dbf8a3f794a9c4297b44f40b752712f50073d945", stats="checkpoint",
-                       study=False))
+                       study=False, params=3.3e9))
 
 
 def get_entry(name: str) -> BackboneEntry:

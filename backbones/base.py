@@ -121,3 +121,13 @@ class Backbone:
     def language_model(self) -> torch.nn.Module:
         """The frozen LM that the LoRA control adapts (its attention has q_proj/v_proj)."""
         raise NotImplementedError
+
+
+def only_step(pipeline, step: type | str):
+    """The single step of a LeRobot processor `pipeline` of class `step` (a class or its name)."""
+    name = step if isinstance(step, str) else step.__name__
+    steps = [s for s in pipeline.steps if type(s).__name__ == name]
+    if len(steps) != 1:
+        names = [type(s).__name__ for s in pipeline.steps]
+        raise RuntimeError(f"expected one {name} among the processor steps {names}")
+    return steps[0]

@@ -1,6 +1,6 @@
-"""What both adapters need from the Hugging Face cache and LeRobot's saved processors.
+"""What the adapters need from the Hugging Face cache and LeRobot's saved processors.
 
-One owner for: the offline switch, cache look-ups at a pinned revision, the overrides that make a
+Cache look-ups and fix lines: bench.hubcache. One owner here for: the overrides that make a
 checkpoint's SAVED processor pipeline fit the policy we built (LeRobot's own lerobot_train.py
 ~356-377 passes the same ones), and the check that the resulting normaliser covers the state and
 action it will see (a hub `policy_preprocessor.json` may carry `"features": {}`, which makes the
@@ -9,41 +9,19 @@ normaliser pass the state through untouched without a word).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
-import os
 from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
 
+from bench.hubcache import (  # noqa: F401  (re-exported: the adapters read them as hub.*)
+    cached_file, download_command, hub_artifact, hub_offline, resolved_revision,
+)
+
 STATE_KEY, ACTION_KEY = "observation.state", "action"
-
-
-def hub_offline() -> bool:
-    """HF_HUB_OFFLINE as set now (env) or as huggingface_hub read it at import."""
-    from huggingface_hub import constants
-
-    flag = os.environ.get("HF_HUB_OFFLINE", "").strip().upper() in {"1", "ON", "YES", "TRUE"}
-    return flag or bool(constants.HF_HUB_OFFLINE)
-
-
-def cached_file(repo_id: str, filename: str, revision: str | None = None) -> Path | None:
-    """The cached path of `filename` in `repo_id` at `revision` (default main), or None."""
-    from huggingface_hub import try_to_load_from_cache
-
-    found = try_to_load_from_cache(repo_id, filename, revision=revision)
-    return Path(found) if isinstance(found, str) else None
-
-
-def resolved_revision(repo_id: str, revision: str | None = None, repo_type: str = "model") -> str | None:
-    """The commit sha the cache holds for `repo_id` at `revision` (a sha stays itself)."""
-    from huggingface_hub import constants
-
-    if revision and len(revision) == 40 and all(c in "0123456789abcdef" for c in revision):
-        return revision
-    folder = Path(constants.HF_HUB_CACHE) / f"{repo_type}s--{repo_id.replace('/', '--')}"
-    ref = folder / "refs" / (revision or "main")
-    return ref.read_text().strip() if ref.is_file() else None
 
 
 def default_device() -> str:
@@ -120,38 +98,6 @@ def normalizer_stats(pipeline) -> dict:
     raise RuntimeError(f"{pipeline.name} has no (un)normaliser step")
 
 
-def download_command(repo_id: str, revision: str | None = None, include: tuple[str, ...] = (),
-                     repo_type: str = "model", files: tuple[str, ...] = ()) -> str:
-    """The `hf download` line that puts `repo_id` (or just `files` of it) into the Hugging Face
-    cache graftbench reads. One owner for every fix message (policies, datasets, timm weights)."""
-    parts = ["hf download"]
-    if repo_type != "model":
-        parts.append(f"--repo-type {repo_type}")
-    parts += [repo_id, *files]
-    if revision:
-        parts.append(f"--revision {revision}")
-    if include:
-        parts.append("--include " + " ".join(f'"{p}"' for p in include))
-    return " ".join(parts)
-
-
-def hub_artifact(kind: str, repo_id: str, files: tuple[str, ...], needed_by: str,
-                 revision: str | None = None, include: tuple[str, ...] = (), note: str = ""):
-    """An Artifact for `files` of `repo_id` at `revision` in the Hugging Face cache."""
-    from huggingface_hub import constants
-
-    from bench.artifacts import Artifact
-
-    missing = [f for f in files if cached_file(repo_id, f, revision) is None]
-    if missing:
-        at = f"@{revision}" if revision else ""
-        where = f"{constants.HF_HUB_CACHE} lacks {repo_id}{at}: {', '.join(missing)}"
-        fix = download_command(repo_id, revision, include)
-    else:
-        where, fix = str(cached_file(repo_id, files[0], revision).parent), ""
-    return Artifact(kind, repo_id, needed_by, not missing, where, fix, revision, note)
-
-
 def require_present(artifacts) -> None:
     """Offline, raise BackboneUnavailable (one line, with the fix) for the first missing one;
     online, let LeRobot download what is missing."""
@@ -222,3 +168,29 @@ def saved_normalizer_stats(source: str, revision: str | None = None) -> dict | N
         key, stat = flat.rsplit(".", 1)
         stats.setdefault(key, {})[stat] = tensor
     return stats
+
+
+@contextlib.contextmanager
+def errors_as_unavailable(repo_id: str, artifacts: Callable[[], list], what: str = "",
+                          local: tuple[str, ...] = ()) -> Iterator[None]:
+    """Hub and auth errors while loading (online: a gated tokenizer, a missing revision;
+    offline: a file the cache lacks) as one BackboneUnavailable line naming the fix of each of
+    `artifacts()`. Errors loading local folders (`repo_id` and every `local` path) pass as they
+    are: their own message is the clearest."""
+    from huggingface_hub.errors import HfHubHTTPError
+
+    from backbones.base import BackboneUnavailable
+
+    try:
+        yield
+    except (HfHubHTTPError, OSError) as error:  # transformers and LeRobot raise OSError subclasses
+        if all(Path(p).is_dir() for p in (repo_id, *local)):
+            raise
+        fixes = "; ".join(f"`{a.fix or download_command(a.repo_id, a.revision)}`"
+                          + (f" ({a.note})" if a.note else "") for a in artifacts())
+        reason = " ".join(str(error).split())[:240]
+        raise BackboneUnavailable(
+            f"could not load {repo_id}{what} ({type(error).__name__}: {reason}); fix: "
+            f"{fixes or 'check the network and your hub token'} on a networked machine with the "
+            "same HF_HOME, or pass a local checkpoint folder"
+        ) from error

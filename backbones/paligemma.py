@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from backbones import hub
-from backbones.base import Backbone, BackboneInfo, ImageEmbedder
+from backbones.base import Backbone, BackboneInfo, ImageEmbedder, only_step
 from backbones.tiny_pi05 import (
     LEROBOT_PIN,
     TOKENIZER_DIRNAME,
@@ -189,15 +189,6 @@ class PaliGemmaBackbone(Backbone):
 
     def language_model(self) -> torch.nn.Module:
         return self.policy.model.paligemma_with_expert.paligemma.model.language_model
-
-
-def only_step(pipeline, class_name: str):
-    """The single step of `pipeline` whose class is named `class_name`."""
-    steps = [s for s in pipeline.steps if type(s).__name__ == class_name]
-    if len(steps) != 1:
-        names = [type(s).__name__ for s in pipeline.steps]
-        raise RuntimeError(f"expected one {class_name} among the processor steps {names}")
-    return steps[0]
 
 
 def _on_action(step, actions: Tensor) -> Tensor:

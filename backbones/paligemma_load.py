@@ -13,10 +13,10 @@ import contextlib
 import io
 import json
 from pathlib import Path
-from typing import Iterator
+
 
 from backbones import hub
-from backbones.base import BackboneUnavailable
+from backbones.base import only_step
 from backbones.paligemma import (
     ACTION_KEY,
     PALIGEMMA_TOKENIZER_REPO,
@@ -24,7 +24,6 @@ from backbones.paligemma import (
     TOKENIZER_SUBDIR,
     PaliGemmaBackbone,
     PaliGemmaFamily,
-    only_step,
 )
 from backbones.tiny_pi05 import TinyPI05Arch, require_pinned_lerobot, tiny_pi05_patches
 
@@ -181,20 +180,6 @@ def _require_cached(repo_id: str, revision: str | None = None) -> None:
     hub.require_present(artifacts(repo_id, revision, f"backbone {repo_id}"))
 
 
-@contextlib.contextmanager
-def _hub_errors_as_unavailable(repo_id: str, revision: str | None) -> Iterator[None]:
-    """Hub/auth errors while loading (online: gated tokenizer, missing revision) as one line."""
-    from huggingface_hub.errors import HfHubHTTPError
-
-    try:
-        yield
-    except (HfHubHTTPError, OSError) as error:  # transformers and LeRobot raise OSError subclasses
-        if Path(repo_id).is_dir():
-            raise
-        fixes = "; ".join(f"`{a.fix}`" + (f" ({a.note})" if a.note else "")
-                          for a in artifacts(repo_id, revision, repo_id))
-        reason = " ".join(str(error).split())[:240]
-        raise BackboneUnavailable(
-            f"could not load {repo_id} or its tokenizer ({type(error).__name__}: {reason}); "
-            f"fix: {fixes or 'check the network and your hub token'}"
-        ) from error
+def _hub_errors_as_unavailable(repo_id: str, revision: str | None):
+    return hub.errors_as_unavailable(repo_id, lambda: artifacts(repo_id, revision, repo_id),
+                                     what=" or its tokenizer")

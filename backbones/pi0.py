@@ -20,7 +20,6 @@ from backbones import paligemma, paligemma_load
 from backbones.base import BackboneInfo
 from backbones.paligemma import PaliGemmaBackbone
 
-REAL_REPO_ID = "lerobot/pi0_base"
 MARKER_FILE = "graftbench_pi0.json"  # written by save_pretrained: tiny arch, cameras, rename map
 
 NATIVE_FEATURE_DOC = (

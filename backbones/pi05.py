@@ -17,7 +17,6 @@ from backbones import paligemma, paligemma_load
 from backbones.base import BackboneInfo
 from backbones.paligemma import PaliGemmaBackbone
 
-REAL_REPO_ID = "lerobot/pi05_base"
 MARKER_FILE = "graftbench_pi05.json"  # written by save_pretrained: tiny arch, cameras, rename map
 
 NATIVE_FEATURE_DOC = (

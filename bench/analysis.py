@@ -245,13 +245,15 @@ def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
     return ranking
 
 
-BACKBONE_PARAMS = {"smolvla": 450e6, "smolvla_libero": 450e6, "pi05": 3.3e9,
-                   "pi05_libero": 3.3e9}  # orders "small" before "large"
-
-
 def backbone_order(backbones: Sequence[str]) -> list[str]:
-    """Backbones smallest first (known sizes), unknown ones after, by name."""
-    return sorted(set(backbones), key=lambda b: (BACKBONE_PARAMS.get(b, float("inf")), b))
+    """Backbones smallest first (the registry's parameter counts), unknown ones after, by name."""
+    from backbones import BACKBONES  # plain dataclasses: no adapter is imported
+
+    def size(b: str) -> float:
+        entry = BACKBONES.get(b)
+        return entry.params if entry is not None else float("inf")
+
+    return sorted(set(backbones), key=lambda b: (size(b), b))
 
 
 def rank_all(records: Sequence[dict], *, n_resamples: int = DEFAULT_RESAMPLES,

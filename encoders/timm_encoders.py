@@ -105,7 +105,7 @@ def _cached_weight_file(repo_id: str, revision: str | None, files: tuple[str, ..
 
 def fetch_command(repo_id: str, revision: str | None, filename: str) -> str:
     """The shell command that puts one weight file of `repo_id` in the HF hub cache."""
-    from backbones.hub import download_command
+    from bench.hubcache import download_command
 
     return download_command(repo_id, revision, files=(filename,))
 

@@ -16,7 +16,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from backbones.hub import hub_offline
+from bench.hubcache import hub_offline
 from bench.artifacts import Artifact
 from bench.suites.base import (
     ACTION_KEY,
@@ -125,7 +125,7 @@ def locate(repo_id: str, root: str | Path | None = None,
 
 def download_command(repo_id: str, revision: str | None = None) -> str:
     """The shell command that puts `repo_id` in the HF hub cache, where locate() finds it."""
-    from backbones.hub import download_command as hf_download
+    from bench.hubcache import download_command as hf_download
 
     return hf_download(repo_id, revision, repo_type="dataset")
 
