@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 import scipy.stats
 
-from bench.records import GRAFT
+from bench.kinds import GRAFT
 
 METRICS = ("normalized", "raw")
 PRIMARY = "normalized"

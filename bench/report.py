@@ -22,10 +22,12 @@ from bench.analysis import DEFAULT_RESAMPLES, rank_all
 from bench.analysis_controls import control_deltas, vision_checks, wrapper_neutrality
 from bench.analysis_rollouts import closed_loop_all
 from bench.analysis_transfer import support_counts, transfer_all
-from bench.records import GRAFT, Results, load_results
+from bench.kinds import GRAFT
+from bench.records import Results, load_results
+from bench.report_context import ReportContext
 from bench.report_provenance import per_task_section, provenance_section
 from bench.report_sections import (
-    ReportContext, answer_lines, caveats, closed_loop_section, controls_section, plots_section,
+    answer_lines, caveats, closed_loop_section, controls_section, plots_section,
     rankings_section, seed_section, tie_section, transfer_section, vision_section,
     wrapper_section,
 )

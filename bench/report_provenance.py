@@ -12,7 +12,7 @@ import numpy as np
 from bench.analysis import PRIMARY
 from bench.kinds import column_label
 from bench.report_format import bullets, num, table
-from bench.report_sections import ReportContext
+from bench.report_context import ReportContext
 from bench.study import DISAGREES, NOT_RECORDED, OURS, STUDY, STUDY_SOURCE, compare_records
 
 PHASES = ("build", "features", "train", "eval", "total")

@@ -6,17 +6,11 @@ Provenance and per-task sections live in report_provenance.py.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
-
-from bench.analysis import CONFIDENCE, PRIMARY, Ranking
-from bench.analysis_controls import (
-    UNCHECKED_HINT, VISION_RULE, ControlDelta, VisionCheck, VisionComparison, WrapperNeutrality,
-)
-from bench.analysis_rollouts import ClosedLoop
-from bench.analysis_transfer import SUPPORT_RULES, Transfer, min_exact_kendall_p
+from bench.analysis import CONFIDENCE, PRIMARY
+from bench.analysis_controls import UNCHECKED_HINT, VISION_RULE, VisionCheck, VisionComparison
+from bench.analysis_transfer import SUPPORT_RULES, min_exact_kendall_p
 from bench.kinds import get_kind
-from bench.records import Results
+from bench.report_context import ReportContext
 from bench.report_format import bullets, half_width, interval, num, pct, table, yes_no
 from bench.study import DISAGREES, compare_records
 
@@ -30,36 +24,6 @@ INTERVAL_METHOD = (
     "replicate draws one set of window indices and applies it to every cell (all encoders, all "
     "seeds) of the backbone x suite, so differences are paired; seeds are kept, not resampled."
 )
-
-
-@dataclass
-class ReportContext:
-    """Everything the sections need, computed once from the stored records."""
-
-    results: Results
-    out_path: Path
-    rankings: list[Ranking]
-    transfers: list[Transfer]
-    support: dict
-    wrapper: dict[tuple[str, str], WrapperNeutrality]
-    controls: list[ControlDelta]
-    plots: list[tuple[str, Path]] = field(default_factory=list)
-    n_resamples: int = 0
-    closed_loop: list[ClosedLoop] = field(default_factory=list)
-    vision: list[VisionCheck] = field(default_factory=list)
-
-    @property
-    def records(self) -> list[dict]:
-        return self.results.records
-
-    def vision_of(self, backbone: str, suite: str) -> VisionCheck | None:
-        return next((v for v in self.vision if (v.backbone, v.suite) == (backbone, suite)), None)
-
-    def wrapper_text(self, backbone: str, suite: str) -> str:
-        wn = self.wrapper.get((backbone, suite))
-        if wn is None or not wn.mean:
-            return "not measured (no native + native_wrapped pair)"
-        return f"{pct(wn.mean[PRIMARY])} (mean over seeds {sorted(wn.per_seed)})"
 
 
 def _gap(c: VisionComparison) -> str:
