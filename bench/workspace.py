@@ -13,7 +13,7 @@ import torch
 
 from backbones import get_entry
 from backbones.released import Normalizer, load_released, normalizer_for
-from bench.features import FeatureCache
+from bench.features import FeatureStore
 from bench.paths import cache_dir
 from bench.progress import say
 from bench.protocol import Profile
@@ -47,11 +47,16 @@ class Workspace:
     _backbones: dict = field(default_factory=dict)  # (name, normaliser fingerprint) -> adapter
     _normalizers: dict = field(default_factory=dict)
     _encoders: dict = field(default_factory=dict)
-    _features: FeatureCache | None = None
+    # How stored features are kept on disk: "fp16" (default: closest to float32 of the half
+    # dtypes, docs/PERFORMANCE.md), "bf16" (for encoders beyond fp16's range: the build says
+    # so), or "float32" (the encoder's numbers bit for bit, 2x the disk).
+    feature_dtype: str = "fp16"
+    _features: FeatureStore | None = None  # opened lazily; keeps each stored file open
     # graft cell id -> runner.TrainedProjector: its shuffled/zero-at-eval controls reuse it.
     trained_projectors: dict = field(default_factory=dict)
     _session_dir: tempfile.TemporaryDirectory | None = None
-    # Test-only hook: name -> function(features dict) -> features dict (planted regressions).
+    # Test-only hook (planted regressions): encoder name -> function(features, frames) applied
+    # to every batch read, features {camera: (B, T, C) float32}, frames (B,) global indices.
     feature_transforms: dict = field(default_factory=dict)
 
     def session_dir(self) -> Path:
@@ -142,10 +147,12 @@ class Workspace:
         return self._encoders[name]
 
     def features(self, encoder_name: str, suite_name: str, grid: tuple[int, int]) -> dict:
-        if self._features is None:
-            self._features = FeatureCache(self.cache / "features")
-        feats = self._features.pooled_features(
-            self.encoder(encoder_name), self.suite(suite_name), grid, progress=self.progress
-        )
-        transform = self.feature_transforms.get(encoder_name)
-        return transform(feats) if transform else feats
+        """{camera: view} of the stored features: `view[frames]` -> (B, rows*cols, C) float32 on
+        the CPU, read from disk and pooled to `grid` per batch; `view.shape` is (N, rows*cols, C).
+        The file is built on first use (resumable) and opened once per session."""
+        if self._features is None or self._features.dtype != self.feature_dtype:
+            self._features = FeatureStore(self.cache / "features", dtype=self.feature_dtype,
+                                          progress=self.progress)
+        return self._features.pooled_features(
+            self.encoder(encoder_name), self.suite(suite_name), grid,
+            transform=self.feature_transforms.get(encoder_name))

@@ -214,6 +214,10 @@ def test_degrade_features_blinds_a_fraction_of_the_given_frames():
     half = degrade_features({"cam": x}, 0.5, [1, 3])["cam"]
     assert sum(torch.equal(half[i], torch.ones(2, 2)) for i in range(6)) == 1
     assert torch.equal(x, torch.arange(24.0).reshape(6, 2, 2))  # input untouched
+    # Per batch (the feature store applies it to each batch read): rows name the global frames.
+    rows = torch.tensor([3, 0, 3, 5])
+    batch = degrade_features({"cam": x[rows]}, 0.5, [1, 3], rows=rows)["cam"]
+    assert torch.equal(batch, half[rows])
 
 
 # ---------------------------------------------------------------------------------------------
