@@ -48,6 +48,7 @@ class CellJob:
     cache_dir: str
     features_mode: str = "cache"
     rollouts: int = 0  # closed-loop episodes per task (--rollouts)
+    feature_dtype: str = "fp16"  # --feature-dtype
 
 
 def run_cell_job(job: CellJob) -> dict:
@@ -63,7 +64,7 @@ def run_cell_job(job: CellJob) -> dict:
 
     store = ResultStore(Path(job.results_dir))
     ws = Workspace(job.profile, store, progress=False, cache=Path(job.cache_dir),
-                   rollouts=job.rollouts)
+                   rollouts=job.rollouts, feature_dtype=job.feature_dtype)
     try:
         return run_cell(job.cell, ws, features_mode=job.features_mode)
     except Exception as e:

@@ -237,6 +237,7 @@ def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
         **(noted if transform is not None else {}),  # never resumed, never a baseline
         "grid": list(inputs.grid),
         "features_mode": features_mode if inputs.encoder is not None else None,
+        **({"feature_dtype": ws.feature_dtype} if inputs.features is not None else {}),
         "profile": ws.profile.name, "protocol": p.to_dict(), "protocol_hash": p.hash,
         "checkpoint": {**checkpoint_id(cell.backbone, ws.profile),
                        "normalizer": ws.normalizer(cell.backbone, cell.suite).source,

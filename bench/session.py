@@ -57,6 +57,7 @@ class GraftSession:
                                        self.results_dir)
         self.rerun = bool(config.getoption("--rerun"))
         self.features_mode = config.getoption("--features")
+        self.feature_dtype = config.getoption("--feature-dtype")
         self.rollouts = int(config.getoption("--rollouts") or 0)
         if self.rollouts < 0:
             raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
@@ -167,6 +168,9 @@ class GraftSession:
         record = self.store.current(cell.id, self.profile.protocol.hash)
         if record is not None and self.rollouts and not has_rollouts(record, self.rollouts):
             return None  # the offline part is current, the closed loop is not: measure again
+        if record is not None and record.get("features_mode") == "cache" and \
+                record.get("feature_dtype", "float32") != self.feature_dtype:
+            return None  # features stored at another precision (records before it: float32)
         if record is not None:
             # Measured with another normaliser (other stats or checkpoint): measure again.
             expected = self.workspace().normalizer(cell.backbone, cell.suite).fingerprint
@@ -196,7 +200,7 @@ class GraftSession:
                 self.rerun or not self._current(c))]
             paths = (str(self.results_dir), str(cache_dir()))
             self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
-                                             self.rollouts) for c in todo])
+                                             self.rollouts, self.feature_dtype) for c in todo])
         try:
             return self._cell_array.result(cell.id)
         except Exception as e:  # the task died before writing its own failure record
@@ -250,7 +254,8 @@ def _default_workspace(session: GraftSession):
         threads, why = serial_threads()
         torch.set_num_threads(threads)
         say(sink, f"torch threads: {threads} ({why})")
-    return Workspace(session.profile, session.store, progress=sink, rollouts=session.rollouts)
+    return Workspace(session.profile, session.store, progress=sink, rollouts=session.rollouts,
+                     feature_dtype=session.feature_dtype)
 
 
 def serial_threads() -> tuple[int, str]:
