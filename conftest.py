@@ -18,11 +18,11 @@ def _option_from_argv(argv: list[str], option: str) -> str | None:
 
 
 def _profile_from_argv(argv: list[str]) -> str:
-    """--profile, else the `profile` of the --grid file (bench.gridfile), else tiny."""
+    """--profile, else the `profile` of the --grid file (bench.grid.gridfile), else tiny."""
     profile = _option_from_argv(argv, "--profile")
     grid = _option_from_argv(argv, "--grid")
     if profile is None and grid is not None:
-        from bench.gridfile import base_profile_of
+        from bench.grid.gridfile import base_profile_of
 
         profile = base_profile_of(grid)
     return profile or "tiny"

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from bench.gridfile import read_grid_file
+from bench.grid.gridfile import read_grid_file
 from bench.paths import REPO_ROOT
-from bench.kinds import control_kinds
-from bench.protocol import get_profile, with_overrides
+from bench.grid.kinds import control_kinds
+from bench.grid.protocol import get_profile, with_overrides
 
 DEFAULT_PROFILE = "tiny"
 
@@ -26,7 +26,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--profile",
                 help="tiny (offline default, 28 cells), tiny-full (136 cells), paper, sim")
     g.addoption("--grid", metavar="FILE.toml",
-                help="a study in a TOML file (schema: bench/gridfile.py); its path, sha256 and "
+                help="a study in a TOML file (schema: bench/grid/gridfile.py); its path, sha256 and "
                      "text go into every record. Options given here override its values: "
                      "--profile its base profile, --backbones etc. its lists, --steps its steps")
     g.addoption("--backbones", help="comma list, e.g. smolvla,pi05")
@@ -50,13 +50,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      "cell's MSE < 1e-4 relative, docs/PERFORMANCE.md), bf16, or float32 (the "
                      "encoder's numbers bit for bit, twice the disk)")
     _add_executor_options(g)
-    from bench.regression_run import add_baseline_options
+    from bench.regression.run import add_baseline_options
 
     add_baseline_options(parser)
 
 
 def _add_executor_options(g) -> None:
-    """Where cells run (bench.executors): here, or as one submitit job array."""
+    """Where cells run (bench.run.executors): here, or as one submitit job array."""
     g.addoption("--executor", default="local", choices=("local", "slurm", "submitit-local"),
                 help="local (default): in this process; slurm: the selected cells as ONE Slurm "
                      "job array via submitit; submitit-local: the same on this machine")

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from bench.cells import CellSpec, control_cells, graft_cells
+from bench.grid.cells import CellSpec, control_cells, graft_cells
 from bench.options import (  # noqa: F401  (pytest_addoption: the hook, found here by name)
     check_writable,
     pytest_addoption,

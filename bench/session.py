@@ -1,8 +1,8 @@
 """One pytest run of the grid: `GraftSession` holds the profile, the results store, the
-workspace, the baseline work (save / compare / fail, bench.regression_run) and what ran.
+workspace, the baseline work (save / compare / fail, bench.regression.run) and what ran.
 
 bench.plugin's hooks only hand work on to it. Its seams are public attributes, set before the
-first cell runs: `cell_runner(cell, workspace, features_mode) -> record` (bench.runner.run_cell),
+first cell runs: `cell_runner(cell, workspace, features_mode) -> record` (bench.run.runner.run_cell),
 `workspace_factory(session) -> workspace`, `report_builder(results_dir, path, extra_sections=)`
 (bench.report.build_report). Tests replace those, never private state.
 """
@@ -16,11 +16,11 @@ from typing import Callable
 
 import pytest
 
-from bench.cells import GRAFT, CellSpec
+from bench.grid.cells import GRAFT, CellSpec
 from bench.options import check_rollouts_possible, build_profile, offline_env, report_path
 from bench.paths import REPO_ROOT
 from bench.progress import say
-from bench.regression_run import BaselineRun
+from bench.regression.run import BaselineRun
 
 
 def _unavailable_errors() -> tuple[type, ...]:
@@ -33,13 +33,13 @@ def _unavailable_errors() -> tuple[type, ...]:
 
 
 def _run_cell(cell, ws, features_mode):
-    from bench.runner import run_cell
+    from bench.run.runner import run_cell
 
     return run_cell(cell, ws, features_mode=features_mode)
 
 
 def _build_report(results_dir, path, extra_sections=()):
-    from bench.report import build_report
+    from bench.report.build import build_report
 
     return build_report(results_dir, path, extra_sections=list(extra_sections))
 
@@ -73,11 +73,11 @@ class GraftSession:
         self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
         self.selected: list[str] = []
         self.report_written: Path | None = None
-        self._cell_array = None  # bench.executors.CellArray, when --executor is not local
+        self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
 
     @property
     def store(self):
-        from bench.store import ResultsDirError, ResultStore
+        from bench.results.store import ResultsDirError, ResultStore
 
         if self._store is None:
             try:  # first opened at collection: a UsageError there, never an INTERNALERROR
@@ -122,7 +122,7 @@ class GraftSession:
         try:
             record = self.cell_runner(cell, self.workspace(), self.features_mode)
         except Exception as e:
-            from bench.record import failure_record
+            from bench.results.record import failure_record
 
             self.store.write_failure(failure_record(cell, self.profile.protocol.hash, e))
             if isinstance(e, _unavailable_errors()):  # a missing artifact: its line, no traceback
@@ -147,7 +147,7 @@ class GraftSession:
             self.outcomes[cell] = failure_line(self.results_dir, cell, report.longreprtext)
 
     def _say_start(self, cell: CellSpec) -> None:
-        from bench.runner import shared_projector_key
+        from bench.run.runner import shared_projector_key
 
         ws = self.workspace()
         position = self.selected.index(cell.id) + 1 if cell.id in self.selected else "?"
@@ -163,7 +163,7 @@ class GraftSession:
     def _current(self, cell: CellSpec) -> dict | None:
         """The stored record of `cell` if it is current: same protocol hash and, with
         --rollouts, closed-loop episodes of the requested size."""
-        from bench.closed_loop import has_rollouts
+        from bench.run.closed_loop import has_rollouts
 
         record = self.store.current(cell.id, self.profile.protocol.hash)
         if record is not None and self.rollouts and not has_rollouts(record, self.rollouts):
@@ -181,9 +181,9 @@ class GraftSession:
     def _run_submitted(self, cell: CellSpec) -> dict:
         """--executor slurm|submitit-local: the first case submits every selected cell that has
         no current record as ONE job array; each case then waits for its own task."""
-        from bench.executors import CellArray, CellJob, SlurmOptions
+        from bench.run.executors import CellArray, CellJob, SlurmOptions
         from bench.paths import cache_dir
-        from bench.record import failure_record
+        from bench.results.record import failure_record
 
         if self._cell_array is None:
             opt = self.config.getoption
@@ -245,7 +245,7 @@ class GraftSession:
 
 def _default_workspace(session: GraftSession):
     """The real workspace, with this process's torch threads set first."""
-    from bench.workspace import Workspace
+    from bench.run.workspace import Workspace
 
     sink = session.progress_sink()
     if not hasattr(session.config, "workerinput"):  # workers: bench.plugin split the CPUs

@@ -5,7 +5,7 @@ A case asserts what must hold of any cell (finite loss that went down, the freez
 recorded MSE); it never asserts a ranking: rankings are the report's business.
 """
 
-from bench.record import validate_record
+from bench.results.record import validate_record
 from bench.summary import OUTCOME_PROPERTY
 
 

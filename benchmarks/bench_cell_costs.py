@@ -1,12 +1,12 @@
 """What one cell costs, phase by phase, on the tiny profile (the offline world).
 
-- step_cached: one projector training step as the runner takes it (bench.train.fit), pooled
+- step_cached: one projector training step as the runner takes it (bench.run.train.fit), pooled
   features gathered from the cache;
 - step_naive_<encoder>: the same step with the encoder in the loop (pixels -> encoder -> pool);
 - floor: the frozen backbone's own forward + backward on pre-projected inputs (the image
   embedder returns a fixed tensor that requires grad; batches prepared beforehand);
 - features:<encoder>: feature extraction (image load + encoder + pooling) per frame;
-- eval_*: offline scoring (bench.evaluate.score) of the held-out windows, batched, and one
+- eval_*: offline scoring (bench.run.evaluate.score) of the held-out windows, batched, and one
   window per sampler call for contrast.
 """
 
@@ -17,14 +17,14 @@ from dataclasses import dataclass
 import pytest
 import torch
 
-from bench.evaluate import score
-from bench.features import encode_pooled
-from bench.graft import GraftFeed, Projector
-from bench.protocol import TINY, with_overrides
-from bench.store import ResultStore
+from bench.run.evaluate import score
+from bench.run.features import encode_pooled
+from bench.run.graft import GraftFeed, Projector
+from bench.grid.protocol import TINY, with_overrides
+from bench.results.store import ResultStore
 from bench.suites.windows import raw_batch
-from bench.train import FitConfig, batch_order, fit
-from bench.workspace import Workspace
+from bench.run.train import FitConfig, batch_order, fit
+from bench.run.workspace import Workspace
 
 BACKBONES = ("pi05", "smolvla")
 STEPS = 5  # training steps per timed call (fit's own set-up is amortised over them)
@@ -69,7 +69,7 @@ def _placeholders(world: World, raw: dict, n: int) -> dict:
 
 
 def _train_projector(world: World, channels: int, next_batch, steps: int = STEPS) -> None:
-    """`steps` projector steps through bench.train.fit, as bench.runner.run_cell runs them."""
+    """`steps` projector steps through bench.run.train.fit, as bench.run.runner.run_cell runs them."""
     torch.manual_seed(0)
     projector = Projector(channels, world.backbone.info.lm_width)
     feed = GraftFeed(projector, world.backbone.camera_keys, world.grid)

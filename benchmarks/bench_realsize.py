@@ -17,13 +17,13 @@ import os
 import pytest
 import torch
 
-from bench.evaluate import score
-from bench.graft import GraftFeed, Projector
-from bench.protocol import PAPER, TINY, with_overrides
-from bench.store import ResultStore
+from bench.run.evaluate import score
+from bench.run.graft import GraftFeed, Projector
+from bench.grid.protocol import PAPER, TINY, with_overrides
+from bench.results.store import ResultStore
 from bench.suites.windows import raw_batch
-from bench.train import FitConfig, fit, frozen_autocast
-from bench.workspace import Workspace
+from bench.run.train import FitConfig, fit, frozen_autocast
+from bench.run.workspace import Workspace
 
 CUDA = torch.cuda.is_available()
 pytestmark = pytest.mark.skipif(
@@ -41,7 +41,7 @@ def real(tmp_path_factory):
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
-    from backbones.released import union_stats
+    from bench.run.releases import union_stats
     from backbones.smolvla import SmolVLABackbone
     from backbones.tiny_smolvla import libero_smolvla_config, real_shape_vlm_folder
 

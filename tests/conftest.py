@@ -13,8 +13,8 @@ import pytest  # noqa: E402
 def tiny_ws(tmp_path_factory):
     """The tiny profile's workspace (shared caches: released checkpoints, suites, features) with
     a private results store, shared by the tests that run real cells."""
-    from bench.protocol import TINY
-    from bench.store import ResultStore
-    from bench.workspace import Workspace
+    from bench.grid.protocol import TINY
+    from bench.results.store import ResultStore
+    from bench.run.workspace import Workspace
 
     return Workspace(TINY, ResultStore(tmp_path_factory.mktemp("results")), progress=False)

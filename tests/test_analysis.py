@@ -1,22 +1,22 @@
-"""Known-answer tests of the statistics in bench.analysis*, on hand-made arrays and records."""
+"""Known-answer tests of the statistics in bench.analysis.rankings*, on hand-made arrays and records."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from bench.analysis import (
+from bench.analysis.rankings import (
     WindowMismatchError, align_windows, encoder_means, paired_window_bootstrap, rank_all,
     rank_encoders, seed_winner_index, top_tier_mask,
 )
-from bench.analysis_controls import (
+from bench.analysis.controls import (
     UNCHECKED_HINT, control_deltas, relative_delta, vision_check, vision_checks,
     wrapper_neutrality,
 )
-from bench.analysis_transfer import (
+from bench.analysis.transfer import (
     min_exact_kendall_p, rank_agreement, support_counts, transfer_all,
 )
-from bench.records import make_grid, make_record
+from bench.results.records import make_grid, make_record
 
 ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 RESAMPLES = 400  # enough for stable percentile intervals on these small, clean grids

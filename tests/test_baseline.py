@@ -11,8 +11,8 @@ import pytest
 
 import backbones  # noqa: F401  imported before pytester's sys.modules snapshot: the in-process
 import encoders  # noqa: F401   runs then reuse them (re-importing torchvision ops would fail)
-from bench import baseline as B
-from bench.records import make_record
+from bench.regression import baseline as B
+from bench.results.records import make_record
 
 pytest_plugins = ["pytester"]
 
@@ -205,7 +205,7 @@ def test_baseline_names():
 def test_degrade_features_blinds_a_fraction_of_the_given_frames():
     import torch
 
-    from bench.regression_run import degrade_features
+    from bench.regression.run import degrade_features
 
     x = torch.arange(24.0).reshape(6, 2, 2)
     full = degrade_features({"cam": x}, 1.0, [1, 3])["cam"]
@@ -231,7 +231,7 @@ from pathlib import Path
 import pytest
 
 from bench.plugin import SESSION_KEY
-from bench.records import make_record
+from bench.results.records import make_record
 
 pytest_plugins = ["bench.plugin"]
 
@@ -239,8 +239,8 @@ pytest_plugins = ["bench.plugin"]
 @pytest.hookimpl(trylast=True)
 def pytest_configure(config):
     """The session's seams: a workspace with no models, a cell runner writing hand-made records
-    (marked with an installed feature transform, as bench.runner marks them), and a report
-    builder that keeps the sections it is handed (REPORT.md itself: bench.report's tests)."""
+    (marked with an installed feature transform, as bench.run.runner marks them), and a report
+    builder that keeps the sections it is handed (REPORT.md itself: bench.report.build's tests)."""
     gs = config.stash[SESSION_KEY]
     levels = json.loads(Path("levels.json").read_text())
     gs.workspace_factory = lambda session: types.SimpleNamespace(feature_transforms={},

@@ -1,7 +1,7 @@
 import pytest
 
-from bench.cells import CellSpec, control_cells, graft_cells
-from bench.protocol import TINY, TINY_FULL, get_profile, with_overrides
+from bench.grid.cells import CellSpec, control_cells, graft_cells
+from bench.grid.protocol import TINY, TINY_FULL, get_profile, with_overrides
 
 
 def test_ids_read_as_the_cell():

@@ -9,14 +9,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from bench.cells import CellSpec
-from bench.closed_loop import (
+from bench.grid.cells import CellSpec
+from bench.run.closed_loop import (
     NO_CLOSED_LOOP, cell_act, has_rollouts, make_act, observation_noise,
 )
-from bench.features import encode_pooled
-from bench.graft import GraftFeed, Projector
+from bench.run.features import encode_pooled
+from bench.run.graft import GraftFeed, Projector
 from bench.suites.windows import raw_batch
-from bench.train import frozen_autocast
+from bench.run.train import frozen_autocast
 
 
 def observations(ws, n=6):
@@ -26,7 +26,7 @@ def observations(ws, n=6):
 
 
 def offline_actions(backbone, obs, noise, feed=None, features=None):
-    """What bench.evaluate.score computes for these windows, in raw units."""
+    """What bench.run.evaluate.score computes for these windows, in raw units."""
     info = backbone.info
     raw = {**obs, "action": torch.zeros((len(obs["task"]), info.chunk_size, 7)),
            "action_is_pad": torch.zeros((len(obs["task"]), info.chunk_size), dtype=torch.bool)}

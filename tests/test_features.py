@@ -1,4 +1,4 @@
-"""pool_grid known answers and the feature store (bench.features, bench.feature_store)."""
+"""pool_grid known answers and the feature store (bench.run.features, bench.run.feature_store)."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import pytest
 import torch
 from torch import Tensor
 
-from bench import feature_store as fs
-from bench.features import FeatureStore, encode_pooled, feature_key, pool_grid
+from bench.run import feature_store as fs
+from bench.run.features import FeatureStore, encode_pooled, feature_key, pool_grid
 from bench.paths import REPO_ROOT
 from encoders import build_encoder
 
@@ -296,7 +296,7 @@ def test_resume_recomputes_from_the_first_chunk_that_fails_its_crc(tmp_path):
 KILLED_BUILD = """
 import sys
 sys.path.insert(0, {repo!r})
-from bench.features import FeatureStore
+from bench.run.features import FeatureStore
 from encoders import build_encoder
 from tests.test_features import CountingEncoder, FakeSuite
 

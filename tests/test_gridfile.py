@@ -1,4 +1,4 @@
-"""A study in a file (`pytest bench --grid study.toml`, bench.gridfile): the file gives the grid,
+"""A study in a file (`pytest bench --grid study.toml`, bench.grid.gridfile): the file gives the grid,
 the command line overrides it, its hash goes into every record, and a bad file is one line."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import json
 
 import pytest
 
-from bench.gridfile import GridFileError, read_grid_file
+from bench.grid.gridfile import GridFileError, read_grid_file
 from bench.options import build_profile
 from bench.paths import REPO_ROOT
-from bench.protocol import TINY, TINY_FULL, with_overrides
+from bench.grid.protocol import TINY, TINY_FULL, with_overrides
 from tests.test_grid_plugin import run_bench
 
 STUDY = """\
@@ -137,9 +137,9 @@ def test_the_offline_switch_reads_the_files_profile(tmp_path):
 
 
 def test_records_carrying_a_grid_file_are_valid_and_the_report_names_it(tmp_path):
-    from bench.record import validate_record
-    from bench.records import make_record, save_record
-    from bench.report import build_report
+    from bench.results.record import validate_record
+    from bench.results.records import make_record, save_record
+    from bench.report.build import build_report
 
     grid_file = {"path": "study.toml", "sha256": "ab" * 32, "text": STUDY}
     filed = [make_record(encoder=e, grid_file=grid_file) for e in ("pixels", "blind")]

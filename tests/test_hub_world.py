@@ -77,7 +77,7 @@ def _artifact_paths(hub_cache: Path) -> dict[str, Path]:
 
 def test_removing_any_one_artifact_makes_the_preflight_name_exactly_it(in_world, tmp_path):
     from bench.preflight import grid_artifacts
-    from bench.protocol import PAPER_ENCODERS
+    from bench.grid.protocol import PAPER_ENCODERS
 
     def missing():
         found = grid_artifacts(["smolvla", "pi05", "pi0"], PAPER_ENCODERS, ["spatial", "object"])

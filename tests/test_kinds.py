@@ -9,18 +9,18 @@ import re
 
 import pytest
 
-from bench import kinds
-from bench.cells import CellSpec, control_cells, graft_cells
-from bench.kinds import CELL_KINDS, CellKind, control_kinds, register_kind, unregister_kind
+from bench.grid import kinds
+from bench.grid.cells import CellSpec, control_cells, graft_cells
+from bench.grid.kinds import CELL_KINDS, CellKind, control_kinds, register_kind, unregister_kind
 from bench.paths import REPO_ROOT
-from bench.protocol import TINY_FULL, with_overrides
-from bench.record import validate_record
-from bench.records import load_results, make_record, save_record
+from bench.grid.protocol import TINY_FULL, with_overrides
+from bench.results.record import validate_record
+from bench.results.records import load_results, make_record, save_record
 
 
 def test_every_consumer_knows_the_same_kinds():
     """Cells, --controls, records and the report's control analysis read one table."""
-    from bench.analysis_controls import control_deltas
+    from bench.analysis.controls import control_deltas
     from bench.options import build_profile
 
     table = set(CELL_KINDS)
@@ -46,9 +46,9 @@ def test_every_consumer_knows_the_same_kinds():
 
 
 def test_no_module_spells_a_kind_name_outside_the_table():
-    """A kind's name is a string in bench/kinds.py only (profiles name the controls they run,
-    as they name encoders: bench/protocol.py is allowed that)."""
-    allowed = {"bench/kinds.py", "bench/protocol.py", "bench/test_grid.py"}
+    """A kind's name is a string in bench/grid/kinds.py only (profiles name the controls they run,
+    as they name encoders: bench/grid/protocol.py is allowed that)."""
+    allowed = {"bench/grid/kinds.py", "bench/grid/protocol.py", "bench/test_grid.py"}
     names = "|".join(re.escape(n) for n in CELL_KINDS)
     literal = re.compile(rf"""["']({names})["']""")
     offenders = []
@@ -59,7 +59,7 @@ def test_no_module_spells_a_kind_name_outside_the_table():
         for n, line in enumerate(path.read_text().splitlines(), 1):
             if literal.search(line.split("#")[0]):
                 offenders.append(f"{rel}:{n}: {line.strip()}")
-    assert not offenders, "kind names spelled outside bench/kinds.py:\n" + "\n".join(offenders)
+    assert not offenders, "kind names spelled outside bench/grid/kinds.py:\n" + "\n".join(offenders)
 
 
 @pytest.fixture
@@ -74,10 +74,10 @@ def twin_kind():
 def test_a_new_control_kind_runs_records_and_reports(twin_kind, tmp_path):
     """Round trip: the runner writes the records, load_results reads them, the report shows
     the new kind; nothing but the table entry was added."""
-    from bench.report import build_report
-    from bench.runner import run_cell
-    from bench.store import ResultStore
-    from bench.workspace import Workspace
+    from bench.report.build import build_report
+    from bench.run.runner import run_cell
+    from bench.results.store import ResultStore
+    from bench.run.workspace import Workspace
 
     profile = with_overrides(TINY_FULL, steps=20, backbones=("pi05",), suites=("spatial",),
                              encoders=("pixels",), seeds=(0,), controls=("native", "twin"))
@@ -98,7 +98,7 @@ def test_a_new_control_kind_runs_records_and_reports(twin_kind, tmp_path):
 
 
 def test_fabricated_records_follow_the_writers_format(tmp_path):
-    """Test records (bench.records.make_record) carry the ids CellSpec gives and read back."""
+    """Test records (bench.results.records.make_record) carry the ids CellSpec gives and read back."""
     record = make_record(kind="pooling", encoder="pixels", variant="half")
     assert record["cell_id"] == CellSpec("pooling", "smolvla", "spatial", 0, "pixels", "half").id
     save_record(tmp_path, record)

@@ -13,9 +13,9 @@ import pytest
 import torch
 from scipy.stats import wilcoxon
 
-from bench.cells import CellSpec
-from bench.runner import run_cell
-from bench.train import NonFiniteLoss
+from bench.grid.cells import CellSpec
+from bench.run.runner import run_cell
+from bench.run.train import NonFiniteLoss
 
 BACKBONES = ("smolvla", "pi05", "pi0")
 
@@ -78,8 +78,8 @@ def test_one_token_pooling_is_worse_than_the_native_grid(tiny_ws, backbone):
 def test_released_tiny_policy_beats_an_untrained_one(tiny_ws):
     """The native training produced a real policy: clearly better than the same class untrained."""
     from backbones import adapter_module
-    from backbones.released import union_stats
-    from bench.evaluate import score
+    from bench.run.releases import union_stats
+    from bench.run.evaluate import score
 
     for name in BACKBONES:
         released = tiny_ws.backbone(name)

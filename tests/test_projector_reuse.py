@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import pytest
 
-from bench.cells import CellSpec
-from bench.protocol import TINY, with_overrides
-from bench.runner import run_cell, shared_projector_key
-from bench.store import ResultStore
-from bench.workspace import Workspace
+from bench.grid.cells import CellSpec
+from bench.grid.protocol import TINY, with_overrides
+from bench.run.runner import run_cell, shared_projector_key
+from bench.results.store import ResultStore
+from bench.run.workspace import Workspace
 
 PROFILE = with_overrides(TINY, steps=12)
 

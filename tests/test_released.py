@@ -6,8 +6,8 @@ import dataclasses
 
 import torch
 
-from backbones.released import drop_states, release_key
-from bench.protocol import TINY
+from bench.run.releases import drop_states, release_key
+from bench.grid.protocol import TINY
 
 
 def test_state_dropout_replaces_whole_rows_with_the_mean_at_the_given_rate():

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.records import load_results, make_failed, make_grid, make_record, save_record
-from bench.report import SECTIONS, build_report, main
+from bench.results.records import load_results, make_failed, make_grid, make_record, save_record
+from bench.report.build import SECTIONS, build_report, main
 
 ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 RESAMPLES = 200

@@ -2,7 +2,7 @@ import json
 
 import pytest
 
-from bench.store import ResultStore, ResultsDirError, atomic_write_json
+from bench.results.store import ResultStore, ResultsDirError, atomic_write_json
 
 
 def test_write_load_and_resume_by_protocol_hash(tmp_path):

@@ -7,9 +7,9 @@ import inspect
 
 import pytest
 
-from bench.protocol import PAPER_ENCODERS, Protocol
-from bench.records import make_record
-from bench.study import (
+from bench.grid.protocol import PAPER_ENCODERS, Protocol
+from bench.results.records import make_record
+from bench.report.study import (
     DISAGREES, MAPPED_FIELDS, NOT_RECORDED, OUR_CODE, OURS, STUDY, STUDY_CONSTANTS, as_text,
     compare_protocol, compare_records, observed_from_records,
 )
@@ -131,10 +131,10 @@ def test_as_text():
 
 def test_our_code_facts_match_the_code():
     """OUR_CODE states facts no record carries; these fail when the code moves under them."""
-    import bench.train
+    import bench.run.train
     from encoders.registry import get_spec
 
-    source = inspect.getsource(bench.train)
+    source = inspect.getsource(bench.run.train)
     assert "torch.optim.AdamW(" in source and OUR_CODE["optimiser"] == "AdamW"
     assert "accumulat" not in source.lower() and OUR_CODE["gradient accumulation"] is False
     assert set(OUR_CODE["input sizes"]) == set(PAPER_ENCODERS)

@@ -1,0 +1,1 @@
+"""Pure functions of stored records: rankings, controls, transfer between backbones, closed loop."""

@@ -1,0 +1,271 @@
+"""Encoder rankings per backbone x suite: means over seeds, window-bootstrap intervals, tie bands.
+
+Pure functions over arrays first (`paired_window_bootstrap`, `top_tier_mask`, `seed_winner_index`),
+then `rank_encoders` / `rank_all`, which turn stored records into `Ranking`s.
+
+Interval method (stated in the report): scipy.stats.bootstrap with paired=True over the held-out
+WINDOWS. One resample draws window indices once and applies them to every cell (all encoders, all
+seeds) of a backbone x suite, so encoder differences are paired on identical windows; seeds are
+not resampled (the interval is the evaluation-set uncertainty given the trained projectors).
+Percentile intervals, `n_resamples` replicates, fixed `random_seed`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Sequence
+
+import numpy as np
+import scipy.stats
+
+from bench.grid.kinds import GRAFT
+
+METRICS = ("normalized", "raw")
+PRIMARY = "normalized"
+DEFAULT_RESAMPLES = 2000
+CONFIDENCE = 0.95
+
+
+class WindowMismatchError(ValueError):
+    """Cells of one backbone x suite were scored on different held-out windows."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure statistics over arrays
+
+
+@dataclass
+class BootstrapResult:
+    """Per-encoder arrays, each (E,): mean over seeds, its interval, paired diff vs the leader."""
+
+    mean: np.ndarray
+    mean_lo: np.ndarray
+    mean_hi: np.ndarray
+    diff: np.ndarray
+    diff_lo: np.ndarray
+    diff_hi: np.ndarray
+
+
+def encoder_means(per_window: np.ndarray, leader: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean over present seeds of window means, and mean paired difference vs `leader`.
+
+    per_window: (E, S, W) float with NaN rows where encoder e has no seed s; trailing batch
+    axes are allowed after W is reduced, i.e. input (E, S, ..., W). Returns two (E, ...) arrays;
+    the difference averages only seeds both encoders have (NaN where they share none)."""
+    seed_means = per_window.mean(axis=-1)  # (E, S, ...)
+    present = np.isfinite(seed_means)
+    filled = np.where(present, seed_means, 0.0)
+    n_present = present.sum(axis=1)
+    means = filled.sum(axis=1) / np.where(n_present > 0, n_present, np.nan)
+    common = present & present[leader][None]
+    n_common = common.sum(axis=1)
+    diffs = np.where(common, filled - filled[leader][None], 0.0).sum(axis=1)
+    diffs = diffs / np.where(n_common > 0, n_common, np.nan)
+    return means, diffs
+
+
+def paired_window_bootstrap(per_window: np.ndarray, leader: int, *,
+                            n_resamples: int = DEFAULT_RESAMPLES,
+                            confidence_level: float = CONFIDENCE,
+                            random_seed: int = 0) -> BootstrapResult:
+    """Percentile intervals for encoder means and paired differences vs `leader`.
+
+    per_window: (E, S, W) float, NaN rows for absent (encoder, seed) cells. Window indices are
+    resampled once per replicate and shared by every present row (scipy paired bootstrap).
+    With W < 2 the intervals are NaN."""
+    per_window = np.asarray(per_window, dtype=float)
+    n_enc, n_seed, n_win = per_window.shape
+    means, diffs = encoder_means(per_window, leader)
+    nan = np.full(n_enc, np.nan)
+    if n_win < 2:
+        return BootstrapResult(means, nan, nan.copy(), diffs, nan.copy(), nan.copy())
+    rows = [(e, s) for e in range(n_enc) for s in range(n_seed)
+            if np.all(np.isfinite(per_window[e, s]))]
+
+    def statistic(*samples: np.ndarray, axis: int = -1) -> np.ndarray:
+        batch = samples[0].shape[:-1]
+        grid = np.full((n_enc, n_seed) + batch + (1,), np.nan)
+        for (e, s), sample in zip(rows, samples):
+            grid[e, s] = np.mean(sample, axis=axis)[..., None]
+        m, d = encoder_means(grid, leader)
+        return np.concatenate([m, np.nan_to_num(d)], axis=0)
+
+    data = tuple(per_window[e, s] for e, s in rows)
+    result = scipy.stats.bootstrap(data, statistic, paired=True, vectorized=True,
+                                   n_resamples=n_resamples, confidence_level=confidence_level,
+                                   method="percentile", rng=np.random.default_rng(random_seed))
+    lo = np.asarray(result.confidence_interval.low)
+    hi = np.asarray(result.confidence_interval.high)
+    no_common = ~np.isfinite(diffs)
+    diff_lo, diff_hi = lo[n_enc:].copy(), hi[n_enc:].copy()
+    diff_lo[no_common] = np.nan
+    diff_hi[no_common] = np.nan
+    return BootstrapResult(means, lo[:n_enc], hi[:n_enc], diffs, diff_lo, diff_hi)
+
+
+def top_tier_mask(diff_lo: np.ndarray, diff_hi: np.ndarray, leader: int) -> np.ndarray:
+    """(E,) bool: the leader, and every encoder whose paired-difference interval contains 0."""
+    lo, hi = np.asarray(diff_lo, dtype=float), np.asarray(diff_hi, dtype=float)
+    with np.errstate(invalid="ignore"):
+        mask = (lo <= 0.0) & (hi >= 0.0)
+    mask[leader] = True
+    return mask
+
+
+def seed_winner_index(seed_means: np.ndarray) -> np.ndarray:
+    """(S,) int: per seed, the encoder row with the lowest MSE; -1 where no encoder has it.
+
+    seed_means: (E, S) float, NaN where absent. Ties go to the lower row index."""
+    seed_means = np.asarray(seed_means, dtype=float)
+    filled = np.where(np.isfinite(seed_means), seed_means, np.inf)
+    winners = filled.argmin(axis=0)
+    winners[~np.isfinite(filled.min(axis=0))] = -1
+    return winners
+
+
+# ---------------------------------------------------------------------------------------------
+# Records -> rankings
+
+
+@dataclass
+class EncoderResult:
+    """One encoder on one backbone x suite. Values are MSE; `diff` is encoder minus leader."""
+
+    encoder: str
+    rank: int
+    seeds: list[int]
+    per_seed: dict[str, dict[int, float]]  # metric -> seed -> MSE
+    mean: dict[str, float]
+    ci: dict[str, tuple[float, float]]
+    diff: dict[str, float]
+    diff_ci: dict[str, tuple[float, float]]
+    in_top_tier: bool
+
+
+@dataclass
+class Ranking:
+    """Graft encoders of one backbone x suite, best (lowest mean normalised MSE) first."""
+
+    backbone: str
+    suite: str
+    encoders: list[EncoderResult] = field(default_factory=list)
+    seeds: list[int] = field(default_factory=list)
+    n_windows: int = 0
+    seed_winners: dict[int, str] = field(default_factory=dict)
+    error: str | None = None
+
+    @property
+    def leader(self) -> str | None:
+        return self.encoders[0].encoder if self.encoders else None
+
+    @property
+    def top_tier(self) -> list[str]:
+        return [e.encoder for e in self.encoders if e.in_top_tier]
+
+    @property
+    def seed_sensitive(self) -> bool:
+        """True when different seeds are won by different encoders."""
+        return len(set(self.seed_winners.values())) > 1
+
+    def mean_of(self, encoder: str, metric: str = PRIMARY) -> float:
+        return next(e.mean[metric] for e in self.encoders if e.encoder == encoder)
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out.update(leader=self.leader, top_tier=self.top_tier, seed_sensitive=self.seed_sensitive)
+        return out
+
+
+def align_windows(cells: Sequence[dict]) -> tuple[list[int], list[np.ndarray]]:
+    """Window ids of the first cell and each cell's per-window index order matching them.
+
+    Raises WindowMismatchError naming both cells when a cell's window ids differ as a set."""
+    reference = cells[0]
+    ref_ids = [int(w) for w in reference["window_ids"]]
+    position = {w: i for i, w in enumerate(ref_ids)}
+    orders = []
+    for cell in cells:
+        ids = [int(w) for w in cell["window_ids"]]
+        if len(ids) != len(ref_ids) or set(ids) != set(ref_ids):
+            extra = sorted(set(ids) - set(ref_ids))[:5]
+            absent = sorted(set(ref_ids) - set(ids))[:5]
+            raise WindowMismatchError(
+                f"{cell['cell_id']} was scored on other held-out windows than "
+                f"{reference['cell_id']} (extra ids {extra}, absent ids {absent}); all cells of a "
+                f"backbone x suite must share the protocol's split (compare protocol_hash)")
+        order = np.empty(len(ids), dtype=int)
+        for i, w in enumerate(ids):
+            order[position[w]] = i
+        orders.append(order)
+    return ref_ids, orders
+
+
+def graft_cells(records: Sequence[dict], backbone: str, suite: str) -> list[dict]:
+    return [r for r in records if r["kind"] == GRAFT and r["backbone"] == backbone
+            and r["suite"] == suite]
+
+
+def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
+                  n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> Ranking:
+    """Rank the graft cells of `backbone` x `suite` by mean normalised MSE over seeds."""
+    ranking = Ranking(backbone=backbone, suite=suite)
+    cells = graft_cells(records, backbone, suite)
+    if not cells:
+        ranking.error = "no graft cells"
+        return ranking
+    window_ids, orders = align_windows(cells)
+    encoders = sorted({c["encoder"] for c in cells})
+    seeds = sorted({int(c["seed"]) for c in cells})
+    ranking.seeds, ranking.n_windows = seeds, len(window_ids)
+    arrays = {m: np.full((len(encoders), len(seeds), len(window_ids)), np.nan) for m in METRICS}
+    for cell, order in zip(cells, orders):
+        e, s = encoders.index(cell["encoder"]), seeds.index(int(cell["seed"]))
+        for m in METRICS:
+            arrays[m][e, s] = np.asarray(cell["per_window"][m], dtype=float)[order]
+    point, _ = encoder_means(arrays[PRIMARY], 0)
+    order_idx = sorted(range(len(encoders)), key=lambda i: (point[i], encoders[i]))
+    leader = order_idx[0]
+    boot = {m: paired_window_bootstrap(arrays[m], leader, n_resamples=n_resamples,
+                                       random_seed=random_seed) for m in METRICS}
+    tier = top_tier_mask(boot[PRIMARY].diff_lo, boot[PRIMARY].diff_hi, leader)
+    seed_means = {m: arrays[m].mean(axis=-1) for m in METRICS}
+    for rank, i in enumerate(order_idx, start=1):
+        present = [s for j, s in enumerate(seeds) if np.isfinite(seed_means[PRIMARY][i, j])]
+        ranking.encoders.append(EncoderResult(
+            encoder=encoders[i], rank=rank, seeds=present,
+            per_seed={m: {s: float(seed_means[m][i, seeds.index(s)]) for s in present}
+                      for m in METRICS},
+            mean={m: float(boot[m].mean[i]) for m in METRICS},
+            ci={m: (float(boot[m].mean_lo[i]), float(boot[m].mean_hi[i])) for m in METRICS},
+            diff={m: float(boot[m].diff[i]) for m in METRICS},
+            diff_ci={m: (float(boot[m].diff_lo[i]), float(boot[m].diff_hi[i])) for m in METRICS},
+            in_top_tier=bool(tier[i])))
+    winners = seed_winner_index(seed_means[PRIMARY])
+    ranking.seed_winners = {s: encoders[w] for s, w in zip(seeds, winners) if w >= 0}
+    return ranking
+
+
+def backbone_order(backbones: Sequence[str]) -> list[str]:
+    """Backbones smallest first (the registry's parameter counts), unknown ones after, by name."""
+    from backbones import BACKBONES  # plain dataclasses: no adapter is imported
+
+    def size(b: str) -> float:
+        entry = BACKBONES.get(b)
+        return entry.params if entry is not None else float("inf")
+
+    return sorted(set(backbones), key=lambda b: (size(b), b))
+
+
+def rank_all(records: Sequence[dict], *, n_resamples: int = DEFAULT_RESAMPLES,
+             random_seed: int = 0) -> list[Ranking]:
+    """One Ranking per backbone x suite that has graft cells (mismatches become `error`)."""
+    rankings = []
+    pairs = sorted({(r["backbone"], r["suite"]) for r in records if r["kind"] == GRAFT})
+    order = backbone_order([b for b, _ in pairs])
+    for backbone, suite in sorted(pairs, key=lambda p: (p[1], order.index(p[0]))):
+        try:
+            rankings.append(rank_encoders(records, backbone, suite, n_resamples=n_resamples,
+                                          random_seed=random_seed))
+        except WindowMismatchError as err:
+            rankings.append(Ranking(backbone=backbone, suite=suite, error=str(err)))
+    return rankings

@@ -1,0 +1,202 @@
+"""Rank transfer between backbones: Kendall tau-b, weighted tau, tier checks, support counts.
+
+Rules (quoted verbatim in the report, see SUPPORT_RULES):
+- A backbone-suite comparison is one suite and one DIRECTION source -> target between two
+  backbones (small -> large and large -> small). It supports backbone-dependent rankings when
+  the source backbone's winner (lowest mean normalised MSE over seeds) is NOT in the target
+  backbone's top tier (leader plus encoders whose paired 95% difference interval contains 0).
+  Two backbones x S suites give 2S comparisons.
+- A seed-level cell is one suite and one pair (small-backbone seed, large-backbone seed). It
+  supports backbone-dependent rankings when the two seeds' winners differ, winners taken over the
+  encoders present in both seeds. Two backbones with s1 and s2 seeds give s1*s2 cells per suite.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from itertools import combinations
+from typing import Sequence
+
+import numpy as np
+import scipy.stats
+
+from bench.analysis.rankings import PRIMARY, Ranking, backbone_order
+
+SUPPORT_RULES = (
+    "A **backbone-suite comparison** is one suite and one direction (source backbone -> target "
+    "backbone, both directions counted). It *supports backbone-dependent rankings* when the "
+    "source backbone's winner (lowest mean normalised MSE over seeds) is **not** in the target "
+    "backbone's top tier. A **seed-level cell** is one suite and one pair (small-backbone seed, "
+    "large-backbone seed); it supports backbone-dependent rankings when the two seeds' winners "
+    "(over the encoders present in both) differ."
+)
+
+
+def rank_agreement(mse_a: Sequence[float], mse_b: Sequence[float]) -> dict:
+    """Kendall tau-b (scipy, exact p where no ties) and top-weighted tau of two MSE vectors (n,).
+
+    Lower MSE is better, so weightedtau gets -MSE: its hyperbolic weigher then weights
+    agreement at the top of the ranking (best encoders) most."""
+    a, b = np.asarray(mse_a, dtype=float), np.asarray(mse_b, dtype=float)
+    n = len(a)
+    if n < 2:
+        return {"n": n, "tau_b": float("nan"), "p_value": float("nan"),
+                "weighted_tau": float("nan")}
+    kt = scipy.stats.kendalltau(a, b, variant="b", method="auto")
+    wt = scipy.stats.weightedtau(-a, -b)
+    return {"n": n, "tau_b": float(kt.statistic), "p_value": float(kt.pvalue),
+            "weighted_tau": float(wt.statistic)}
+
+
+def min_exact_kendall_p(n: int) -> float:
+    """Smallest two-sided p that scipy's exact Kendall test can give for n items (NaN if n<2)."""
+    if n < 2:
+        return float("nan")
+    return float(scipy.stats.kendalltau(np.arange(n), np.arange(n), method="exact").pvalue)
+
+
+@dataclass
+class SeedCell:
+    suite: str
+    small: str
+    large: str
+    small_seed: int
+    large_seed: int
+    encoders: list[str]
+    small_winner: str | None
+    large_winner: str | None
+    agreement: dict
+    supports: bool | None  # None when fewer than 2 common encoders
+
+
+@dataclass
+class Transfer:
+    """Rank transfer small -> large backbone on one suite (`missing` says why it is partial)."""
+
+    suite: str
+    small: str
+    large: str
+    encoders: list[str] = field(default_factory=list)
+    small_mse: list[float] = field(default_factory=list)
+    large_mse: list[float] = field(default_factory=list)
+    small_ranks: dict[str, int] = field(default_factory=dict)
+    large_ranks: dict[str, int] = field(default_factory=dict)
+    agreement: dict = field(default_factory=dict)
+    min_p: float = float("nan")
+    small_winner: str | None = None
+    large_winner: str | None = None
+    small_winner_in_large_tier: bool | None = None
+    large_winner_in_small_tier: bool | None = None
+    seed_cells: list[SeedCell] = field(default_factory=list)
+    missing: str | None = None
+
+    @property
+    def complete(self) -> bool:
+        return self.missing is None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _seed_cells(suite: str, small: Ranking, large: Ranking) -> list[SeedCell]:
+    cells = []
+    for s_small in small.seeds:
+        for s_large in large.seeds:
+            pairs = []
+            for enc in small.encoders:
+                other = next((e for e in large.encoders if e.encoder == enc.encoder), None)
+                if other is None:
+                    continue
+                a = enc.per_seed[PRIMARY].get(s_small)
+                b = other.per_seed[PRIMARY].get(s_large)
+                if a is not None and b is not None:
+                    pairs.append((enc.encoder, a, b))
+            names = [p[0] for p in pairs]
+            a = [p[1] for p in pairs]
+            b = [p[2] for p in pairs]
+            w_small = names[int(np.argmin(a))] if pairs else None
+            w_large = names[int(np.argmin(b))] if pairs else None
+            cells.append(SeedCell(
+                suite=suite, small=small.backbone, large=large.backbone, small_seed=s_small, large_seed=s_large, encoders=names,
+                small_winner=w_small, large_winner=w_large, agreement=rank_agreement(a, b),
+                supports=(w_small != w_large) if len(pairs) >= 2 else None))
+    return cells
+
+
+def transfer_pair(suite: str, small: Ranking | None, large: Ranking | None,
+                  small_name: str, large_name: str) -> Transfer:
+    """Compare the rankings of two backbones on one suite; partial inputs set `missing`."""
+    t = Transfer(suite=suite, small=small_name, large=large_name)
+    problems = []
+    for name, ranking in ((small_name, small), (large_name, large)):
+        if ranking is None or not ranking.encoders:
+            problems.append(f"{name} has no graft cells on {suite}")
+        elif ranking.error:
+            problems.append(f"{name} x {suite}: {ranking.error}")
+    if problems:
+        t.missing = "needs both backbones: " + "; ".join(problems)
+        return t
+    large_by_name = {e.encoder: e for e in large.encoders}
+    common = [e for e in small.encoders if e.encoder in large_by_name]
+    t.encoders = [e.encoder for e in common]
+    t.small_mse = [e.mean[PRIMARY] for e in common]
+    t.large_mse = [large_by_name[e.encoder].mean[PRIMARY] for e in common]
+    t.small_ranks = {e.encoder: e.rank for e in small.encoders}
+    t.large_ranks = {e.encoder: e.rank for e in large.encoders}
+    t.agreement = rank_agreement(t.small_mse, t.large_mse)
+    t.min_p = min_exact_kendall_p(len(common))
+    t.small_winner, t.large_winner = small.leader, large.leader
+    if small.leader in large_by_name:
+        t.small_winner_in_large_tier = small.leader in large.top_tier
+    if large.leader in {e.encoder for e in small.encoders}:
+        t.large_winner_in_small_tier = large.leader in small.top_tier
+    t.seed_cells = _seed_cells(suite, small, large)
+    only = sorted({e.encoder for e in small.encoders} ^ set(large_by_name))
+    if len(common) < 2:
+        t.missing = f"fewer than 2 encoders on both backbones (common: {t.encoders})"
+    elif only:
+        t.agreement["note"] = f"encoders on one backbone only, left out: {only}"
+    return t
+
+
+def transfer_all(rankings: Sequence[Ranking], backbones: Sequence[str] | None = None,
+                 suites: Sequence[str] | None = None) -> list[Transfer]:
+    """One Transfer per suite and backbone pair (smaller backbone first).
+
+    `backbones`/`suites` name what the grid should hold, so absent ones are reported as missing."""
+    by_key = {(r.backbone, r.suite): r for r in rankings}
+    backbones = backbone_order(list(backbones or []) + [r.backbone for r in rankings])
+    suites = sorted(set(suites or []) | {r.suite for r in rankings})
+    out = []
+    for suite in suites:
+        if len(backbones) < 2:
+            out.append(Transfer(suite=suite, small=backbones[0] if backbones else "?",
+                                large="?", missing=f"needs both backbones: only "
+                                f"{backbones or 'none'} present in the results"))
+            continue
+        for small, large in combinations(backbones, 2):
+            out.append(transfer_pair(suite, by_key.get((small, suite)),
+                                     by_key.get((large, suite)), small, large))
+    return out
+
+
+def support_counts(transfers: Sequence[Transfer]) -> dict:
+    """Counts of comparisons and seed-level cells supporting backbone-dependent rankings."""
+    comparisons = []
+    for t in transfers:
+        if t.missing is not None:
+            continue
+        for source, target, inside in ((t.small, t.large, t.small_winner_in_large_tier),
+                                       (t.large, t.small, t.large_winner_in_small_tier)):
+            if inside is not None:
+                comparisons.append({"suite": t.suite, "source": source, "target": target,
+                                    "supports": not inside})
+    seed_cells = [c for t in transfers if t.missing is None for c in t.seed_cells
+                  if c.supports is not None]
+    return {
+        "comparisons_supporting": sum(c["supports"] for c in comparisons),
+        "comparisons_total": len(comparisons),
+        "comparisons": comparisons,
+        "seed_cells_supporting": sum(c.supports for c in seed_cells),
+        "seed_cells_total": len(seed_cells),
+    }

@@ -1,0 +1,75 @@
+"""Cells of the grid: what one pytest case measures, and which cells a profile selects. What each
+kind of cell means is declared once, in bench.grid.kinds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, CellKind, get_kind
+from bench.grid.protocol import Profile
+from bench.results.record import cell_id
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    kind: str
+    backbone: str
+    suite: str
+    seed: int
+    encoder: str | None = None  # None: the released policy's own tower
+    variant: str | None = None
+
+    def __post_init__(self) -> None:
+        get_kind(self.kind).check(self.encoder, self.variant)
+
+    @property
+    def spec(self) -> CellKind:
+        return get_kind(self.kind)
+
+    @property
+    def trains_projector(self) -> bool:
+        return self.spec.trains_projector(self.encoder)
+
+    @property
+    def id(self) -> str:
+        """Reads as the cell: smolvla-spatial-dinov2_s-seed0, smolvla-spatial-native-seed0,
+        smolvla-spatial-pixels-pool_half-seed0, smolvla-spatial-native-zero_image_eval-seed0."""
+        return cell_id(self.kind, self.backbone, self.suite, self.encoder, self.seed, self.variant)
+
+    @property
+    def reference(self) -> "CellSpec | None":
+        """The cell a control is compared against (its delta's denominator)."""
+        ref = self.spec.reference(self.encoder)
+        if ref is None:
+            return None
+        return CellSpec(ref, self.backbone, self.suite, self.seed,
+                        self.encoder if ref == GRAFT else None)
+
+
+def graft_cells(profile: Profile) -> list[CellSpec]:
+    return [
+        CellSpec(GRAFT, b, s, seed, e)
+        for b in profile.backbones
+        for s in profile.suites
+        for e in profile.encoders
+        for seed in profile.seeds
+    ]
+
+
+def control_cells(profile: Profile) -> list[CellSpec]:
+    """Per backbone x suite x seed: the released policy's controls, then each control encoder's,
+    each in table order (bench.grid.kinds)."""
+    kinds = [k for k in CELL_KINDS.values() if k.name in profile.controls]
+    cells: list[CellSpec] = []
+    for b in profile.backbones:
+        for s in profile.suites:
+            for seed in profile.seeds:
+                cells += [CellSpec(k.name, b, s, seed, None, v)
+                          for k in kinds if k.encoder != "required" for v in k.native_variants]
+                cells += [CellSpec(k.name, b, s, seed, e, v)
+                          for e in profile.control_encoders
+                          for k in kinds if k.encoder != "none" for v in k.variants]
+    return cells
+
+
+__all__ = ["CellSpec", "GRAFT", "NATIVE", "graft_cells", "control_cells"]

@@ -1,0 +1,221 @@
+"""A study in a file: `pytest bench --grid study.toml` reads the grid from TOML, so a study can be
+rerun and shared as one file. The file's path, sha256 and text go into every record.
+
+Schema (every key optional; lists are TOML arrays):
+
+    profile = "tiny"                 # the base profile: tiny, tiny-full, paper, sim
+    backbones = ["pi05"]             # registry names (backbones/)
+    suites = ["spatial"]
+    encoders = ["pixels", "blind", "dinov2_s", "timm:resnet18", "mypkg.enc:make"]
+    seeds = [0, 1]                   # non-negative integers
+    controls = []                    # control kinds (bench/grid/kinds.py), [] runs none; e.g. ["native"]
+    control_encoders = ["pixels"]    # encoders the control cells run for
+    steps = 60                       # projector steps (the same as [protocol] steps: give one)
+
+    [protocol]                       # any bench.grid.protocol.Protocol field by name, its type kept:
+    lr = 0.003                       #   int, float (an int is taken), str, list of str
+    batch_size = 16
+
+Precedence: the base profile (`profile`, else tiny) < the file < the command line. `--profile`
+replaces the file's base profile and the file's other keys still apply on top of it;
+`--backbones`, `--encoders`, `--suites`, `--seeds`, `--controls` and `--steps` each replace the
+file's value. Names (backbones, suites, encoders) are checked at collection, as on the command
+line; everything else here, each error one line naming the file, the key and the valid choices.
+
+Adding a key (the study's [policies] NAME = "REPO_ID_OR_PATH", [datasets], [camera_map]) is one
+entry in `KEYS` or `TABLES` plus the line of `GridFile.apply` that passes it on. A key nothing
+can pass on yet is rejected, never silently ignored.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from bench.grid.kinds import control_kinds
+from bench.grid.protocol import PROFILES, Profile, Protocol, with_overrides
+
+
+class GridFileError(ValueError):
+    """A grid file that cannot be read or breaks the schema: one line naming file and key."""
+
+
+@dataclass(frozen=True)
+class GridFileInfo:
+    """Where a profile came from: the file as given, sha256 of its bytes, and its text."""
+
+    path: str
+    sha256: str
+    text: str
+
+    def provenance(self) -> dict:
+        """The record's `grid_file` field."""
+        return {"path": self.path, "sha256": self.sha256, "text": self.text}
+
+
+@dataclass(frozen=True)
+class GridFile:
+    """A parsed grid file: the base profile's name, Profile fields, steps, Protocol fields."""
+
+    info: GridFileInfo
+    profile: str | None
+    grid: tuple[tuple[str, tuple], ...]  # (Profile field, value) in file order
+    steps: int | None
+    protocol: tuple[tuple[str, Any], ...]  # (Protocol field, value)
+
+    def apply(self, base: Profile) -> Profile:
+        """`base` with the file's values and its provenance (grid_file) set."""
+        with_file = dataclasses.replace(base, protocol=base.protocol.replace(**dict(self.protocol)),
+                                        grid_file=self.info)
+        return with_overrides(with_file, steps=self.steps, **dict(self.grid))
+
+
+# --- value checks: (file, key, value) -> the value as the Profile holds it ---------------------
+
+def _fail(where: str, key: str, problem: str) -> GridFileError:
+    return GridFileError(f"{where}: {key} {problem}")
+
+
+def _profile_name(where: str, key: str, value) -> str:
+    if value not in PROFILES:
+        raise _fail(where, key, f"= {value!r} is not a profile; choose one of {sorted(PROFILES)}")
+    return value
+
+
+def _strings(where: str, key: str, value) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise _fail(where, key, f"= {value!r}: give a list of names, e.g. {key} = [\"pixels\"]")
+    return tuple(value)
+
+
+def _seeds(where: str, key: str, value) -> tuple[int, ...]:
+    if not isinstance(value, list) or not all(
+            isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value):
+        raise _fail(where, key, f"= {value!r}: give a list of non-negative integers, "
+                                "e.g. seeds = [0, 1, 2]")
+    return tuple(value)
+
+
+def _controls(where: str, key: str, value) -> tuple[str, ...]:
+    names = _strings(where, key, value)
+    bad = [c for c in names if c not in control_kinds()]
+    if bad:
+        raise _fail(where, key, f"names unknown control kind(s) {bad}; valid: "
+                                f"{', '.join(control_kinds())} ([] runs none)")
+    return names
+
+
+def _steps(where: str, key: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise _fail(where, key, f"= {value!r}: give a positive integer number of projector steps")
+    return value
+
+
+def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
+    if not isinstance(table, dict):
+        raise _fail(where, key, f"= {table!r}: give a [protocol] table of Protocol fields")
+    defaults = {f.name: f.default for f in dataclasses.fields(Protocol)}
+    out = []
+    for name, value in table.items():
+        if name not in defaults:
+            raise _unknown_key(where, f"[protocol] {name}", name, defaults)
+        out.append((name, _like(where, f"[protocol] {name}", value, defaults[name])))
+    return tuple(out)
+
+
+_KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string",
+          tuple: "a list of strings"}
+
+
+def _like(where: str, key: str, value, default):
+    """`value` as a Protocol field of `default`'s type holds it."""
+    if isinstance(default, bool) or isinstance(value, bool):
+        ok = isinstance(value, bool) and isinstance(default, bool)
+    elif isinstance(default, float):
+        ok = isinstance(value, (int, float))
+        value = float(value) if ok else value
+    elif isinstance(default, tuple):
+        ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
+        value = tuple(value) if ok else value
+    else:
+        ok = isinstance(value, type(default))
+    if not ok:
+        raise _fail(where, key, f"= {value!r}: expected {_KINDS[type(default)]}, as the "
+                                "Protocol field holds")
+    return value
+
+
+def _unknown_key(where: str, key: str, name: str, known) -> GridFileError:
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return _fail(where, key, f"is not a key here{hint}; known: {', '.join(known)}")
+
+
+# Top-level keys and their checks; `GridFile.apply` passes on every one.
+KEYS: dict[str, Callable] = {
+    "profile": _profile_name,
+    "backbones": _strings,
+    "suites": _strings,
+    "encoders": _strings,
+    "seeds": _seeds,
+    "controls": _controls,
+    "control_encoders": _strings,
+    "steps": _steps,
+}
+TABLES: dict[str, Callable] = {"protocol": _protocol}
+PROFILE_FIELDS = ("backbones", "suites", "encoders", "seeds", "controls", "control_encoders")
+
+
+def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
+    """A GridFile from the TOML document `data` of the file `info` describes."""
+    where = info.path
+    known = [*KEYS, *(f"[{t}]" for t in TABLES)]
+    values = {}
+    for key, value in data.items():
+        check = KEYS.get(key) or TABLES.get(key)
+        if check is None:
+            raise _unknown_key(where, key, key, known)
+        values[key] = check(where, key, value)
+    protocol = values.get("protocol", ())
+    if "steps" in values and "steps" in dict(protocol):
+        raise _fail(where, "steps", "is given twice (top level and [protocol]); keep one")
+    return GridFile(info=info, profile=values.get("profile"),
+                    grid=tuple((k, values[k]) for k in PROFILE_FIELDS if k in values),
+                    steps=values.get("steps"), protocol=protocol)
+
+
+def read_grid_file(path: str | Path) -> GridFile:
+    """Read and check a grid file; GridFileError (one line) when it cannot be used."""
+    where = str(path)
+    try:
+        blob = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise GridFileError(f"--grid {where}: no such file; give the path of a TOML study file "
+                            "(schema: bench/grid/gridfile.py)") from None
+    except OSError as e:
+        raise GridFileError(f"--grid {where}: cannot be read ({e.strerror}); give a readable "
+                            "TOML file") from None
+    try:
+        text = blob.decode("utf-8")
+        data = tomllib.loads(text)
+    except UnicodeDecodeError:
+        raise GridFileError(f"{where}: not UTF-8 text; save the grid file as UTF-8") from None
+    except tomllib.TOMLDecodeError as e:
+        raise GridFileError(f"{where}: not valid TOML ({' '.join(str(e).split())}); fix the "
+                            "file (schema: bench/grid/gridfile.py)") from None
+    info = GridFileInfo(path=where, sha256=hashlib.sha256(blob).hexdigest(), text=text)
+    return parse_grid(data, info)
+
+
+def base_profile_of(path: str | Path) -> str | None:
+    """The `profile` a grid file names, or None (also when it cannot be read: the plugin then
+    reports why). For conftest's offline switch, which runs before any option is parsed."""
+    try:
+        return tomllib.loads(Path(path).read_text()).get("profile")
+    except (OSError, ValueError):
+        return None

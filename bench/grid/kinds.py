@@ -1,0 +1,207 @@
+"""Cell kinds: one table entry per kind declares everything the grid, the runner, the records and
+the report know about it. Adding a control kind is one `register_kind(CellKind(...))`.
+
+What a cell feeds the frozen policy is declared as an *input rule* for training and one for
+evaluation, each one of `INPUT_RULES` (the runner implements the three once, bench.run.runner):
+
+- "same": the cell's own frames (pooled encoder features, the native tower's grid, or the images
+  as recorded);
+- "zero": all-zero images (for a graft: the encoder's features of a blank image);
+- "shuffled": another held-out window's images (a fixed derangement of the windows).
+
+This module imports nothing heavy: records, analysis and report read it without torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+SAME, ZERO, SHUFFLED = "same", "zero", "shuffled"
+INPUT_RULES = (SAME, ZERO, SHUFFLED)
+# Why a rule has no closed-loop counterpart: "another window's images" needs a recorded episode
+# to borrow from, and a live scene has none.
+NO_CLOSED_LOOP = {SHUFFLED: "shuffled images have no closed-loop counterpart"}
+
+# The encoder slot of an encoder-optional cell run without an encoder (the released policy).
+NATIVE_SLOT = "native"
+
+
+def _same_grid(native: tuple[int, int], variant: str | None) -> tuple[int, int]:
+    return native
+
+
+def _pooling_grid(native: tuple[int, int], variant: str | None) -> tuple[int, int]:
+    rows, cols = native
+    return {
+        "half": (max(1, rows // 2), max(1, cols // 2)),
+        "double": (rows * 2, cols * 2),
+        "global": (1, 1),
+    }[variant]
+
+
+@dataclass(frozen=True)
+class CellKind:
+    """One kind of cell. `encoder`: "required" (a graft of the named encoder), "none" (the
+    released policy's own tower: native, native_wrapped) or "optional" (either: an image control
+    of a graft or of the released policy)."""
+
+    name: str
+    summary: str  # one line: what the cell measures (--help, report, docs)
+    encoder: str = "required"
+    variants: tuple[str | None, ...] = (None,)
+    # Variants allowed without an encoder ("optional" kinds): the released policy is not retrained.
+    native_variants: tuple[str | None, ...] = (None,)
+    # The native tower's grid through the wrapper instead of an encoder's (native_wrapped).
+    tower: bool = False
+    # LoRA adapters on the frozen LM train beside the projector (the cell gets a private copy).
+    lora: bool = False
+    # The cell's token grid per camera from the backbone's native grid and the variant.
+    grid: Callable[[tuple[int, int], str | None], tuple[int, int]] = _same_grid
+    # Input rule in training, per variant (missing variant: SAME), and in evaluation.
+    train_inputs: tuple[tuple[str | None, str], ...] = ()
+    eval_inputs: str = SAME
+    # Id tag: None -> the kind's name; "{variant}" is filled in (pool_{variant}).
+    tag: str | None = None
+    # A control kind (compared against its reference) or a cell of the rankings (graft, native).
+    control: bool = True
+
+    def __post_init__(self) -> None:
+        if self.encoder not in ("required", "none", "optional"):
+            raise ValueError(f"kind {self.name!r}: encoder={self.encoder!r}")
+        if self.eval_inputs not in INPUT_RULES:
+            raise ValueError(f"kind {self.name!r}: eval rule {self.eval_inputs!r} not in "
+                             f"{INPUT_RULES}")
+        for _, rule in self.train_inputs:  # shuffling needs held-out windows: evaluation only
+            if rule not in (SAME, ZERO):
+                raise ValueError(f"kind {self.name!r}: training rule {rule!r} not in "
+                                 f"{(SAME, ZERO)}")
+
+    # --- what a cell of this kind is --------------------------------------------------------
+    def check(self, encoder: str | None, variant: str | None) -> None:
+        """ValueError naming the problem when (encoder, variant) is not a cell of this kind."""
+        if encoder is None and self.encoder == "required":
+            raise ValueError(f"cell kind {self.name!r} needs an encoder")
+        if encoder is not None and self.encoder == "none":
+            raise ValueError(f"cell kind {self.name!r} runs the policy's own tower: no encoder")
+        allowed = self.variants if encoder is not None else self.native_variants
+        if variant not in allowed:
+            what = "" if encoder is not None else " without an encoder (the policy is not retrained)"
+            raise ValueError(f"{self.name} variant {variant!r}{what} not in {allowed}")
+
+    def trains_projector(self, encoder: str | None) -> bool:
+        """A projector is trained for a graft or the native tower; the released policy as is
+        (native, its image controls) trains nothing."""
+        return self.tower or encoder is not None
+
+    def train_rule(self, variant: str | None) -> str:
+        return dict(self.train_inputs).get(variant, SAME)
+
+    def shares_graft_training(self, encoder: str | None, variant: str | None) -> bool:
+        """Trains exactly its graft's projector (same encoder, grid, inputs, LM): it takes the
+        graft's trained projector instead of training it again; only evaluation differs."""
+        return (encoder is not None and not self.lora and not self.tower
+                and self.grid is _same_grid and self.train_rule(variant) == SAME)
+
+    def reference(self, encoder: str | None) -> str | None:
+        """The kind of the cell a control is compared against: its graft, or the native policy."""
+        if not self.control:
+            return None
+        return GRAFT if encoder is not None else NATIVE
+
+    def id_parts(self, encoder: str | None, variant: str | None) -> list[str]:
+        """The middle of the cell id (between backbone-suite and seed)."""
+        if self.encoder == "none":
+            return [self.name]
+        slot = (encoder or NATIVE_SLOT).replace(":", "_").replace("/", "_")
+        if not self.control:
+            return [slot]
+        tag = (self.tag or self.name).format(variant=variant)
+        return [slot, tag]
+
+    def label(self, encoder: str | None, variant: str | None) -> str:
+        """How the report names a cell of this kind, seeds aside: 'pooling[half] of pixels'."""
+        if not self.control:
+            return encoder or self.name
+        if self.encoder == "none":
+            return self.name
+        what = self.name + (f"[{variant}]" if variant else "")
+        return f"{what} of {encoder or NATIVE_SLOT}"
+
+
+GRAFT = "graft"
+NATIVE = "native"
+NATIVE_WRAPPED = "native_wrapped"
+CELL_KINDS: dict[str, CellKind] = {}
+
+
+def register_kind(kind: CellKind) -> CellKind:
+    if kind.name in CELL_KINDS:
+        raise ValueError(f"cell kind {kind.name!r} registered twice")
+    CELL_KINDS[kind.name] = kind
+    return kind
+
+
+def unregister_kind(name: str) -> None:
+    """Tests that register a kind of their own take it out again."""
+    CELL_KINDS.pop(name)
+
+
+def get_kind(name: str) -> CellKind:
+    try:
+        return CELL_KINDS[name]
+    except KeyError:
+        raise ValueError(f"unknown cell kind {name!r}; valid kinds: {', '.join(CELL_KINDS)}") from None
+
+
+def control_kinds() -> tuple[str, ...]:
+    """The kinds `--controls` may name, in table order."""
+    return tuple(k.name for k in CELL_KINDS.values() if k.name != GRAFT)
+
+
+# Table order is the order of control cells in the grid (and of --controls' help).
+register_kind(CellKind(GRAFT, "the encoder grafted through the projector", control=False))
+register_kind(CellKind(NATIVE, "the released policy as is (no training)", encoder="none",
+                       control=False))
+register_kind(CellKind(NATIVE_WRAPPED, "the policy's own tower through the wrapper: a "
+                       "projector trained on the native grid (wrapper neutrality)",
+                       encoder="none", tower=True))
+register_kind(CellKind("lora", "the graft plus LoRA on the frozen LM (does a frozen LM cap it?)",
+                       lora=True))
+register_kind(CellKind("pooling", "the graft pooled to another token grid",
+                       variants=("half", "double", "global"), grid=_pooling_grid,
+                       tag="pool_{variant}"))
+register_kind(CellKind("zero_image", "all-zero images at evaluation (eval) or also in training "
+                       "(train): does the policy use vision?",
+                       encoder="optional", variants=("eval", "train"), native_variants=("eval",),
+                       train_inputs=(("train", ZERO),), eval_inputs=ZERO,
+                       tag="zero_image_{variant}"))
+register_kind(CellKind("shuffled_image", "another held-out window's images at evaluation",
+                       encoder="optional", eval_inputs=SHUFFLED))
+
+
+def kind_of(record: dict) -> CellKind | None:
+    """The kind of a record, or None for a kind this code does not know."""
+    return CELL_KINDS.get(record.get("kind"))
+
+
+def record_label(record: dict) -> str:
+    """What a record's cell is, seeds aside: 'dinov2_s', 'native', 'pooling[half] of pixels'."""
+    kind = kind_of(record)
+    if kind is None:
+        return str(record.get("kind"))
+    return kind.label(record.get("encoder"), record.get("variant"))
+
+
+def column_label(record: dict) -> str | None:
+    """Its column in per-task and per-horizon tables: grafts by encoder, the released policy's
+    own-tower cells (native, native_wrapped) by kind; None for the other controls."""
+    kind = kind_of(record)
+    if kind is None or not (kind.name == GRAFT or kind.encoder == "none"):
+        return None
+    return record["encoder"] if kind.name == GRAFT else kind.name
+
+
+def is_native_like(record: dict) -> bool:
+    """Compared against the native policy (no encoder of its own)."""
+    return record.get("encoder") in (None, NATIVE_SLOT)

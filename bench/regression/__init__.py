@@ -1,0 +1,1 @@
+"""Baselines: save a run's records, compare a run with them, fail on regressions."""

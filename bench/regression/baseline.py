@@ -1,0 +1,381 @@
+"""CI regression mode, the pure part: baseline files, `--compare-fail` checks, one comparison.
+
+A baseline is one JSON file holding, per cell, what a later run is compared on: the MSE and the
+per-window MSE in both action spaces, the window ids they are aligned on, the protocol hash and the
+package versions. Nothing here touches pytest; `bench.regression.run` turns `BaselineError` into
+`pytest.UsageError` and verdicts into failed cases.
+
+Noise rules (also in docs/CI.md):
+- paired interval: the per-window differences of two cells scored on the same windows (aligned by
+  window id), their mean, and a 95% percentile bootstrap interval of that mean (windows resampled,
+  `N_RESAMPLES` replicates, fixed seed 0: the verdict is deterministic).
+- `mse:10%:paired` fails only when the threshold is exceeded AND the paired interval of
+  (now - baseline) lies wholly above 0.
+- `rank`: within one backbone x suite x seed (graft cells), encoders a and b are tied when the paired
+  interval of (a - b) contains 0. A flip is a pair ordered one way in the baseline and the other way
+  now with the pair separated (interval excluding 0) in BOTH runs; anything else is within the band.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from itertools import combinations
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from bench.grid.kinds import GRAFT
+
+# The baseline FILE's format (a snapshot of records), not the record's (bench.results.record).
+BASELINE_SCHEMA = 1
+CONFIDENCE = 0.95
+N_RESAMPLES = 2000
+METRIC_SPACES = {"mse": "normalized", "raw_mse": "raw"}
+VALID_FORMS = "mse:10%, raw_mse:10%, mse:0.002 (absolute), mse:10%:paired, rank"
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+_SPEC = re.compile(r"^(?P<metric>mse|raw_mse):(?:(?P<pct>\d+(?:\.\d+)?)%|"
+                   r"(?P<abs>\d*\.?\d+(?:[eE][-+]?\d+)?))(?P<paired>:paired)?$")
+
+
+class BaselineError(ValueError):
+    """A bad baseline name, file or `--compare-fail` spec (one line, names the culprit)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Statistics
+
+
+def paired_interval(now: Sequence[float], base: Sequence[float], *,
+                    confidence: float = CONFIDENCE, n_resamples: int = N_RESAMPLES,
+                    seed: int = 0) -> tuple[float, float, float]:
+    """(mean, lo, hi) of the per-window differences now - base, (W,) each, paired by position:
+    the report's paired window bootstrap (bench.analysis.rankings) on the two cells; lo = hi = NaN with
+    fewer than 2 windows."""
+    from bench.analysis.rankings import paired_window_bootstrap
+
+    rows = np.stack([np.asarray(base, dtype=float)[None], np.asarray(now, dtype=float)[None]])
+    if rows.shape[-1] == 0:
+        return math.nan, math.nan, math.nan
+    boot = paired_window_bootstrap(rows, leader=0, n_resamples=n_resamples,
+                                   confidence_level=confidence, random_seed=seed)
+    return float(boot.diff[1]), float(boot.diff_lo[1]), float(boot.diff_hi[1])
+
+
+def aligned(a: dict, b: dict, space: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per-window MSE of cells a and b in `space`, restricted to their common window ids."""
+    index_b = {w: i for i, w in enumerate(b["window_ids"])}
+    pairs = [(i, index_b[w]) for i, w in enumerate(a["window_ids"]) if w in index_b]
+    pa = np.asarray(a["per_window"][space], dtype=float)
+    pb = np.asarray(b["per_window"][space], dtype=float)
+    ia = [i for i, _ in pairs]
+    ib = [j for _, j in pairs]
+    return pa[ia], pb[ib]
+
+
+def separated(lo: float, hi: float) -> bool:
+    """True when an interval excludes 0 (NaN intervals never separate anything)."""
+    return (lo > 0.0 or hi < 0.0) and not (math.isnan(lo) or math.isnan(hi))
+
+
+# ---------------------------------------------------------------------------------------------
+# Checks: `--compare-fail` specs
+
+
+@dataclass(frozen=True)
+class ThresholdCheck:
+    """`mse:10%` / `raw_mse:0.002` / `mse:10%:paired`: one cell, now against its baseline."""
+
+    spec: str
+    metric: str  # "mse" or "raw_mse"
+    limit: float  # fraction (relative) or MSE units (absolute)
+    relative: bool
+    paired: bool = False
+    scope = "cell"
+
+    @property
+    def space(self) -> str:
+        return METRIC_SPACES[self.metric]
+
+    def exceeded(self, base_mse: float, now_mse: float) -> bool:
+        if self.relative:
+            return now_mse > base_mse * (1.0 + self.limit)
+        return now_mse - base_mse > self.limit
+
+    def fails(self, base: dict, now: dict) -> str | None:
+        """A one-line message when `now` regressed against `base` (cell dicts), else None."""
+        b, n = base["mse"][self.space], now["mse"][self.space]
+        if not self.exceeded(b, n):
+            return None
+        note = ""
+        if self.paired:
+            _, lo, hi = paired_interval(*aligned(now, base, self.space))
+            if not math.isnan(lo) and lo <= 0.0:
+                return None  # threshold exceeded, but within the windows' noise
+            note = (" (paired windows unavailable)" if math.isnan(lo)
+                    else f" (paired 95% CI of now - baseline [{lo:+.4g}, {hi:+.4g}])")
+        return (f"{now['cell_id']}: {self.metric} {n:.4g} vs baseline {b:.4g} "
+                f"({_change(b, n)}) exceeds {self.spec}{note}")
+
+
+@dataclass(frozen=True)
+class RankCheck:
+    """`rank`: the encoder order of one backbone x suite x seed, beyond its tie band."""
+
+    spec: str = "rank"
+    space: str = "normalized"
+    scope = "group"
+
+    def flips(self, base_cells: dict[str, dict], now_cells: dict[str, dict]) -> list[str]:
+        """Descriptions of the flipped pairs; `*_cells` map encoder -> cell dict of one group."""
+        out = []
+        for a, b in combinations(sorted(set(base_cells) & set(now_cells)), 2):
+            bd, blo, bhi = paired_interval(*aligned(base_cells[a], base_cells[b], self.space))
+            nd, nlo, nhi = paired_interval(*aligned(now_cells[a], now_cells[b], self.space))
+            if separated(blo, bhi) and separated(nlo, nhi) and (bd > 0) != (nd > 0):
+                better, worse = (a, b) if bd < 0 else (b, a)
+                out.append(f"baseline {better} < {worse} by {_gap(bd, blo, bhi)}, "
+                           f"now {worse} < {better} by {_gap(nd, nlo, nhi)}")
+        return out
+
+    def fails(self, base_cells: dict[str, dict], now_cells: dict[str, dict]) -> str | None:
+        flips = self.flips(base_cells, now_cells)
+        return f"rank flip: {'; '.join(flips)} (exceeds rank)" if flips else None
+
+
+def parse_compare_fail(spec: str) -> ThresholdCheck | RankCheck:
+    """`mse:10%`, `raw_mse:10%`, `mse:0.002`, `mse:10%:paired`, `rank` -> a check object."""
+    text = spec.strip()
+    if text == "rank":
+        return RankCheck()
+    m = _SPEC.match(text)
+    if not m:
+        raise BaselineError(f"--compare-fail {spec!r} not understood; valid forms: {VALID_FORMS}")
+    relative = m["pct"] is not None
+    limit = float(m["pct"]) / 100.0 if relative else float(m["abs"])
+    return ThresholdCheck(text, m["metric"], limit, relative, paired=bool(m["paired"]))
+
+
+def _gap(diff: float, lo: float, hi: float) -> str:
+    """|diff| with its interval as magnitudes: 0.003 [0.002, 0.004]."""
+    low, high = sorted((abs(lo), abs(hi)))
+    return f"{abs(diff):.4g} [{low:.4g}, {high:.4g}]"
+
+
+def _change(base: float, now: float) -> str:
+    return f"{(now / base - 1.0) * 100:+.1f}%" if base else f"{now - base:+.4g}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Baseline files
+
+
+CELL_FIELDS = ("kind", "backbone", "suite", "encoder", "seed", "variant", "protocol_hash",
+               "checkpoint", "versions", "mse", "per_window", "window_ids")
+
+
+def baseline_path(baseline_dir: Path, name: str) -> Path:
+    """NAME -> baseline_dir/NAME.json; a NAME holding '/' or ending in .json is a path itself."""
+    if "/" in name or name.endswith(".json"):
+        return Path(name)
+    if not _NAME.match(name):
+        raise BaselineError(f"baseline name {name!r}: use letters, digits, '.', '_' or '-' "
+                            "(or give a path ending in .json)")
+    return Path(baseline_dir) / f"{name}.json"
+
+
+def snapshot(records: Sequence[dict], name: str, *, created: str, git_commit: str,
+             machine: dict) -> dict:
+    """The baseline file's content for `records` (finished cell records)."""
+    hashes = sorted({r["protocol_hash"] for r in records})
+    return {
+        "schema": BASELINE_SCHEMA, "name": name, "created": created, "git_commit": git_commit,
+        "protocol_hash": hashes[0] if len(hashes) == 1 else None, "protocol_hashes": hashes,
+        "protocol": records[0].get("protocol") if len(hashes) == 1 and records else None,
+        "profile": records[0].get("profile") if records else None,
+        "versions": records[0].get("versions", {}) if records else {},
+        "hardware": sorted({str(r.get("hardware")) for r in records}),
+        "machine": machine,
+        "cells": {r["cell_id"]: {"cell_id": r["cell_id"], **{k: r.get(k) for k in CELL_FIELDS}}
+                  for r in records},
+    }
+
+
+def load_baseline(path: Path) -> dict:
+    """Read and check a baseline file; BaselineError (one line, naming the file) when unusable."""
+    path = Path(path)
+    hint = "save one with --save-baseline NAME"
+    if not path.is_file():
+        raise BaselineError(f"baseline file {path} not found; {hint}")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise BaselineError(f"baseline file {path} is unreadable ({str(e).splitlines()[0]}); "
+                            f"{hint}") from None
+    cells = data.get("cells") if isinstance(data, dict) else None
+    if not isinstance(cells, dict) or data.get("schema") != BASELINE_SCHEMA:
+        raise BaselineError(f"baseline file {path} is not a schema-{BASELINE_SCHEMA} graftbench baseline; "
+                            f"{hint}")
+    for cid, cell in cells.items():
+        try:
+            n = len(cell["window_ids"])
+            ok = all(len(cell["per_window"][s]) == n and math.isfinite(cell["mse"][s])
+                     for s in METRIC_SPACES.values())
+        except (KeyError, TypeError):
+            ok = False
+        if not ok:
+            raise BaselineError(f"baseline file {path}: cell {cid!r} lacks mse/per_window/"
+                                f"window_ids; {hint}")
+    return data
+
+
+def provenance_mismatch(base_cell: dict, baseline: dict, now: dict) -> list[str]:
+    """What differs between how the baseline cell and the current record were measured."""
+    out = []
+    if base_cell.get("protocol_hash") != now.get("protocol_hash"):
+        out.append(f"protocol_hash {now.get('protocol_hash')} (baseline "
+                   f"{base_cell.get('protocol_hash')})")
+    base_norm = (base_cell.get("checkpoint") or {}).get("normalizer_fingerprint")
+    now_norm = (now.get("checkpoint") or {}).get("normalizer_fingerprint")
+    if base_norm is not None and base_norm != now_norm:  # never compare across normalisers
+        out.append(f"normalizer {now_norm} (baseline {base_norm})")
+    base_versions = base_cell.get("versions") or baseline.get("versions") or {}
+    now_versions = now.get("versions") or {}
+    for pkg in sorted(set(base_versions) & set(now_versions)):
+        if base_versions[pkg] != now_versions[pkg]:
+            out.append(f"{pkg} {now_versions[pkg]} (baseline {base_versions[pkg]})")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# One comparison of a run against a baseline
+
+
+@dataclass
+class CellRow:
+    cell_id: str
+    base_mse: float
+    now_mse: float
+    diff: float  # paired mean of now - baseline, normalised space
+    lo: float
+    hi: float
+    failures: list[str] = field(default_factory=list)
+    mismatch: list[str] = field(default_factory=list)
+
+    @property
+    def verdict(self) -> str:
+        return "REGRESSED" if self.failures else "ok"
+
+
+@dataclass
+class Comparison:
+    name: str
+    baseline: dict
+    checks: list
+    rows: list[CellRow] = field(default_factory=list)
+    new: list[str] = field(default_factory=list)
+    not_compared: list[str] = field(default_factory=list)  # "cell_id (reason)"
+    flips: dict[str, str] = field(default_factory=dict)  # group id -> message
+    groups_compared: int = 0
+
+    @property
+    def regressed(self) -> list[CellRow]:
+        return [r for r in self.rows if r.failures]
+
+    @property
+    def mismatched(self) -> list[CellRow]:
+        return [r for r in self.rows if r.mismatch]
+
+    @property
+    def failed(self) -> bool:
+        return bool(self.regressed or self.flips)
+
+
+def cell_failures(base_cell: dict, now: dict, checks: Sequence) -> list[str]:
+    """Messages of the cell-scope checks that `now` fails against `base_cell`."""
+    return [m for c in checks if c.scope == "cell" for m in [c.fails(base_cell, now)] if m]
+
+
+def group_id(cell: dict) -> str:
+    return f"{cell['backbone']}-{cell['suite']}-seed{cell['seed']}"
+
+
+def compare_run(name: str, baseline: dict, selected: Sequence[str], records: dict[str, dict],
+                checks: Sequence) -> Comparison:
+    """Compare the records of the `selected` cell ids (missing ones absent) with `baseline`."""
+    comp = Comparison(name, baseline, list(checks))
+    cells = baseline["cells"]
+    for cid in selected:
+        now = records.get(cid)
+        if cid not in cells:
+            comp.new.append(cid)
+        elif now is None:
+            comp.not_compared.append(f"{cid} (no record this run)")
+        else:
+            base = cells[cid]
+            d, lo, hi = paired_interval(*aligned(now, base, "normalized"))
+            comp.rows.append(CellRow(cid, base["mse"]["normalized"], now["mse"]["normalized"],
+                                     d, lo, hi, cell_failures(base, now, checks),
+                                     provenance_mismatch(base, baseline, now)))
+    ran = set(selected)
+    comp.not_compared += [f"{cid} (not run)" for cid in cells if cid not in ran]
+    rank = [c for c in checks if c.scope == "group"]
+    if rank:
+        compared = {r.cell_id for r in comp.rows}
+        base_groups: dict[str, dict] = {}
+        now_groups: dict[str, dict] = {}
+        for cid in compared:
+            if cells[cid].get("kind") == GRAFT:
+                gid = group_id(cells[cid])
+                base_groups.setdefault(gid, {})[cells[cid]["encoder"]] = cells[cid]
+                now_groups.setdefault(gid, {})[cells[cid]["encoder"]] = records[cid]
+        for gid in sorted(base_groups):
+            if len(base_groups[gid]) < 2:
+                continue
+            comp.groups_compared += 1
+            for check in rank:
+                message = check.fails(base_groups[gid], now_groups[gid])
+                if message:
+                    comp.flips[gid] = f"{gid}: {message}"
+    return comp
+
+
+def markdown_section(comp: Comparison, path: Path | str) -> str:
+    """The REPORT.md body of "Against baseline NAME"."""
+    b = comp.baseline
+    checks = ", ".join(f"`{c.spec}`" for c in comp.checks) or "none (report only)"
+    out = [
+        f"Baseline `{comp.name}` (`{path}`): saved {b.get('created')} at graftbench commit "
+        f"`{b.get('git_commit')}`, protocol {', '.join(b.get('protocol_hashes') or ['?'])}, "
+        f"on {'; '.join(b.get('hardware') or ['?'])}. Checks: {checks}.",
+        "",
+        "Change: mean over the shared held-out windows of (now - baseline) normalised MSE, with its "
+        f"paired {CONFIDENCE:.0%} bootstrap interval over windows.",
+        "",
+    ]
+    if comp.mismatched:
+        out += ["**Measured differently from the baseline** (compared anyway; "
+                "`--compare-strict` makes this an error):", ""]
+        out += [f"- {r.cell_id}: {', '.join(r.mismatch)}" for r in comp.mismatched] + [""]
+    if comp.rows:
+        out += ["| cell | baseline MSE | now MSE | change | paired 95% CI | verdict |",
+                "| --- | ---: | ---: | ---: | --- | --- |"]
+        for r in comp.rows:
+            ci = "n/a" if math.isnan(r.lo) else f"[{r.lo:+.4g}, {r.hi:+.4g}]"
+            verdict = "; ".join(r.failures) if r.failures else r.verdict
+            out.append(f"| {r.cell_id} | {r.base_mse:.4g} | {r.now_mse:.4g} | "
+                       f"{_change(r.base_mse, r.now_mse)} | {ci} | {verdict} |")
+        out.append("")
+    if any(c.scope == "group" for c in comp.checks):
+        out.append(f"Rank check: {comp.groups_compared} backbone x suite x seed group(s) compared; "
+                   f"tie band = paired {CONFIDENCE:.0%} interval containing 0; "
+                   f"{len(comp.flips)} flip(s).")
+        out += [""] + [f"- **{m}**" for m in comp.flips.values()]
+        out.append("")
+    out.append(f"New (not in the baseline, passed): {', '.join(comp.new) or 'none'}.")
+    out.append("")
+    out.append(f"Not compared: {', '.join(comp.not_compared) or 'none'}.")
+    return "\n".join(out) + "\n"

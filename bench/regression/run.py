@@ -1,0 +1,214 @@
+"""CI regression mode in a session: `--save-baseline`, `--compare`, `--compare-fail`.
+
+`BaselineRun` is a member of the GraftSession (bench.session), as pytest-benchmark keeps save,
+compare and fail in its session object; the statistics are bench.regression.baseline's.
+- cell checks (`mse:10%`, ...) run on each cell's record as its case runs, and fail THAT case
+  with a one-line message;
+- rank checks need every cell of a group, so they run once at session end (controller), over the
+  store: flipped groups are listed in the terminal summary and REPORT.md, and the exit status
+  becomes non-zero;
+- the "Against baseline NAME" section is handed to the report the session builds.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import platform
+import warnings
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+from bench.regression import baseline as B
+from bench.paths import REPO_ROOT
+
+DEFAULT_BASELINE_DIR = REPO_ROOT / ".graftbench" / "baselines"
+
+
+class BaselineMismatchWarning(pytest.PytestWarning):
+    """The run and the baseline were measured under a different protocol or package versions."""
+
+
+def add_baseline_options(parser: pytest.Parser) -> None:
+    g = parser.getgroup("graftbench-baseline", "graftbench CI regression mode")
+    g.addoption("--save-baseline", metavar="NAME",
+                help="at session end, snapshot the selected cells' stored records as baseline NAME")
+    g.addoption("--baseline-dir", metavar="DIR",
+                help=f"where baselines live (default {DEFAULT_BASELINE_DIR})")
+    g.addoption("--compare", metavar="NAME",
+                help="compare this run with baseline NAME (a name in --baseline-dir, or a .json path)")
+    g.addoption("--compare-fail", metavar="SPEC", action="append", default=[],
+                help="fail on regression (repeatable): " + B.VALID_FORMS.replace("%", "%%"))
+    g.addoption("--compare-strict", action="store_true",
+                help="a protocol-hash or package-version mismatch with the baseline is an error")
+    g.addoption("--degrade-encoder", metavar="NAME:FACTOR",
+                help="TEST-ONLY: plant a regression: encoder NAME's pooled features become constant "
+                     "(blind) on a fixed fraction FACTOR in (0, 1] of the held-out windows")
+
+
+def degrade_features(features: dict, factor: float, frames, seed: int = 0, rows=None) -> dict:
+    """Blind a fixed fraction `factor` of `frames` (global frame indices: the held-out windows):
+    their pooled features become constant ones, which the wrapper's LayerNorm turns into zero
+    tokens, so evaluation sees image tokens that training never saw (cf. zero_image "eval").
+    {camera: (B, T, C)} -> same shapes, row i being global frame `rows[i]` (rows None: frame i,
+    a whole suite's array); the input is not modified."""
+    import torch
+
+    frames = torch.as_tensor(frames, dtype=torch.long)
+    order = torch.randperm(len(frames), generator=torch.Generator().manual_seed(seed))
+    blinded = frames[order[: round(factor * len(frames))]]
+    out = {}
+    for camera, x in features.items():
+        at = torch.arange(len(x)) if rows is None else torch.as_tensor(rows, dtype=torch.long)
+        y = x.clone()
+        y[torch.isin(at, blinded)] = 1.0
+        out[camera] = y
+    return out
+
+
+def _parse_degrade(value: str) -> tuple[str, float]:
+    name, _, factor = value.rpartition(":")
+    try:
+        f = float(factor)
+    except ValueError:
+        f = -1.0
+    if not name or not 0.0 < f <= 1.0:
+        raise pytest.UsageError(f"--degrade-encoder {value!r}: expected NAME:FACTOR with FACTOR in "
+                                "(0, 1], e.g. dinov2_s:1.0")
+    return name, f
+
+
+class BaselineRun:
+    """This session's baseline work: what to save, what to compare with, and what happened."""
+
+    def __init__(self, config: pytest.Config, protocol_hash: str) -> None:
+        opt = config.getoption
+        self.dir = Path(opt("--baseline-dir") or DEFAULT_BASELINE_DIR)
+        self.strict = bool(opt("--compare-strict"))
+        self.compare_name = opt("--compare")
+        self.save_name = opt("--save-baseline")
+        self.degrade = _parse_degrade(opt("--degrade-encoder")) if opt("--degrade-encoder") else None
+        self.warned: set[str] = set()
+        self.comparison: B.Comparison | None = None
+        self.saved: tuple[Path, int, list[str]] | None = None
+        self.checks: list = []
+        self.baseline: dict | None = None
+        try:
+            specs = opt("--compare-fail")
+            if (specs or self.strict) and not self.compare_name:
+                raise B.BaselineError("--compare-fail / --compare-strict need --compare NAME")
+            if self.degrade and opt("--executor") != "local":
+                raise B.BaselineError("--degrade-encoder acts on this process's workspace: it "
+                                      "needs --executor local")
+            if self.degrade and self.save_name:
+                raise B.BaselineError("--degrade-encoder plants a regression: never save it as a "
+                                      "baseline (drop --save-baseline)")
+            self.checks = [B.parse_compare_fail(s) for s in specs]
+            self.save_path = B.baseline_path(self.dir, self.save_name) if self.save_name else None
+            if self.compare_name:
+                self.compare_path = B.baseline_path(self.dir, self.compare_name)
+                self.baseline = B.load_baseline(self.compare_path)
+        except B.BaselineError as e:
+            raise pytest.UsageError(str(e)) from None
+        if self.baseline is not None and self.strict:
+            if protocol_hash not in self.baseline.get("protocol_hashes", []):
+                raise pytest.UsageError(
+                    f"--compare-strict: this run's protocol {protocol_hash} differs from baseline "
+                    f"{self.compare_path}'s {self.baseline.get('protocol_hashes')}; rerun with "
+                    "--save-baseline after a deliberate protocol change")
+
+    # -- per cell (in the process that runs the case) -----------------------------------------
+
+    def degrades(self, cell) -> bool:
+        return self.degrade is not None and cell.encoder == self.degrade[0]
+
+    def before_cell(self, cell, store, workspace: Callable) -> None:
+        """Never resume a degraded record; with --degrade-encoder, measure its cells again with
+        the degradation installed as the workspace's feature transform (bench.run.workspace)."""
+        record = store.load(cell.id)
+        if record is not None and (self.degrades(cell) or record.get("feature_transform")):
+            store.cell_path(cell.id).unlink(missing_ok=True)
+        if self.degrades(cell):
+            name, factor = self.degrade
+            ws = workspace()
+
+            def degrade(feats, rows=None):
+                return degrade_features(feats, factor, ws.split(cell.suite).windows, rows=rows)
+
+            degrade.description = f"degraded {name}:{factor}"  # recorded by the runner
+            ws.feature_transforms[name] = degrade
+
+    def check_cell(self, cell, record: dict) -> None:
+        """Fail the case (one line) on a cell-scope regression against the baseline."""
+        if self.baseline is None or cell.id not in self.baseline["cells"]:
+            return
+        base = self.baseline["cells"][cell.id]
+        mismatch = B.provenance_mismatch(base, self.baseline, record)
+        if mismatch and self.strict:
+            pytest.fail(f"{cell.id}: not compared with baseline {self.compare_name}: "
+                        f"{', '.join(mismatch)} (--compare-strict)", pytrace=False)
+        for m in mismatch:
+            if m not in self.warned:
+                self.warned.add(m)
+                warnings.warn(BaselineMismatchWarning(
+                    f"baseline {self.compare_name}: {cell.id} (and maybe others) measured with "
+                    f"{m}; compared anyway, --compare-strict makes this an error"))
+        failures = B.cell_failures(base, record, self.checks)
+        if failures:
+            pytest.fail("; ".join(failures), pytrace=False)
+
+    # -- session end (controller) --------------------------------------------------------------
+
+    def finish(self, ids: list[str], records: dict[str, dict]) -> list[tuple[str, str]]:
+        """Compare and / or save; the report sections the comparison adds."""
+        if not ids:
+            return []
+        sections = []
+        if self.baseline is not None:
+            self.comparison = B.compare_run(self.compare_name, self.baseline, ids, records,
+                                            self.checks)
+            sections.append((f"Against baseline {self.compare_name}",
+                             B.markdown_section(self.comparison, self.compare_path)))
+        if self.save_path is not None:
+            from bench.results.provenance import git_commit
+            from bench.results.store import atomic_write_json
+
+            kept = [records[c] for c in ids
+                    if c in records and not records[c].get("feature_transform")]
+            machine = {"node": platform.node(), "machine": platform.machine(),
+                       "system": platform.system(), "python": platform.python_version()}
+            data = B.snapshot(kept, self.save_name, git_commit=git_commit(), machine=machine,
+                              created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
+            atomic_write_json(self.save_path, data)
+            self.saved = (self.save_path, len(kept), [c for c in ids if c not in records])
+        return sections
+
+    @property
+    def rank_flipped(self) -> bool:
+        return self.comparison is not None and bool(self.comparison.flips)
+
+    def summary(self, tr) -> None:
+        if self.comparison is None and self.saved is None:
+            return
+        tr.write_sep("-", "graftbench baseline")
+        comp = self.comparison
+        if comp is not None:
+            tr.write_line(f"against {self.compare_name} ({self.compare_path}): {len(comp.rows)} "
+                          f"compared, {len(comp.regressed)} regressed, {len(comp.flips)} rank "
+                          f"flip(s), {len(comp.new)} new, {len(comp.not_compared)} not compared")
+            for row in comp.regressed:
+                tr.write_line("REGRESSED " + "; ".join(row.failures), red=True)
+            for message in comp.flips.values():
+                tr.write_line("RANK FLIP " + message, red=True)
+            for row in comp.mismatched:
+                tr.write_line(f"measured differently: {row.cell_id}: {', '.join(row.mismatch)}",
+                              yellow=True)
+            if comp.new:
+                tr.write_line(f"new (not in baseline): {', '.join(comp.new)}")
+            if comp.not_compared:
+                tr.write_line(f"not compared: {', '.join(comp.not_compared)}")
+        if self.saved is not None:
+            path, n, missing = self.saved
+            tr.write_line(f"baseline {self.save_name} saved: {path} ({n} cells"
+                          + (f"; no record for {', '.join(missing)})" if missing else ")"))

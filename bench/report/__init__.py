@@ -1,0 +1,1 @@
+"""REPORT.md from stored records: context, sections, provenance, plots, the study table."""

@@ -1,0 +1,215 @@
+"""Build REPORT.md (plus a tidy per-cell CSV, a JSON summary and PNG figures) from a results dir.
+
+    python -m bench.report.build RESULTS_DIR [--out REPORT.md]
+
+Only stored records are read (bench.results.records). Files written beside the report at OUT:
+OUT, <stem>_cells.csv, <stem>_summary.json and <stem>_plots/*.png (linked relatively).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import sys
+import traceback
+from pathlib import Path
+from typing import Callable, Sequence
+
+from bench.analysis.rankings import DEFAULT_RESAMPLES, rank_all
+from bench.analysis.controls import control_deltas, vision_checks, wrapper_neutrality
+from bench.analysis.rollouts import closed_loop_all
+from bench.analysis.transfer import support_counts, transfer_all
+from bench.grid.kinds import GRAFT
+from bench.results.records import Results, load_results
+from bench.report.context import ReportContext
+from bench.report.provenance import per_task_section, provenance_section
+from bench.report.sections import (
+    answer_lines, caveats, closed_loop_section, controls_section, plots_section,
+    rankings_section, seed_section, tie_section, transfer_section, vision_section,
+    wrapper_section,
+)
+
+
+SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
+    ("Caveats", caveats),
+    ("Encoder rankings", rankings_section),
+    ("Vision use", vision_section),
+    ("Rank transfer between backbones", transfer_section),
+    ("Tie bands", tie_section),
+    ("Seed cells", seed_section),
+    ("Wrapper neutrality", wrapper_section),
+    ("Controls", controls_section),
+    ("Closed loop: success beside offline MSE", closed_loop_section),
+    ("Per-task breakdown", per_task_section),
+    ("Plots", plots_section),
+    ("Provenance", provenance_section),
+]
+
+
+def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESAMPLES,
+            random_seed: int = 0) -> ReportContext:
+    """Run every analysis over the stored records once."""
+    records = results.records
+    rankings = rank_all(records, n_resamples=n_resamples, random_seed=random_seed)
+    expected_backbones = {r["backbone"] for r in records} | {f.get("backbone")
+                                                             for f in results.failed}
+    expected_suites = {r["suite"] for r in records if r["kind"] == GRAFT}
+    transfers = transfer_all(rankings, backbones=[b for b in expected_backbones if b],
+                             suites=sorted(expected_suites)) if rankings else []
+    return ReportContext(results=results, out_path=out_path, rankings=rankings,
+                         transfers=transfers, support=support_counts(transfers),
+                         wrapper=wrapper_neutrality(records), controls=control_deltas(records),
+                         n_resamples=n_resamples,
+                         closed_loop=closed_loop_all(records, n_resamples=n_resamples,
+                                                     random_seed=random_seed),
+                         vision=vision_checks(records, n_resamples=n_resamples,
+                                              random_seed=random_seed))
+
+
+def _guarded(name: str, render: Callable[[ReportContext], str], ctx: ReportContext) -> str:
+    """A section that fails renders its error instead of taking the whole report down."""
+    try:
+        return render(ctx)
+    except Exception as err:  # noqa: BLE001 - a partial report beats none at session end
+        traceback.print_exc(file=sys.stderr)
+        return f"_This section could not be rendered: {type(err).__name__}: {err}_"
+
+
+def render_markdown(ctx: ReportContext,
+                    extra_sections: Sequence[tuple[str, str]] = ()) -> str:
+    try:
+        answer = answer_lines(ctx)
+    except Exception as err:  # noqa: BLE001
+        answer = [f"_The answer could not be computed: {type(err).__name__}: {err}_"]
+    parts = ["# graftbench report", "\n\n".join(answer)]
+    for title, render in SECTIONS:
+        parts.append(f"## {title}")
+        parts.append(_guarded(title, render, ctx))
+    for title, body in extra_sections:
+        parts.append(f"## {title}")
+        parts.append(body.strip() or "_(empty)_")
+    return "\n\n".join(parts).rstrip() + "\n"
+
+
+CSV_COLUMNS = [
+    "cell_id", "status", "kind", "backbone", "suite", "encoder", "seed", "variant", "reference",
+    "profile", "protocol_hash", "mse_normalized", "mse_raw", "n_windows", "trainable_params",
+    "projector_params", "time_build_s", "time_features_s", "time_train_s", "time_eval_s",
+    "time_total_s", "peak_memory_mb", "device", "git_commit", "created", "error",
+]
+
+
+def cell_rows(results: Results) -> list[dict]:
+    """Tidy rows, one per finished or failed cell (columns: CSV_COLUMNS)."""
+    rows = []
+    for r in results.records:
+        t = r.get("timings_s") or {}
+        row = {k: r.get(k) for k in CSV_COLUMNS if k in r}
+        row.update(mse_normalized=r["mse"]["normalized"], mse_raw=r["mse"]["raw"],
+                   **{f"time_{p}_s": t.get(p) for p in ("build", "features", "train", "eval",
+                                                        "total")})
+        rows.append(row)
+    for f in results.failed:
+        rows.append({k: f.get(k) for k in CSV_COLUMNS if k in f} | {"status": "failed"})
+    return sorted(rows, key=lambda row: (row.get("status") != "ok", str(row.get("cell_id"))))
+
+
+def write_csv(results: Results, path: Path) -> Path:
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for row in cell_rows(results):
+            writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in CSV_COLUMNS})
+    return path
+
+
+def _jsonable(value):
+    """Dataclasses, tuples and dict keys made JSON-safe; NaN becomes null."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _jsonable(value.to_dict() if hasattr(value, "to_dict") else
+                         dataclasses.asdict(value))
+    if isinstance(value, dict):
+        return {str(k) if not isinstance(k, tuple) else " x ".join(map(str, k)): _jsonable(v)
+                for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def summary(ctx: ReportContext) -> dict:
+    """The report's numbers as one JSON-ready dict."""
+    res = ctx.results
+    return _jsonable({
+        "answer": answer_lines(ctx),
+        "profiles": sorted({r.get("profile", "?") for r in ctx.records}),
+        "protocol_hashes": sorted({r.get("protocol_hash", "?") for r in ctx.records}),
+        "rankings": ctx.rankings, "transfers": ctx.transfers, "support": ctx.support,
+        "wrapper_neutrality": ctx.wrapper, "controls": ctx.controls,
+        "closed_loop": ctx.closed_loop, "vision_use": ctx.vision,
+        "cells": {"finished": len(ctx.records), "failed": [f["cell_id"] for f in res.failed],
+                  "missing": res.missing, "skipped": res.skipped},
+        "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},
+    })
+
+
+def _figures(ctx: ReportContext, folder: Path) -> list[tuple[str, Path]]:
+    try:
+        from bench.report.plots import write_plots
+
+        return write_plots(ctx.rankings, ctx.transfers, ctx.records, folder,
+                           closed_loop=ctx.closed_loop)
+    except Exception:  # noqa: BLE001 - the report stays useful without figures
+        traceback.print_exc(file=sys.stderr)
+        return []
+
+
+def build_report(results_dir: str | Path, out_path: str | Path | None = None, *,
+                 extra_sections: Sequence[tuple[str, str]] = (),
+                 n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0,
+                 plots: bool = True) -> Path:
+    """Write REPORT.md (default RESULTS_DIR/REPORT.md) with CSV, JSON and PNGs beside it.
+
+    `extra_sections`: (title, body) markdown pairs appended after the built-in sections.
+    `plots=False` skips the figures (and matplotlib) for a faster text-only report."""
+    results = load_results(results_dir)
+    out = Path(out_path) if out_path is not None else Path(results_dir) / "REPORT.md"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    ctx = analyse(results, out, n_resamples=n_resamples, random_seed=random_seed)
+    if plots:
+        ctx.plots = _figures(ctx, out.parent / f"{out.stem}_plots")
+    out.write_text(render_markdown(ctx, extra_sections), encoding="utf-8")
+    write_csv(results, out.parent / f"{out.stem}_cells.csv")
+    (out.parent / f"{out.stem}_summary.json").write_text(
+        json.dumps(summary(ctx), indent=1, allow_nan=False), encoding="utf-8")
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.report.build", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results_dir", type=Path, help="results dir holding cells/ (and grid.json)")
+    # --report, as in `pytest bench --report PATH`; --out kept for older commands.
+    parser.add_argument("--report", "--out", dest="out", type=Path, default=None,
+                        help="report path (default: RESULTS_DIR/REPORT.md)")
+    parser.add_argument("--resamples", type=int, default=DEFAULT_RESAMPLES,
+                        help=f"bootstrap replicates (default {DEFAULT_RESAMPLES})")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    args = parser.parse_args(argv)
+    if not args.results_dir.is_dir():
+        parser.error(f"results dir {args.results_dir} does not exist; pass the folder that "
+                     f"holds cells/ (default location: .graftbench/results)")
+    path = build_report(args.results_dir, args.out, n_resamples=args.resamples,
+                        plots=not args.no_plots)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,43 @@
+"""What every REPORT.md section reads: the stored records and the analyses computed once."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bench.analysis.rankings import PRIMARY, Ranking
+from bench.analysis.controls import ControlDelta, VisionCheck, WrapperNeutrality
+from bench.analysis.rollouts import ClosedLoop
+from bench.analysis.transfer import Transfer
+from bench.results.records import Results
+from bench.report.format import pct
+
+
+@dataclass
+class ReportContext:
+    """Everything the sections need, computed once from the stored records."""
+
+    results: Results
+    out_path: Path
+    rankings: list[Ranking]
+    transfers: list[Transfer]
+    support: dict
+    wrapper: dict[tuple[str, str], WrapperNeutrality]
+    controls: list[ControlDelta]
+    plots: list[tuple[str, Path]] = field(default_factory=list)
+    n_resamples: int = 0
+    closed_loop: list[ClosedLoop] = field(default_factory=list)
+    vision: list[VisionCheck] = field(default_factory=list)
+
+    @property
+    def records(self) -> list[dict]:
+        return self.results.records
+
+    def vision_of(self, backbone: str, suite: str) -> VisionCheck | None:
+        return next((v for v in self.vision if (v.backbone, v.suite) == (backbone, suite)), None)
+
+    def wrapper_text(self, backbone: str, suite: str) -> str:
+        wn = self.wrapper.get((backbone, suite))
+        if wn is None or not wn.mean:
+            return "not measured (no native + native_wrapped pair)"
+        return f"{pct(wn.mean[PRIMARY])} (mean over seeds {sorted(wn.per_seed)})"

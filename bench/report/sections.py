@@ -1,0 +1,372 @@
+"""The analysis sections of REPORT.md: each takes a ReportContext and returns markdown.
+
+Every section renders what the stored records allow and says what is missing instead of failing.
+Provenance and per-task sections live in report_provenance.py.
+"""
+
+from __future__ import annotations
+
+from bench.analysis.rankings import CONFIDENCE, PRIMARY
+from bench.analysis.controls import UNCHECKED_HINT, VISION_RULE, VisionCheck, VisionComparison
+from bench.analysis.transfer import SUPPORT_RULES, min_exact_kendall_p
+from bench.grid.kinds import get_kind
+from bench.report.context import ReportContext
+from bench.report.format import bullets, half_width, interval, num, pct, table, yes_no
+from bench.report.study import DISAGREES, compare_records
+
+TIER_RULE = (
+    f"**Top tier (near-tie band)**: the leader (lowest mean normalised MSE over seeds) plus every "
+    f"encoder whose paired difference to the leader (encoder minus leader, same windows, mean "
+    f"over the seeds both have) has a {CONFIDENCE:.0%} bootstrap interval that contains 0."
+)
+INTERVAL_METHOD = (
+    "Intervals: scipy.stats.bootstrap (percentile, paired=True) over held-out **windows**: each "
+    "replicate draws one set of window indices and applies it to every cell (all encoders, all "
+    "seeds) of the backbone x suite, so differences are paired; seeds are kept, not resampled."
+)
+
+
+def _gap(c: VisionComparison) -> str:
+    return (f"{c.control}: control - graft {num(c.diff, 3)}, {CONFIDENCE:.0%} CI "
+            f"{interval(c.diff_ci, 3)}, seeds {c.seeds}")
+
+
+def vision_text(check: VisionCheck | None) -> str:
+    """One sentence: does this backbone x suite's ranking measure vision at all?"""
+    if check is None or not check.checked:
+        notes = f" ({'; '.join(check.notes)})" if check is not None and check.notes else ""
+        return f"{UNCHECKED_HINT[0].upper()}{UNCHECKED_HINT[1:]}{notes}."
+    if check.flagged:
+        failed = [c for c in check.comparisons if not c.better]
+        return (f"Vision use: **this encoder ranking says nothing**: the best graft "
+                f"(**{check.best_encoder}**) is not better than "
+                f"{'; '.join(_gap(c) for c in failed)}. The backbone may ignore its images here, "
+                f"so the order of the encoders is noise.")
+    return (f"Vision use: the best graft (**{check.best_encoder}**) beats every no-vision "
+            f"control present ({'; '.join(_gap(c) for c in check.comparisons)}).")
+
+
+def _vision_answer(ctx: ReportContext) -> list[str]:
+    flagged = [f"{v.backbone} x {v.suite} ({v.best_encoder} not better than "
+               f"{', '.join(v.failed_controls)})" for v in ctx.vision if v.flagged]
+    unchecked = [f"{v.backbone} x {v.suite}" for v in ctx.vision if not v.checked]
+    lines = []
+    if flagged:
+        lines.append("**Encoder rankings that measure nothing** (best graft not better than a "
+                     "no-vision control by a paired interval; see Vision use): "
+                     + "; ".join(flagged) + ".")
+    if unchecked:
+        lines.append(f"Vision use not checked on {', '.join(unchecked)}: run the blind or "
+                     "zero_image control.")
+    return lines
+
+
+def answer_lines(ctx: ReportContext) -> list[str]:
+    """The short answer at the top: is the small backbone's winner in the large one's tier?"""
+    if not ctx.records:
+        return [f"No finished cells under `{ctx.results.root}` yet: nothing to answer."]
+    lines = []
+    for t in ctx.transfers:
+        if not t.complete:
+            lines.append(f"Suite **{t.suite}**: no answer yet ({t.missing}).")
+            continue
+        verdict = {True: "**is**", False: "**is not**", None: "cannot be placed"}
+        tier = next(r.top_tier for r in ctx.rankings
+                    if r.backbone == t.large and r.suite == t.suite)
+        lines.append(
+            f"On this grid, the small-backbone winner (**{t.small_winner}** on {t.small}) "
+            f"{verdict[t.small_winner_in_large_tier]} in the large backbone's ({t.large}) top "
+            f"tier on suite **{t.suite}** (top tier: {', '.join(tier)}; Kendall tau-b "
+            f"{num(t.agreement.get('tau_b'), 2)} over {len(t.encoders)} encoders; wrapper "
+            f"delta {t.small} {ctx.wrapper_text(t.small, t.suite)}, {t.large} "
+            f"{ctx.wrapper_text(t.large, t.suite)}).")
+        blind_sides = [b for b in (t.small, t.large)
+                       if (v := ctx.vision_of(b, t.suite)) is not None and v.flagged]
+        if blind_sides:
+            lines[-1] += (f" **But the ranking on {' and '.join(blind_sides)} x {t.suite} "
+                          f"measures nothing** (best graft not better than a no-vision control), "
+                          f"so this transfer answer is not evidence either way.")
+    lines += _vision_answer(ctx)
+    s = ctx.support
+    if s["comparisons_total"] or s["seed_cells_total"]:
+        lines.append(
+            f"{s['comparisons_supporting']} of {s['comparisons_total']} backbone-suite "
+            f"comparisons and {s['seed_cells_supporting']} of {s['seed_cells_total']} seed-level "
+            f"cells support backbone-dependent rankings (rules under Rank transfer).")
+    return lines
+
+
+def caveats(ctx: ReportContext) -> str:
+    profiles = sorted({r["profile"] for r in ctx.records if r.get("profile")}
+                      | ({ctx.results.grid_profile} if ctx.results.grid_profile else set()))
+    hashes = sorted({r["protocol_hash"] for r in ctx.records if r.get("protocol_hash")})
+    protocol = ctx.records[0].get("protocol", {}) if ctx.records else {}
+    if all(k in protocol for k in ("split_seed", "heldout_episodes_per_task", "eval_noise_seed")):
+        split = (f" (split_seed={protocol['split_seed']}, "
+                 f"{protocol['heldout_episodes_per_task']} episodes per task)")
+        crn = f", eval_noise_seed={protocol['eval_noise_seed']}"
+    else:  # no finished record carries the protocol: leave its values out, say why
+        split, crn = " (its seed and size are left out: no finished cell records them)", ""
+    wrapper = [f"{b} x {s}: {ctx.wrapper_text(b, s)}" for b, s in sorted(ctx.wrapper)]
+    rolled = sum(1 for cl in ctx.closed_loop for n in cl.n_episodes if n)
+    lines = [
+        "**Offline action MSE is not closed-loop task success.** "
+        + (f"Rollouts in the LIBERO simulator were run for {rolled} rolled-out item(s): see "
+           "'Closed loop' for how far the two rankings agree; elsewhere this is "
+           if rolled else "No simulator rollouts were run; this is ")
+        + "a pre-commitment diagnostic for choosing an encoder, not a deployment claim.",
+        "**Conclusions are conditional on the fixed wrapper** (adaptive average pool to the "
+        "native token grid, LayerNorm without affine, one trainable Linear). Its neutrality "
+        "delta (native-wrapped vs native) is shown beside every ranking: "
+        + ("; ".join(wrapper) if wrapper else "not measured in these results") + ".",
+        f"**Profile(s) that ran: {', '.join(profiles) or 'unknown'}.**"
+        + (" Tiny-profile numbers come from tiny random-init encoders, tiny policies and "
+           "generated suites: they exercise the code paths and say **nothing** about real "
+           "encoders." if any(p.startswith("tiny") for p in profiles) else ""),
+        "**What offline action MSE means here**: held-out whole EPISODES per task, split with a "
+        f"fixed split seed{split} that does not "
+        "depend on the cell seed, so every cell of a suite is scored on identical windows; the "
+        "backbone's own flow-matching sampler (its default denoising steps) with noise fixed per "
+        f"window (common random numbers{crn}); "
+        "only the real action dimensions (LIBERO: 7; padding masked out); over the full action "
+        "chunk; reported in the backbone's normalised action space (primary) and in raw units.",
+        "**Two machines differ by up to ~2.5% MSE on the same cell** (measured: CPUs with "
+        "different kernels, tiny releases retrained, docs/CI.md; `hardware` in each record names "
+        "the CPU and its kernels): a difference that small between reports from two machines "
+        "means nothing.",
+        "**MSE levels are not comparable across backbones** (different action normalisation): "
+        "compare rankings across backbones, never levels; every plot gives each backbone its "
+        "own axis.",
+    ]
+    flagged = [f"{v.backbone} x {v.suite}" for v in ctx.vision if v.flagged]
+    unchecked = [f"{v.backbone} x {v.suite}" for v in ctx.vision if not v.checked]
+    if flagged or unchecked:
+        lines.append(
+            "**A ranking only means something if the policy uses its images.** "
+            + (f"Flagged (best graft not better than its blind / zero-image control): "
+               f"{', '.join(flagged)}. " if flagged else "")
+            + (f"Vision use not checked (no blind or zero_image control): "
+               f"{', '.join(unchecked)}." if unchecked else ""))
+    differ = sorted({r.constant for rows in compare_records(ctx.records).values() for r in rows
+                     if r.status == DISAGREES})
+    if differ:
+        lines.append(f"**Constants that differ from the published study's**: {', '.join(differ)} "
+                     "(table 'Protocol constants: the study's and ours' under Provenance).")
+    if len(hashes) > 1:
+        lines.append(f"**Warning: records come from {len(hashes)} different protocols** "
+                     f"({', '.join(hashes)}); numbers measured under different rules are mixed.")
+    return bullets(lines)
+
+
+def rankings_section(ctx: ReportContext) -> str:
+    if not ctx.rankings:
+        return "No graft cells in the results: nothing to rank."
+    parts = [f"Ranked by mean normalised MSE over seeds (lower is better); raw MSE beside it. "
+             f"{INTERVAL_METHOD} {ctx.n_resamples} replicates. Differences in raw units are "
+             f"against the normalised leader. {TIER_RULE}"]
+    for r in ctx.rankings:
+        parts.append(f"### {r.backbone} x {r.suite}")
+        parts.append(f"Wrapper neutrality delta on {r.backbone} x {r.suite}: "
+                     f"{ctx.wrapper_text(r.backbone, r.suite)}.")
+        parts.append(vision_text(ctx.vision_of(r.backbone, r.suite)))
+        if r.error:
+            parts.append(f"_Not ranked: {r.error}_")
+            continue
+        rows = []
+        for e in r.encoders:
+            seeds = ", ".join(f"s{s}: {num(v)}" for s, v in e.per_seed[PRIMARY].items())
+            rows.append([e.rank, e.encoder, num(e.mean[PRIMARY]), half_width(e.ci[PRIMARY]),
+                         interval(e.ci[PRIMARY]), num(e.mean["raw"]), interval(e.ci["raw"]),
+                         seeds, num(e.diff[PRIMARY], 3), interval(e.diff_ci[PRIMARY], 3),
+                         yes_no(e.in_top_tier)])
+        parts.append(table(rows, ["rank", "encoder", "norm. MSE", "±", "95% CI", "raw MSE",
+                                  "raw 95% CI", "per seed (norm.)", "Δ vs leader",
+                                  "Δ 95% CI", "top tier"]))
+        parts.append(f"{r.n_windows} held-out windows; seeds {r.seeds}; per-seed winners: "
+                     + ", ".join(f"s{s}: {w}" for s, w in r.seed_winners.items())
+                     + (" (**seed-sensitive**)" if r.seed_sensitive else "") + ".")
+    return "\n\n".join(parts)
+
+
+def transfer_section(ctx: ReportContext) -> str:
+    sizes = sorted({len(t.encoders) for t in ctx.transfers if t.complete} | {4})
+    min_ps = ", ".join(f"n = {n}: p >= {num(min_exact_kendall_p(n), 3)}" for n in sizes)
+    parts = [
+        "Kendall tau-b (scipy.stats.kendalltau, variant b; exact p where there are no ties) and "
+        "top-weighted tau (scipy.stats.weightedtau on -MSE, so agreement among the best encoders "
+        "counts most) between the two backbones' mean rankings, over encoders run on both.",
+        f"**With so few encoders tau cannot reach significance**: the smallest two-sided p "
+        f"scipy's exact method can give (perfect agreement) is {min_ps}. Read tau as a "
+        f"description, not a test.",
+    ]
+    rows, notes = [], []
+    for t in ctx.transfers:
+        if not t.complete:
+            notes.append(f"{t.suite} ({t.small} -> {t.large}): {t.missing}")
+            continue
+        a = t.agreement
+        rows.append([t.suite, f"{t.small} -> {t.large}", len(t.encoders), num(a["tau_b"], 3),
+                     num(a["p_value"], 3), num(t.min_p, 3), num(a["weighted_tau"], 3),
+                     t.small_winner, yes_no(t.small_winner_in_large_tier), t.large_winner,
+                     yes_no(t.large_winner_in_small_tier),
+                     ctx.wrapper_text(t.small, t.suite), ctx.wrapper_text(t.large, t.suite)])
+        if "note" in a:
+            notes.append(f"{t.suite}: {a['note']}")
+    if rows:
+        parts.append(table(rows, ["suite", "small -> large", "n enc.", "tau-b", "p (exact)",
+                                  "min. attainable p", "weighted tau", "small winner",
+                                  "in large top tier", "large winner", "in small top tier",
+                                  "wrapper Δ small", "wrapper Δ large"]))
+    if notes:
+        parts.append(bullets(notes))
+    s = ctx.support
+    parts.append(SUPPORT_RULES)
+    parts.append(f"**{s['comparisons_supporting']} of {s['comparisons_total']} backbone-suite "
+                 f"comparisons and {s['seed_cells_supporting']} of {s['seed_cells_total']} "
+                 f"seed-level cells support backbone-dependent rankings.**")
+    if s["comparisons"]:
+        parts.append(table([[c["suite"], f"{c['source']} -> {c['target']}",
+                             yes_no(c["supports"])] for c in s["comparisons"]],
+                           ["suite", "source winner -> target tier", "supports"]))
+    return "\n\n".join(parts)
+
+
+def tie_section(ctx: ReportContext) -> str:
+    rows = [[r.backbone, r.suite, r.leader, ", ".join(r.top_tier), len(r.top_tier),
+             yes_no(len(r.top_tier) > 1),
+             ", ".join(f"s{s}: {w}" for s, w in r.seed_winners.items()),
+             yes_no(r.seed_sensitive)] for r in ctx.rankings if r.encoders]
+    return "\n\n".join([TIER_RULE, table(rows, ["backbone", "suite", "leader", "top tier",
+                                                "tier size", "near-tie", "per-seed winners",
+                                                "seed-sensitive"])])
+
+
+def seed_section(ctx: ReportContext) -> str:
+    parts = ["Per-seed winners (lowest normalised MSE within one seed):"]
+    rows = []
+    for r in ctx.rankings:
+        for seed, winner in r.seed_winners.items():
+            value = next(e.per_seed[PRIMARY][seed] for e in r.encoders if e.encoder == winner)
+            rows.append([r.backbone, r.suite, seed, winner, num(value)])
+    parts.append(table(rows, ["backbone", "suite", "seed", "winner", "winner norm. MSE"]))
+    cells = [c for t in ctx.transfers if t.complete for c in t.seed_cells]
+    parts.append("Seed-level cells (one seed of each backbone; supports = winners differ):")
+    if cells:
+        parts.append(table(
+            [[c.suite, f"{c.small} -> {c.large}", c.small_seed, c.large_seed, len(c.encoders),
+              c.small_winner, c.large_winner, num(c.agreement["tau_b"], 3),
+              num(c.agreement["weighted_tau"], 3), yes_no(c.supports)] for c in cells],
+            ["suite", "small -> large", "small seed", "large seed", "n enc.", "small winner",
+             "large winner", "tau-b", "weighted tau", "supports"]))
+    else:
+        parts.append("_Needs graft cells on both backbones of a suite._")
+    return "\n\n".join(parts)
+
+
+def wrapper_section(ctx: ReportContext) -> str:
+    rows = []
+    for cd in ctx.controls:
+        if not get_kind(cd.kind).tower:
+            continue
+        rows.append([cd.backbone, cd.suite, cd.seed, num(cd.reference_mse.get(PRIMARY)),
+                     num(cd.mse[PRIMARY]), pct(cd.delta.get(PRIMARY)), pct(cd.delta.get("raw")),
+                     "" if cd.reference_found else f"reference {cd.reference_id} missing"])
+    for (b, s), wn in sorted(ctx.wrapper.items()):
+        if wn.mean:
+            rows.append([b, s, "mean", "", "", pct(wn.mean[PRIMARY]), pct(wn.mean["raw"]), ""])
+    intro = ("Wrapper neutrality delta = (native_wrapped - native) / native on mean MSE, per "
+             "seed and averaged over seeds. 0 would mean the wrapper alone costs nothing; the "
+             "published study found +45..56% on SmolVLA and -50..52% on pi0.5.")
+    if not rows:
+        return intro + "\n\n_No native_wrapped cells in the results._"
+    return intro + "\n\n" + table(rows, ["backbone", "suite", "seed", "native norm. MSE",
+                                         "wrapped norm. MSE", "Δ norm.", "Δ raw", "note"])
+
+
+def vision_section(ctx: ReportContext) -> str:
+    """Best graft vs blind / zero-image controls, per backbone x suite (VISION_RULE)."""
+    rows = []
+    for v in ctx.vision:
+        if not v.checked:
+            rows.append([v.backbone, v.suite, v.best_encoder or "n/a", num(v.best_mse), "none",
+                         "", "", "", "", UNCHECKED_HINT])
+        for c in v.comparisons:
+            rows.append([v.backbone, v.suite, v.best_encoder, num(v.best_mse), c.control,
+                         ", ".join(map(str, c.seeds)), num(c.control_mse), num(c.diff, 3),
+                         interval(c.diff_ci, 3),
+                         "graft better" if c.better else "**FLAGGED: not better**"])
+    notes = [f"{v.backbone} x {v.suite}: {n}" for v in ctx.vision for n in v.notes]
+    parts = [VISION_RULE + f" {ctx.n_resamples} replicates."]
+    if not rows:
+        parts.append("_No graft cells in the results._")
+    else:
+        parts.append(table(rows, ["backbone", "suite", "best graft", "graft norm. MSE",
+                                  "control", "seeds", "control norm. MSE",
+                                  "control - graft", f"{CONFIDENCE:.0%} CI", "verdict"]))
+    if notes:
+        parts.append(bullets(notes))
+    return "\n\n".join(parts)
+
+
+def controls_section(ctx: ReportContext) -> str:
+    rows = [[cd.backbone, cd.suite, cd.label, cd.seed, num(cd.mse[PRIMARY]), cd.reference_id,
+             num(cd.reference_mse.get(PRIMARY)) if cd.reference_found else "missing",
+             pct(cd.delta.get(PRIMARY)), pct(cd.delta.get("raw"))] for cd in ctx.controls]
+    intro = ("Every control cell against its reference record: delta = (control - reference) / "
+             "reference. zero_image / shuffled_image near 0 means the policy barely uses vision; "
+             "lora and pooling show whether a little backbone capacity or another token grid "
+             "moves the score.")
+    if not rows:
+        return intro + "\n\n_No control cells in the results._"
+    return intro + "\n\n" + table(rows, ["backbone", "suite", "control", "seed", "norm. MSE",
+                                         "reference", "reference norm. MSE", "Δ norm.",
+                                         "Δ raw"])
+
+
+CLOSED_LOOP_INTRO = (
+    "Cells run with `--rollouts N` are also rolled out in the LIBERO simulator from fixed init "
+    "states, identical for every cell (paired). Success is per episode; its interval is Wilson's "
+    f"({CONFIDENCE:.0%}). Agreement is Kendall tau-b (and top-weighted tau) between the offline-MSE "
+    "ranking and the failure-rate ranking of the rolled-out items (means over seeds): +1 = same "
+    "order. Its interval is a paired bootstrap over held-out windows and rollout episodes. Offline "
+    "MSE is not closed-loop success; with few items and few episodes per task the interval is "
+    "wide, and a tau from 3 items or a success rate from 10 episodes decides little."
+)
+
+
+def closed_loop_section(ctx: ReportContext) -> str:
+    if not ctx.closed_loop:
+        return CLOSED_LOOP_INTRO + "\n\n_No cell was rolled out (run with `--rollouts N` on a " \
+            "simulated suite, see docs/LIBERO_SIM.md)._"
+    parts = [CLOSED_LOOP_INTRO]
+    for cl in ctx.closed_loop:
+        head = f"**{cl.backbone} x {cl.suite}**"
+        rows = [[item, ", ".join(map(str, cl.seeds.get(item, []))), num(mse), f"{succ:.1%}",
+                 interval(ci, 2), n]
+                for item, mse, succ, ci, n in zip(cl.items, cl.mse, cl.success, cl.success_ci,
+                                                  cl.n_episodes)]
+        if rows:
+            head += "\n\n" + table(rows, ["item", "seeds", "norm. MSE", "success",
+                                          f"success {CONFIDENCE:.0%} CI", "episodes"])
+        if cl.missing:
+            head += f"\n\n_No agreement: {cl.missing}._"
+        elif len(set(cl.success)) == 1:
+            head += (f"\n\nEvery item has the same success rate ({cl.success[0]:.1%}): the "
+                     "closed-loop ranking is one tie, so there is no rank agreement to measure.")
+        else:
+            a = cl.agreement
+            head += (f"\n\nAgreement over {a['n']} items: Kendall tau-b {num(a['tau_b'], 2)} "
+                     f"(p={num(a['p_value'], 3)}), {CONFIDENCE:.0%} bootstrap interval "
+                     f"{interval(cl.tau_ci, 2)} ({cl.n_resamples} resamples, "
+                     f"{a.get('resamples_with_a_tie_only', 0)} left out as all-tied); "
+                     f"weighted tau {num(a['weighted_tau'], 2)}.")
+        parts.append(head)
+    return "\n\n".join(parts)
+
+
+def plots_section(ctx: ReportContext) -> str:
+    if not ctx.plots:
+        return "_No figures (plots turned off, or no cells with data to draw)._"
+    base = ctx.out_path.parent
+    return "\n\n".join(f"![{title}]({path.relative_to(base).as_posix()})"
+                       for title, path in ctx.plots)

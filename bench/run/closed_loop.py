@@ -1,0 +1,144 @@
+"""A cell's policy as a closed-loop controller: `act(raw observation) -> raw action chunk`.
+
+The rollout engine (bench.sim.rollout) steps LIBERO and asks `act` for the next chunk; `act` runs
+the SAME path as offline scoring (the backbone's own pre-processor, its sampler with the graft
+spliced in, its own un-normaliser), so success and offline MSE measure one policy.
+
+Sampler noise is a function of the observation (state bytes and task string, per row): cells
+that see the same observation draw the same noise (common random numbers in closed loop too),
+and a rerun of the same cell is bit-identical without any counter to keep in step.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from bench.results.provenance import stable_seed
+from bench.suites.base import LIBERO_ACTION_DIM, STATE_KEY
+from bench.run.evaluate import sample_grafted
+from bench.grid.kinds import NO_CLOSED_LOOP, ZERO
+from bench.suites.libero import LIBERO_SUITES
+
+ImagesFn = Callable[[dict[str, Tensor]], dict[str, Tensor]]
+
+
+def observation_noise(raw: dict, chunk: int, width: int, seed: int) -> Tensor:
+    """(B, chunk, width) standard normal noise, row b seeded by (seed, task_b, state_b bytes)."""
+    states = raw[STATE_KEY].detach().float().cpu().contiguous()
+    rows = []
+    for b in range(states.shape[0]):
+        key = stable_seed(seed, raw["task"][b], states[b].numpy().tobytes().hex())
+        rows.append(torch.randn((chunk, width), generator=torch.Generator().manual_seed(key)))
+    return torch.stack(rows)
+
+
+def make_act(backbone, *, noise_seed: int, feed=None, features_from_images: ImagesFn | None = None,
+             images_transform: ImagesFn | None = None) -> Callable[[dict], Tensor]:
+    """The closed-loop controller of a cell.
+
+    feed: the cell's GraftFeed (None for native cells); features_from_images: pixels -> pooled
+    graft features {camera: (B, h*w, C)} (None when the feed runs a tower itself);
+    images_transform: applied to the observed images first (zero_image controls).
+    """
+    info = backbone.info
+    device = next(backbone.policy.parameters()).device
+    cameras = backbone.camera_keys
+
+    @torch.no_grad()
+    def act(raw_obs: dict) -> Tensor:
+        missing = [k for k in (*cameras, STATE_KEY, "task") if k not in raw_obs]
+        if missing:
+            raise KeyError(f"observation lacks {missing}; the policy reads {[*cameras, STATE_KEY]}")
+        n = raw_obs[STATE_KEY].shape[0]
+        images = {k: raw_obs[k].float() for k in cameras}
+        if images_transform is not None:
+            images = images_transform(images)
+        raw = {**raw_obs, **images,
+               # The pre-processors expect the training keys; the sampler never reads them.
+               "action": torch.zeros((n, info.chunk_size, LIBERO_ACTION_DIM)),
+               "action_is_pad": torch.zeros((n, info.chunk_size), dtype=torch.bool)}
+        batch = backbone.preprocess(raw)
+        noise = observation_noise(raw_obs, info.chunk_size, info.max_action_dim, noise_seed)
+        features = features_from_images(images) if feed is not None and features_from_images \
+            else None
+        pred = sample_grafted(backbone, batch, noise.to(device), feed, features)
+        pred = pred[..., :LIBERO_ACTION_DIM].float()
+        return backbone.unnormalize_actions(pred).float().cpu()
+
+    return act
+
+
+ROLLOUT_SEED = 0  # env seeds of rollout episodes (init states are fixed by the episode index)
+
+def cell_act(cell, backbone, *, noise_seed: int, feed=None, encoder=None, grid=None):
+    """`make_act` for a cell: native cells sample as released; grafts encode live pixels."""
+    zero = cell.spec.eval_inputs == ZERO
+    transform = (lambda images: {k: torch.zeros_like(v) for k, v in images.items()}) if zero else None
+    if feed is None:
+        return make_act(backbone, noise_seed=noise_seed, images_transform=transform)
+    if feed.tower is not None:  # native_wrapped: the feed runs the policy's own tower itself
+        return make_act(backbone, noise_seed=noise_seed, feed=feed, images_transform=transform)
+    from bench.run.features import encode_pooled
+
+    return make_act(backbone, noise_seed=noise_seed, feed=feed, images_transform=transform,
+                    features_from_images=lambda images: encode_pooled(encoder, images, grid))
+
+
+def rollout_spec(suite, episodes_per_task: int, n_action_steps: int):
+    """The RolloutSpec of a LIBERO-backed suite: every task the suite's data holds, matched to
+    LIBERO's task ids by instruction text."""
+    from bench.sim import env as sim_env
+    from bench.sim.rollout import RolloutSpec
+
+    if suite.name not in sim_env.LIBERO_SUITES:
+        raise ValueError(f"suite {suite.name!r} has no LIBERO scene to roll out in; "
+                         f"choose one of {sorted(sim_env.LIBERO_SUITES)}")
+    ids = {text.strip().lower(): i for i, text in enumerate(sim_env.task_descriptions(suite.name))}
+    unknown = [t for t in suite.tasks if t.strip().lower() not in ids]
+    if unknown:
+        raise ValueError(f"suite {suite.name!r} ({suite.repo_id}) has tasks that are not LIBERO "
+                         f"{sim_env.LIBERO_SUITES[suite.name]} instructions: {unknown[:3]}; "
+                         "rollouts need the LIBERO-backed suite (--profile sim or paper)")
+    tasks = tuple(sorted({ids[t.strip().lower()] for t in suite.tasks}))
+    return RolloutSpec(suite=suite.name, tasks=tasks, episodes_per_task=episodes_per_task,
+                       seed=ROLLOUT_SEED, max_steps=LIBERO_SUITES[suite.name].max_steps,
+                       n_action_steps=n_action_steps)
+
+
+def has_rollouts(record: dict, episodes_per_task: int) -> bool:
+    """Whether a stored record already carries rollouts of the requested size (or a skip)."""
+    rollouts = record.get("rollouts") or {}
+    if "skipped" in rollouts:
+        return True
+    return (rollouts.get("spec") or {}).get("episodes_per_task") == episodes_per_task
+
+
+def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, encoder=None,
+                  grid=None, progress: bool = True) -> dict:
+    """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts"."""
+    if cell.spec.eval_inputs in NO_CLOSED_LOOP:
+        return {"skipped": NO_CLOSED_LOOP[cell.spec.eval_inputs]}
+    from dataclasses import asdict
+
+    from bench.sim.rollout import run_rollouts
+
+    spec = rollout_spec(suite, episodes_per_task, backbone.info.chunk_size)
+    act = cell_act(cell, backbone, noise_seed=spec.seed, feed=feed, encoder=encoder, grid=grid)
+    out = run_rollouts(act, spec, progress=progress, render=suite_render(suite))
+    return {**out, "spec": asdict(spec)}
+
+
+def suite_render(suite):
+    """Render settings matching the suite's frames: a generated sim suite's own, else LIBERO's
+    defaults at the dataset's image size (the policy must see images like its training data)."""
+    from pathlib import Path
+
+    from bench.sim import demos
+    from bench.sim.env import RenderSettings
+
+    if (Path(suite.root) / demos.SUITE_FILE).is_file() and "render" in demos.suite_info(suite.root):
+        return demos.render_settings(suite.root)
+    return RenderSettings(image_size=suite.image_shape[-1])

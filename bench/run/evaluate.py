@@ -1,0 +1,144 @@
+"""Offline action MSE: sampled chunks vs. ground truth on held-out windows.
+
+- windows: every `eval_stride` frames of held-out episodes (whole episodes, per task, split seed
+  independent of the cell): every cell of a backbone x suite scores identical windows;
+- the backbone's own sampler, default step count, with noise fixed per window (common random
+  numbers): the noise of a window depends only on (eval_noise_seed, window frame id);
+- only the real action dims (LIBERO: 7) and only real chunk steps (action_is_pad masked);
+- normalised (the policy's action space) and raw units; per window, per task, per horizon step.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from backbones.base import Backbone
+from bench.results.provenance import stable_seed
+from bench.suites.windows import raw_batch
+from bench.run.train import frozen_autocast
+
+# features_for(window positions, frames) -> {camera: (B, N, C)} for a graft, else None.
+FeaturesFn = Callable[[Tensor, Tensor], "dict[str, Tensor] | None"]
+# images_for(window positions, frames, raw images) -> images the policy sees (native controls).
+ImagesFn = Callable[[Tensor, Tensor, dict], dict]
+
+
+def window_noise(window_ids: Tensor, chunk: int, width: int, seed: int) -> Tensor:
+    """(B, chunk, width) float32: each window's noise from its own generator (CRN)."""
+    out = torch.empty((len(window_ids), chunk, width))
+    for i, wid in enumerate(window_ids.tolist()):
+        gen = torch.Generator().manual_seed(stable_seed(seed, "window", wid))
+        out[i] = torch.randn((chunk, width), generator=gen)
+    return out
+
+
+def masked_sq_error(pred: Tensor, target: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-window mean squared error (B,) and per-step summed error (B, T) over real steps.
+
+    pred/target: (B, T, A); valid: (B, T) bool (False on padded chunk steps)."""
+    sq = (pred - target).pow(2).mean(dim=-1) * valid
+    per_window = sq.sum(dim=1) / valid.sum(dim=1).clamp(min=1)
+    return per_window, sq
+
+
+@torch.no_grad()
+def sample_grafted(backbone: Backbone, batch: dict, noise: Tensor, feed=None,
+                   features: dict | None = None) -> Tensor:
+    """The backbone's sampler, with `feed` spliced in at the graft point when given (bound to
+    `features` first unless the feed runs a tower itself); (B, chunk, A) normalised."""
+    device = noise.device
+    if feed is None:
+        with frozen_autocast(device):
+            return backbone.sample_actions(batch, noise)
+    if features is not None:
+        feed.bind(features)
+    with backbone.image_embedder(feed), frozen_autocast(device):
+        pred = backbone.sample_actions(batch, noise)
+    feed.assert_consumed()
+    return pred
+
+
+def score(
+    backbone: Backbone,
+    suite,
+    windows: Tensor,
+    batch_size: int,
+    noise_seed: int,
+    feed=None,
+    features_for: FeaturesFn | None = None,
+    images_for: ImagesFn | None = None,
+) -> dict:
+    """Offline action MSE of the backbone (with `feed` spliced in when given) on `windows`."""
+    info = backbone.info
+    chunk = info.chunk_size
+    err = {"normalized": [], "raw": []}
+    horizon_sum = {"normalized": torch.zeros(chunk), "raw": torch.zeros(chunk)}
+    horizon_n = torch.zeros(chunk)
+    device = next(backbone.policy.parameters()).device
+    for start in range(0, len(windows), batch_size):
+        positions = torch.arange(start, min(start + batch_size, len(windows)))
+        frames = windows[positions]
+        raw = raw_batch(suite, frames, chunk, with_images=True)
+        if images_for is not None:
+            images = images_for(positions, frames, {k: raw[k] for k in suite.camera_keys})
+            raw.update(images)
+        batch = backbone.preprocess(raw)
+        noise = window_noise(frames, chunk, info.max_action_dim, noise_seed)
+        features = features_for(positions, frames) if feed is not None and features_for else None
+        pred = sample_grafted(backbone, batch, noise.to(device), feed, features)
+        target_raw = raw["action"]
+        valid = ~raw["action_is_pad"]
+        pred = pred[..., : target_raw.shape[-1]].float().cpu()
+        pairs = {
+            "normalized": (pred, backbone.normalize_actions(target_raw).float().cpu()),
+            "raw": (backbone.unnormalize_actions(pred).float().cpu(), target_raw),
+        }
+        for space, (p, t) in pairs.items():
+            per_window, per_step = masked_sq_error(p, t, valid)
+            err[space].append(per_window)
+            horizon_sum[space] += per_step.sum(dim=0)
+        horizon_n += valid.sum(dim=0)
+    per_window = {k: torch.cat(v) for k, v in err.items()}
+    return summarise(suite, windows, per_window, {k: v / horizon_n.clamp(min=1)
+                                                  for k, v in horizon_sum.items()})
+
+
+def summarise(suite, windows: Tensor, per_window: dict[str, Tensor],
+              per_horizon: dict[str, Tensor]) -> dict:
+    """The score fields of a record: cell MSE, per window, per task, per horizon step."""
+    tasks = suite.task_index[windows]
+    per_task = {}
+    for t in sorted(set(tasks.tolist())):
+        sel = tasks == t
+        per_task[suite.tasks[t]] = {
+            **{k: float(v[sel].mean()) for k, v in per_window.items()},
+            "n": int(sel.sum()),
+        }
+    for space, values in per_window.items():
+        if not torch.isfinite(values).all():
+            raise FloatingPointError(f"non-finite {space} action error on held-out windows")
+    return {
+        # The cell MSE is the mean over windows (each window: mean over its real steps x dims).
+        "mse": {k: float(v.mean()) for k, v in per_window.items()},
+        "per_window": {k: v.tolist() for k, v in per_window.items()},
+        "window_ids": windows.tolist(),
+        "window_task": tasks.tolist(),
+        "tasks": list(suite.tasks),
+        "per_task": per_task,
+        "per_horizon": {k: v.tolist() for k, v in per_horizon.items()},
+        "n_windows": len(windows),
+    }
+
+
+def derangement(n: int, seed: int) -> Tensor:
+    """A fixed permutation of range(n) with no fixed point (shuffled-image control). (n,) long."""
+    if n < 2:
+        raise ValueError("a derangement needs at least 2 windows")
+    gen = torch.Generator().manual_seed(stable_seed(seed, "derangement"))
+    while True:
+        perm = torch.randperm(n, generator=gen)
+        if not (perm == torch.arange(n)).any():
+            return perm

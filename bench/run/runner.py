@@ -1,0 +1,277 @@
+"""One cell, top to bottom: build the graft -> train its projector -> score -> record.
+
+What a kind of cell does differently is read from its entry in bench.grid.kinds; no branch here
+names a kind."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from bench.grid.cells import CellSpec
+from bench.run.evaluate import derangement, score
+from bench.run.graft import GraftFeed, Projector, assert_only_trainable, trainable_parameters
+from bench.run.inputs import CellInputs
+from bench.grid.kinds import GRAFT
+from bench.results.provenance import (
+    git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
+)
+from bench.run.releases import checkpoint_id
+from bench.run.closed_loop import cell_rollouts
+from bench.results.record import ok_record
+from bench.suites.windows import raw_batch
+from bench.run.train import FitConfig, fit, frozen_autocast
+from bench.run.workspace import Workspace
+
+
+class _Captured(Exception):
+    def __init__(self, image):
+        self.image = image
+
+
+def native_tower_channels(backbone, suite, frames) -> int:
+    """Channels of the native tower's grid, probed on the image the policy hands its tower."""
+    def capture(image):
+        raise _Captured(image)
+
+    batch = backbone.preprocess(raw_batch(suite, frames[:1], backbone.info.chunk_size))
+    noise = torch.zeros((1, backbone.info.chunk_size, backbone.info.max_action_dim))
+    try:
+        with backbone.image_embedder(capture), torch.no_grad():
+            backbone.loss(batch, noise, torch.full((1,), 0.5))
+    except _Captured as c:
+        return int(backbone.native_tower_grid(c.image).shape[1])
+    raise RuntimeError("the backbone never called its image embedder")
+
+
+def probe_frames(train_frames: torch.Tensor, n: int = 64) -> torch.Tensor:
+    """A fixed spread of training frames on which the loss is measured before and after."""
+    return train_frames[:: max(1, len(train_frames) // n)][:n]
+
+
+@torch.no_grad()
+def probe_loss(backbone, feed, next_batch, frames: torch.Tensor, seed: int) -> float:
+    """Mean flow-matching loss on `frames` with fixed noise and time: unlike the noisy training
+    curve, comparable before and after training (did the projector learn anything?)."""
+    info = backbone.info
+    gen = torch.Generator().manual_seed(stable_seed(seed, "probe-loss"))
+    noise = torch.randn((len(frames), info.chunk_size, info.max_action_dim), generator=gen)
+    flow_time = backbone.sample_time(len(frames), gen)
+    raw, features = next_batch(frames)
+    if features is not None:
+        feed.bind(features)
+    device = next(backbone.policy.parameters()).device
+    with backbone.image_embedder(feed), frozen_autocast(device):  # as in training
+        loss = backbone.loss(backbone.preprocess(raw), noise, flow_time).mean()
+    feed.assert_consumed()
+    return float(loss)
+
+
+@dataclass(frozen=True)
+class TrainedProjector:
+    """A trained projector kept for the session (its weights on disk: a paper grid trains hundreds
+    of projectors of up to ~10 MB each), with what its training recorded."""
+
+    path: Path
+    curve: list
+    probe_losses: dict
+    cell_id: str
+
+
+def shared_projector_key(cell: CellSpec, features_mode: str) -> tuple | None:
+    """Key of the projector a cell trains when its graft trains exactly the same one (the kind
+    table says which: bench.grid.kinds `shares_graft_training`). None for every other cell."""
+    if features_mode != "cache" or not cell.spec.shares_graft_training(cell.encoder, cell.variant):
+        return None
+    graft = cell if cell.kind == GRAFT else cell.reference
+    return (graft.id, features_mode)
+
+
+@dataclass
+class Graft:
+    """What a training cell splices in: the projector, its feed, and what it trains with."""
+
+    projector: Projector
+    feed: GraftFeed
+    inputs: CellInputs
+    lora_params: int = 0
+
+
+@dataclass
+class Training:
+    curve: list
+    probe_losses: dict | None = None
+    projector_from: str | None = None  # the graft cell whose trained projector this cell took
+
+
+def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dict:
+    """Measure one cell and write its record. features_mode: "cache" (pooled features computed
+    once per frame) or "loop" (the encoder runs inside every step: the naive reference)."""
+    if features_mode not in ("cache", "loop"):
+        raise ValueError(f"features_mode {features_mode!r} not in ('cache', 'loop')")
+    p, kind = ws.profile.protocol, cell.spec
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    suite, split = ws.suite(cell.suite), ws.split(cell.suite)
+    backbone = (ws.fresh_backbone(cell.backbone, cell.suite) if kind.lora
+                else ws.backbone(cell.backbone, cell.suite))
+    device = next(backbone.policy.parameters()).device
+    reset_peak_memory(device)
+    inputs = CellInputs(suite, split.windows, derangement(len(split.windows), p.split_seed),
+                        backbone.info.chunk_size, device,
+                        kind.grid(backbone.info.native_grid, cell.variant), tower=kind.tower)
+    timings["build"] = time.perf_counter() - t_start
+
+    graft, training = None, Training(curve=[])
+    if cell.trains_projector:
+        t0 = time.perf_counter()
+        graft = build_graft(cell, ws, backbone, inputs, features_mode)
+        timings["features"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        training = train_graft(cell, ws, backbone, graft, features_mode)
+        timings["train"] = time.perf_counter() - t0
+    else:
+        timings["features"] = timings["train"] = 0.0
+
+    t0 = time.perf_counter()
+    scores = score(backbone, suite, split.windows, p.eval_batch_size, p.eval_noise_seed,
+                   feed=graft.feed if graft else None,
+                   features_for=inputs.eval_features(kind.eval_inputs),
+                   images_for=inputs.eval_images(kind.eval_inputs))
+    timings["eval"] = time.perf_counter() - t0
+    rollouts = None
+    if ws.rollouts:
+        t0 = time.perf_counter()
+        rollouts = cell_rollouts(cell, suite, backbone, ws.rollouts,
+                                 feed=graft.feed if graft else None, encoder=inputs.encoder,
+                                 grid=inputs.grid, progress=ws.progress)
+        timings["rollouts"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+
+    record = ok_record(
+        cell,
+        measured_under=measured_under(cell, ws, backbone, inputs, features_mode),
+        scores=scores,
+        training=training_fields(backbone, graft, training, inputs.encoder),
+        run={"timings_s": {k: round(v, 3) for k, v in timings.items()},
+             "peak_memory_mb": peak_memory_mb(device), "device": str(device),
+             "hardware": hardware(), "versions": versions(), "git_commit": git_commit(),
+             "rollouts": rollouts})
+    ws.store.write(record)
+    return record
+
+
+def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
+                features_mode: str) -> Graft:
+    """The projector (seeded init), LoRA when the kind asks for it, the feed; frozen by
+    construction and checked: only the projector (+ LoRA) trains."""
+    p, info = ws.profile.protocol, backbone.info
+    if inputs.tower:
+        channels = native_tower_channels(backbone, inputs.suite, ws.split(cell.suite).train_frames)
+    else:
+        inputs.encoder = ws.encoder(cell.encoder)
+        if features_mode == "cache":
+            inputs.features = ws.features(cell.encoder, cell.suite, inputs.grid)
+        channels = (int(next(iter(inputs.features.values())).shape[-1]) if inputs.features
+                    else inputs.encoder.channels)
+    with torch.random.fork_rng():
+        torch.manual_seed(stable_seed(cell.seed, "projector-init"))
+        projector = Projector(channels, info.lm_width).to(inputs.device)
+    lora_params = 0
+    if cell.spec.lora:
+        with torch.random.fork_rng():  # peft draws lora_A's init from the global generator
+            torch.manual_seed(stable_seed(cell.seed, "lora-init"))
+            lora_params = _add_lora(backbone, p)
+    frozen = [backbone.policy] + ([inputs.encoder] if inputs.encoder is not None else [])
+    assert_only_trainable(trainable_parameters(projector) + lora_params, projector, *frozen,
+                          what="projector + LoRA" if lora_params else "projector")
+    feed = GraftFeed(projector, backbone.camera_keys, inputs.grid,
+                     tower=backbone.native_tower_grid if inputs.tower else None)
+    return Graft(projector, feed, inputs, lora_params)
+
+
+def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
+                features_mode: str) -> Training:
+    """Fit the projector, or take the identical one its graft trained this session."""
+    p, split = ws.profile.protocol, ws.split(cell.suite)
+    device = graft.inputs.device
+    next_batch = graft.inputs.train_batches(cell.spec.train_rule(cell.variant))
+    # A test or --degrade-encoder transform changes the features: never share across it.
+    share = (shared_projector_key(cell, features_mode)
+             if cell.encoder not in ws.feature_transforms else None)
+    trained = ws.trained_projectors.get(share) if cell.kind != GRAFT else None
+    if trained is not None:
+        graft.projector.load_state_dict(load_file(trained.path, device=str(device)))
+        graft.projector.eval()
+        return Training(trained.curve, trained.probe_losses, trained.cell_id)
+    probe = probe_frames(split.train_frames)
+    before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
+    params = list(graft.projector.parameters()) + [
+        q for q in backbone.policy.parameters() if q.requires_grad]
+    fit_cfg = FitConfig(p.steps, p.batch_size, p.lr, p.weight_decay, p.warmup_steps,
+                        p.grad_clip, p.loss_log_every)
+    curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
+                feed=graft.feed, label=cell.id, progress=ws.progress)
+    probe_losses = {"before": before,
+                    "after": probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)}
+    if share is not None:
+        path = ws.session_dir() / f"projector-{cell.id}.safetensors"
+        save_file({k: v.detach().cpu().contiguous()
+                   for k, v in graft.projector.state_dict().items()}, path)
+        ws.trained_projectors[share] = TrainedProjector(path, curve, probe_losses, cell.id)
+    graft.projector.eval()
+    return Training(curve, probe_losses)
+
+
+def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
+                   features_mode: str) -> dict:
+    p = ws.profile.protocol
+    transform = ws.feature_transforms.get(cell.encoder) if inputs.encoder is not None else None
+    noted = {"feature_transform": getattr(transform, "description", "a feature transform")}
+    grid_file = ws.profile.grid_file  # absent without --grid: those records stay as they were
+    return {
+        **(noted if transform is not None else {}),  # never resumed, never a baseline
+        "grid": list(inputs.grid),
+        "features_mode": features_mode if inputs.encoder is not None else None,
+        **({"feature_dtype": ws.feature_dtype} if inputs.features is not None else {}),
+        "profile": ws.profile.name, "protocol": p.to_dict(), "protocol_hash": p.hash,
+        "checkpoint": {**checkpoint_id(cell.backbone, ws.profile),
+                       "normalizer": ws.normalizer(cell.backbone, cell.suite).source,
+                       "normalizer_fingerprint": backbone.normalizer_fingerprint()},
+        **({"grid_file": grid_file.provenance()} if grid_file is not None else {}),
+    }
+
+
+def training_fields(backbone, graft: Graft | None, training: Training, encoder) -> dict:
+    projector = graft.projector if graft else None
+    return {
+        "trainable_params": trainable_parameters(projector, backbone.policy) if projector else 0,
+        "projector_params": trainable_parameters(projector) if projector else 0,
+        "lora_params": graft.lora_params if graft else 0,
+        "projector_from": training.projector_from,
+        "loss_curve": training.curve,
+        "probe_loss": training.probe_losses,
+        "encoder_weights": getattr(encoder, "weights_id", None),
+    }
+
+
+def _add_lora(backbone, p) -> int:
+    """LoRA adapters (peft) on the frozen LM's attention; returns the adapter parameter count."""
+    from peft import LoraConfig, inject_adapter_in_model
+
+    lm = backbone.language_model()
+    config = LoraConfig(r=p.lora_rank, lora_alpha=p.lora_alpha,
+                        target_modules=list(p.lora_targets), lora_dropout=0.0, bias="none")
+    inject_adapter_in_model(config, lm)
+    adapters = [q for n, q in lm.named_parameters() if "lora_" in n]
+    if not adapters:
+        raise RuntimeError(
+            f"LoRA targets {p.lora_targets} matched no module of the {backbone.info.name} LM"
+        )
+    for q in adapters:
+        q.requires_grad_(True)
+    return sum(q.numel() for q in adapters)

@@ -1,0 +1,158 @@
+"""Session-wide resources shared by all cells: loaded backbones, suites, splits, encoders,
+pooled-feature caches. Built lazily, once per pytest session (or per worker under xdist)."""
+
+from __future__ import annotations
+
+import copy
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from backbones import get_entry
+from bench.run.releases import Normalizer, load_released, normalizer_for
+from bench.run.features import FeatureStore
+from bench.paths import cache_dir
+from bench.progress import say
+from bench.grid.protocol import Profile
+from bench.results.store import ResultStore
+from bench.suites import load_suite
+from bench.suites.windows import episode_frames, eval_windows, heldout_split
+from encoders import build_encoder
+
+TINY_CHUNK = 10  # tiny policies predict 10-step chunks (episodes are ~20-30 frames)
+
+
+@dataclass
+class Split:
+    train_episodes: list[int]
+    heldout_episodes: list[int]
+    train_frames: torch.Tensor  # (N_train,) global frame indices
+    windows: torch.Tensor  # (N_windows,) global frame indices of held-out windows
+
+
+@dataclass
+class Workspace:
+    profile: Profile
+    store: ResultStore
+    progress: object = True  # a bench.progress sink, or a bool
+    # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
+    rollouts: int = 0
+    cache: Path = field(default_factory=cache_dir)
+    _suites: dict = field(default_factory=dict)
+    _splits: dict = field(default_factory=dict)
+    _released: dict = field(default_factory=dict)  # name -> loaded policy adapter
+    _backbones: dict = field(default_factory=dict)  # (name, normaliser fingerprint) -> adapter
+    _normalizers: dict = field(default_factory=dict)
+    _encoders: dict = field(default_factory=dict)
+    # How stored features are kept on disk: "fp16" (default: closest to float32 of the half
+    # dtypes, docs/PERFORMANCE.md), "bf16" (for encoders beyond fp16's range: the build says
+    # so), or "float32" (the encoder's numbers bit for bit, 2x the disk).
+    feature_dtype: str = "fp16"
+    _features: FeatureStore | None = None  # opened lazily; keeps each stored file open
+    # graft cell id -> runner.TrainedProjector: its shuffled/zero-at-eval controls reuse it.
+    trained_projectors: dict = field(default_factory=dict)
+    _session_dir: tempfile.TemporaryDirectory | None = None
+    # Test-only hook (planted regressions): encoder name -> function(features, frames) applied
+    # to every batch read, features {camera: (B, T, C) float32}, frames (B,) global indices.
+    feature_transforms: dict = field(default_factory=dict)
+
+    def session_dir(self) -> Path:
+        """A private folder that lives as long as this workspace (removed at exit)."""
+        if self._session_dir is None:
+            self._session_dir = tempfile.TemporaryDirectory(prefix="graftbench-session-")
+        return Path(self._session_dir.name)
+
+    def suite(self, name: str):
+        if name not in self._suites:
+            say(self.progress, f"suite {name} ({self.profile.data_source}): loading "
+                               "(generated on first use, then cached)")
+            start = time.monotonic()
+            suite = load_suite(name, self.profile.data_source)
+            say(self.progress, f"suite {name}: {len(suite.state)} frames, "
+                               f"{len(set(suite.episode_index.tolist()))} episodes "
+                               f"({time.monotonic() - start:.0f} s)")
+            self._suites[name] = suite
+        return self._suites[name]
+
+    def split(self, name: str) -> Split:
+        if name not in self._splits:
+            suite = self.suite(name)
+            p = self.profile.protocol
+            train_eps, heldout_eps = heldout_split(suite, p.split_seed, p.heldout_episodes_per_task)
+            self._splits[name] = Split(
+                train_eps, heldout_eps,
+                episode_frames(suite, train_eps),
+                eval_windows(suite, heldout_eps, p.eval_stride),
+            )
+        return self._splits[name]
+
+    def normalizer(self, name: str, suite: str | None) -> Normalizer:
+        """Which stats backbone `name` normalises `suite` with (no policy is loaded for this)."""
+        per_suite = self.profile.source == "hub" and get_entry(name).stats == "dataset"
+        if per_suite and suite is None:
+            raise ValueError(f"backbone {name!r} normalises per suite: name the suite")
+        names = (suite,) if per_suite else self.released_suites()
+        key = (name, names)
+        if key not in self._normalizers:
+            suites = [self.suite(s) for s in names]
+            train = {s.name: self.split(s.name).train_frames for s in suites}
+            self._normalizers[key] = normalizer_for(name, self.profile, suites, train)
+        return self._normalizers[key]
+
+    def backbone(self, name: str, suite: str | None = None):
+        """The released policy (frozen, eval), normalising `suite` as `normalizer` says. The
+        policy is loaded once per backbone; per-suite dataset stats only swap its processors."""
+        norm = self.normalizer(name, suite)
+        if name not in self._released:
+            suites = [self.suite(s) for s in self.released_suites()]
+            train = {s.name: self.split(s.name).train_frames for s in suites}
+            chunk = TINY_CHUNK if self.profile.source == "tiny" else None
+            kwargs = {"chunk_size": chunk} if chunk else {}
+            bb = load_released(name, self.profile, suites, train, self.cache,
+                               progress=self.progress, stats=norm.stats, **kwargs)
+            bb.freeze()
+            self._released[name] = bb
+        key = (name, norm.fingerprint)
+        if key not in self._backbones:
+            bb = self._released[name]
+            if bb.normalizer_fingerprint() != norm.fingerprint and norm.stats is not None:
+                bb = bb.with_stats(norm.stats)
+            if bb.normalizer_fingerprint() != norm.fingerprint:
+                raise RuntimeError(
+                    f"{name}: the loaded normaliser ({bb.normalizer_fingerprint()}) is not the "
+                    f"expected {norm.source} one ({norm.fingerprint})"
+                )
+            self._backbones[key] = bb
+        return self._backbones[key]
+
+    def fresh_backbone(self, name: str, suite: str | None = None):
+        """A private copy (the LoRA control modifies the LM in place)."""
+        return copy.deepcopy(self.backbone(name, suite))
+
+    def released_suites(self) -> tuple[str, ...]:
+        # The tiny release is trained on both tiny suites whatever -k selects, so its cache key
+        # (and every number measured on it) does not depend on the selection.
+        # Hub: which suites does not matter (stats are per suite or the checkpoint's own).
+        return ("spatial", "object") if self.profile.data_source == "tiny" else self.profile.suites[:1]
+
+    def encoder(self, name: str):
+        if name not in self._encoders:
+            encoder = build_encoder(name, self.profile.source)
+            if self.profile.source == "hub" and torch.cuda.is_available():
+                encoder = encoder.to("cuda")
+            self._encoders[name] = encoder
+        return self._encoders[name]
+
+    def features(self, encoder_name: str, suite_name: str, grid: tuple[int, int]) -> dict:
+        """{camera: view} of the stored features: `view[frames]` -> (B, rows*cols, C) float32 on
+        the CPU, read from disk and pooled to `grid` per batch; `view.shape` is (N, rows*cols, C).
+        The file is built on first use (resumable) and opened once per session."""
+        if self._features is None or self._features.dtype != self.feature_dtype:
+            self._features = FeatureStore(self.cache / "features", dtype=self.feature_dtype,
+                                          progress=self.progress)
+        return self._features.pooled_features(
+            self.encoder(encoder_name), self.suite(suite_name), grid,
+            transform=self.feature_transforms.get(encoder_name))
