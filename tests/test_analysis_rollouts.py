@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from bench.analysis.rollouts import closed_loop, closed_loop_all, wilson_interval
+from bench.analysis.rollouts import closed_loop_all, rollout_agreement, wilson_interval
 from bench.grid.kinds import record_label
 from bench.results.records import make_record
 from bench.report.build import build_report
@@ -36,7 +36,7 @@ def cells(levels_and_rates: dict[str, tuple[float, float]], seeds=(0, 1), noise=
 
 
 def test_agreeing_rankings_give_tau_one_and_reversed_minus_one():
-    same = closed_loop(cells({"a": (0.10, 0.9), "b": (0.20, 0.6), "c": (0.30, 0.2)}),
+    same = rollout_agreement(cells({"a": (0.10, 0.9), "b": (0.20, 0.6), "c": (0.30, 0.2)}),
                        "smolvla", "spatial", n_resamples=200)
     assert same.missing is None
     assert same.items == ["a", "b", "c"]
@@ -46,14 +46,14 @@ def test_agreeing_rankings_give_tau_one_and_reversed_minus_one():
     lo, hi = same.tau_ci
     assert lo <= 1.0 <= hi + 1e-12 and lo > 0  # clearly separated items: interval above 0
 
-    reversed_ = closed_loop(cells({"a": (0.10, 0.2), "b": (0.20, 0.6), "c": (0.30, 0.9)}),
+    reversed_ = rollout_agreement(cells({"a": (0.10, 0.2), "b": (0.20, 0.6), "c": (0.30, 0.9)}),
                             "smolvla", "spatial", n_resamples=200)
     assert reversed_.agreement["tau_b"] == pytest.approx(-1.0)
     assert reversed_.tau_ci[1] < 0
 
 
 def test_close_items_give_a_wide_interval():
-    near = closed_loop(cells({"a": (0.100, 0.6), "b": (0.101, 0.5), "c": (0.102, 0.4)},
+    near = rollout_agreement(cells({"a": (0.100, 0.6), "b": (0.101, 0.5), "c": (0.102, 0.4)},
                              noise=0.05, per_task=5, scatter=0),
                        "smolvla", "spatial", n_resamples=300)
     lo, hi = near.tau_ci
@@ -62,7 +62,7 @@ def test_close_items_give_a_wide_interval():
 
 def test_unpaired_init_states_are_refused():
     recs = cells({"a": (0.1, 0.9)}) + cells({"b": (0.2, 0.5)}, init_offset=100)
-    out = closed_loop(recs, "smolvla", "spatial")
+    out = rollout_agreement(recs, "smolvla", "spatial")
     assert out.missing and "not paired" in out.missing
     assert not out.agreement
 

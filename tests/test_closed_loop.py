@@ -66,9 +66,14 @@ def test_graft_act_encodes_live_pixels_like_the_feature_cache(tiny_ws):
     cell = CellSpec("graft", "pi05", "spatial", 0, "pixels")
     out = cell_act(cell, backbone, noise_seed=1, feed=feed, encoder=encoder, grid=grid)(obs)
     noise = observation_noise(obs, backbone.info.chunk_size, backbone.info.max_action_dim, 1)
-    cached = tiny_ws.features("pixels", "spatial", grid)
     frames = tiny_ws.split("spatial").windows[:6]
-    expected = offline_actions(backbone, obs, noise, feed, {k: v[frames] for k, v in cached.items()})
+    stored, tiny_ws.feature_dtype = tiny_ws.feature_dtype, "float32"  # the encoder's own numbers
+    try:
+        cached = tiny_ws.features("pixels", "spatial", grid)
+        expected = offline_actions(backbone, obs, noise, feed,
+                                   {k: v[frames] for k, v in cached.items()})
+    finally:
+        tiny_ws.feature_dtype = stored
     torch.testing.assert_close(out, expected, rtol=1e-4, atol=1e-5)
     # zero_image cells see black frames in closed loop too: not the same actions.
     zero = CellSpec("zero_image", "pi05", "spatial", 0, "pixels", "eval")

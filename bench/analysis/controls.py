@@ -13,7 +13,7 @@ from typing import Sequence
 import numpy as np
 
 from bench.analysis.rankings import (
-    DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, graft_cells,
+    DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, graft_records,
     paired_window_bootstrap,
 )
 from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, NATIVE_SLOT, ZERO, get_kind, is_native_like, kind_of
@@ -218,7 +218,7 @@ def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
                  n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> VisionCheck:
     """Best graft of `backbone` x `suite` against its blind / zero-image controls (VISION_RULE)."""
     check = VisionCheck(backbone=backbone, suite=suite)
-    grafts = [r for r in graft_cells(records, backbone, suite) if r["encoder"] != BLIND]
+    grafts = [r for r in graft_records(records, backbone, suite) if r["encoder"] != BLIND]
     if not grafts:
         check.notes.append("no graft cells besides blind")
         return check

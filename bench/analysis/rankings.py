@@ -200,7 +200,7 @@ def align_windows(cells: Sequence[dict]) -> tuple[list[int], list[np.ndarray]]:
     return ref_ids, orders
 
 
-def graft_cells(records: Sequence[dict], backbone: str, suite: str) -> list[dict]:
+def graft_records(records: Sequence[dict], backbone: str, suite: str) -> list[dict]:
     return [r for r in records if r["kind"] == GRAFT and r["backbone"] == backbone
             and r["suite"] == suite]
 
@@ -209,7 +209,7 @@ def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
                   n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> Ranking:
     """Rank the graft cells of `backbone` x `suite` by mean normalised MSE over seeds."""
     ranking = Ranking(backbone=backbone, suite=suite)
-    cells = graft_cells(records, backbone, suite)
+    cells = graft_records(records, backbone, suite)
     if not cells:
         ranking.error = "no graft cells"
         return ranking

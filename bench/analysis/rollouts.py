@@ -73,7 +73,7 @@ def _tau(mse: np.ndarray, success: np.ndarray) -> float:
     return float(scipy.stats.kendalltau(mse, 1.0 - success, variant="b").statistic)
 
 
-def closed_loop(records: Sequence[dict], backbone: str, suite: str, *,
+def rollout_agreement(records: Sequence[dict], backbone: str, suite: str, *,
                 n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> ClosedLoop:
     """Agreement of offline MSE and success over the rolled-out cells of backbone x suite."""
     out = ClosedLoop(backbone, suite, n_resamples=n_resamples)
@@ -128,4 +128,4 @@ def closed_loop(records: Sequence[dict], backbone: str, suite: str, *,
 def closed_loop_all(records: Sequence[dict], **kwargs) -> list[ClosedLoop]:
     """One ClosedLoop per backbone x suite that has at least one rolled-out cell."""
     pairs = sorted({(r["backbone"], r["suite"]) for r in records if rolled_out(r)})
-    return [closed_loop(records, b, s, **kwargs) for b, s in pairs]
+    return [rollout_agreement(records, b, s, **kwargs) for b, s in pairs]

@@ -22,7 +22,8 @@ from bench.run.evaluate import sample_grafted
 from bench.grid.kinds import NO_CLOSED_LOOP, ZERO
 from bench.suites.libero import LIBERO_SUITES
 
-ImagesFn = Callable[[dict[str, Tensor]], dict[str, Tensor]]
+# A function of one observation's images {camera: (B, 3, H, W)} (features, or other images).
+ObservationFn = Callable[[dict[str, Tensor]], dict[str, Tensor]]
 
 
 def observation_noise(raw: dict, chunk: int, width: int, seed: int) -> Tensor:
@@ -35,8 +36,8 @@ def observation_noise(raw: dict, chunk: int, width: int, seed: int) -> Tensor:
     return torch.stack(rows)
 
 
-def make_act(backbone, *, noise_seed: int, feed=None, features_from_images: ImagesFn | None = None,
-             images_transform: ImagesFn | None = None) -> Callable[[dict], Tensor]:
+def make_act(backbone, *, noise_seed: int, feed=None, features_from_images: ObservationFn | None = None,
+             images_transform: ObservationFn | None = None) -> Callable[[dict], Tensor]:
     """The closed-loop controller of a cell.
 
     feed: the cell's GraftFeed (None for native cells); features_from_images: pixels -> pooled
