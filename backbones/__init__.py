@@ -81,3 +81,16 @@ def get_entry(name: str) -> BackboneEntry:
 
 def adapter_module(name: str) -> ModuleType:
     return importlib.import_module(get_entry(name).module)
+
+
+def adapter_for_policy_type(policy_type: str) -> ModuleType:
+    """The adapter module for a LeRobot config `type` ("smolvla", "pi05", "pi0"): the module of
+    the registry's entries whose module name is that type. A checkpoint of your own is loaded by
+    it (`--policy NAME=PATH`)."""
+    modules = sorted({e.module for e in BACKBONES.values()})
+    for module in modules:
+        if module.rsplit(".", 1)[-1] == policy_type:
+            return importlib.import_module(module)
+    types = [m.rsplit(".", 1)[-1] for m in modules]
+    raise ValueError(f"policy type {policy_type!r} has no graftbench adapter; adapters exist for "
+                     f"{', '.join(types)} (docs/EXTENDING.md: a backbone)")

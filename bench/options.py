@@ -34,6 +34,15 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                                    "PKG.MODULE:FACTORY (an importable module of yours: "
                                    "encoders/user_encoders.py)")
     g.addoption("--suites", help="comma list, e.g. spatial,object")
+    g.addoption("--policy", action="append", metavar="NAME=REPO_ID_OR_PATH",
+                help="your own LeRobot checkpoint as backbone NAME (repeatable; a repo id may end "
+                     "in @REVISION); without --backbones the grid's backbones are these")
+    g.addoption("--dataset", action="append", metavar="NAME=REPO_ID_OR_PATH",
+                help="your own LeRobotDataset (v3) as suite NAME (repeatable); without --suites "
+                     "the grid's suites are these")
+    g.addoption("--camera-map", metavar="POLICY_CAM=DATASET_CAM,...",
+                help="which dataset camera feeds each policy camera (short names: front = "
+                     "observation.images.front); default: identical names, else in order")
     g.addoption("--seeds", help="comma list of ints, e.g. 0,1,2")
     g.addoption("--controls", help=f"comma list of control kinds ({','.join(control_kinds())}) or none")
     g.addoption("--steps", type=int, help="projector steps (overrides the profile's protocol)")
@@ -93,6 +102,7 @@ def build_profile(config: pytest.Config):
         profile = get_profile(base or DEFAULT_PROFILE)
         if grid is not None:
             profile = grid.apply(profile)
+        profile = _user_world(profile, opt)
         seeds = _csv(opt("--seeds"))
         controls = _csv(opt("--controls"))
         if controls == ("none",):
@@ -114,22 +124,53 @@ def build_profile(config: pytest.Config):
         raise pytest.UsageError(str(e)) from None
 
 
+def _user_world(profile, opt):
+    """--policy / --dataset / --camera-map on top of the grid file's (each replaces its table)."""
+    from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
+
+    given = {key: opt(option) for key, option in (("policies", "--policy"), ("datasets", "--dataset"))}
+    return with_user_world(
+        profile,
+        policies=parse_named("--policy", given["policies"]) if given["policies"] else None,
+        datasets=parse_named("--dataset", given["datasets"]) if given["datasets"] else None,
+        camera_map=(parse_camera_map("--camera-map", opt("--camera-map"))
+                    if opt("--camera-map") else None))
+
+
 def validate_names(profile) -> None:
-    """Unknown backbone/suite/encoder names fail at collection, listing the valid ones."""
+    """Unknown backbone/suite/encoder names fail at collection, listing the valid ones (user
+    policies and datasets: `check_user_world`, at start-up)."""
     from backbones import get_entry
     from bench.suites import SUITES
     from encoders import get_spec
 
+    policies, datasets = dict(profile.policies), dict(profile.datasets)
     try:
         for b in profile.backbones:
-            get_entry(b)
+            if b not in policies:
+                get_entry(b)
         for e in set(profile.encoders) | set(profile.control_encoders):
             get_spec(e, profile.source)  # a user's MODULE:FACTORY is built (and checked) here
     except ValueError as e:
         raise pytest.UsageError(str(e)) from None
     for s in profile.suites:
-        if s not in SUITES:
+        if s not in SUITES and s not in datasets:
             raise pytest.UsageError(f"unknown suite {s!r}; valid suites: {', '.join(SUITES)}")
+
+
+def check_user_world(profile) -> list[str]:
+    """Every --policy x --dataset pair (cameras, dims, saved stats, tasks), checked at start-up
+    before any cell runs: a mismatch is a one-line UsageError (exit 4). Returns the camera
+    pairing of each pair, one line each, for the terminal."""
+    from bench.run.userworld import check_world
+    from bench.suites.base import SuiteUnavailable
+
+    if not profile.policies and not profile.datasets:
+        return []
+    try:
+        return check_world(profile)
+    except (ValueError, SuiteUnavailable) as e:
+        raise pytest.UsageError(str(e)) from None
 
 
 def offline_env(offline: bool) -> None:

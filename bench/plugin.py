@@ -128,6 +128,9 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
         gs.store  # opens (creates, probes) the results dir: a one-line UsageError if it cannot
         check_writable("--report", gs.report_path.parent)
         gs.preflight(cells)
+        reporter = config.pluginmanager.get_plugin("terminalreporter")
+        for line in gs.camera_lines if reporter is not None else ():  # the camera rule's pairing
+            reporter.write_line(line)
         gs.store.write_grid(gs.selected, gs.profile.name)
 
 

@@ -17,7 +17,9 @@ from typing import Callable
 import pytest
 
 from bench.grid.cells import GRAFT, CellSpec
-from bench.options import check_rollouts_possible, build_profile, offline_env, report_path
+from bench.options import (
+    build_profile, check_rollouts_possible, check_user_world, offline_env, report_path,
+)
 from bench.paths import REPO_ROOT
 from bench.progress import say
 from bench.regression.run import BaselineRun
@@ -50,6 +52,7 @@ class GraftSession:
     def __init__(self, config: pytest.Config) -> None:
         self.config = config
         self.profile = build_profile(config)
+        self.camera_lines = check_user_world(self.profile)  # --policy x --dataset, at start-up
         offline_env(self.profile.offline)
         results = config.getoption("--results-dir")
         self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name

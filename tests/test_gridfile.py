@@ -86,7 +86,11 @@ def test_the_command_line_overrides_the_file(tmp_path):
 
 @pytest.mark.parametrize("text, words", [
     ("seed = [0]\n", ["seed is not a key here", "did you mean 'seeds'", "known: profile"]),
-    ("[policies]\nmine = \"me/policy\"\n", ["policies is not a key here", "[protocol]"]),
+    ("[policy]\nmine = \"me/policy\"\n", ["policy is not a key here", "policies",
+                                           "[protocol]"]),
+    ("[policies]\nmine = 3\n", ["policies = {'mine': 3}", "NAME = \"REPO_ID_OR_PATH\""]),
+    ("[policies]\nMy-Policy = \"me/policy\"\n", ["[policies] My-Policy", "lower-case"]),
+    ("[camera_map]\nfront = \"top\"\nwrist = 1\n", ["camera_map", "POLICY_CAMERA"]),
     ('seeds = "0,1"\n', ["seeds = '0,1'", "non-negative integers"]),
     ("seeds = [0, -1]\n", ["seeds", "non-negative integers"]),
     ('encoders = "pixels"\n', ["encoders = 'pixels'", "list of names"]),

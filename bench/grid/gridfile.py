@@ -22,9 +22,18 @@ replaces the file's base profile and the file's other keys still apply on top of
 file's value. Names (backbones, suites, encoders) are checked at collection, as on the command
 line; everything else here, each error one line naming the file, the key and the valid choices.
 
-Adding a key (the study's [policies] NAME = "REPO_ID_OR_PATH", [datasets], [camera_map]) is one
-entry in `KEYS` or `TABLES` plus the line of `GridFile.apply` that passes it on. A key nothing
-can pass on yet is rejected, never silently ignored.
+Your own policy and data (bench.grid.userworld; `--policy`, `--dataset`, `--camera-map` each
+replace the file's table):
+
+    [policies]                       # NAME = "REPO_ID_OR_PATH[@REVISION]": backbones of the grid
+    mine = "/path/to/checkpoint"     #   (without `backbones`, the grid's backbones are these)
+    [datasets]                       # NAME = "REPO_ID_OR_PATH": suites (likewise for `suites`)
+    mydata = "data/my_dataset"       #   a relative path is relative to the grid file's folder
+    [camera_map]                     # POLICY_CAMERA = "DATASET_CAMERA" (short names allowed)
+    front = "top"
+
+Adding a key is one entry in `KEYS` or `TABLES` plus the line of `GridFile.apply` that passes it
+on. A key nothing can pass on yet is rejected, never silently ignored.
 """
 
 from __future__ import annotations
@@ -39,6 +48,7 @@ from typing import Any, Callable
 
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import PROFILES, Profile, Protocol, with_overrides
+from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
 
 
 class GridFileError(ValueError):
@@ -67,11 +77,14 @@ class GridFile:
     grid: tuple[tuple[str, tuple], ...]  # (Profile field, value) in file order
     steps: int | None
     protocol: tuple[tuple[str, Any], ...]  # (Protocol field, value)
+    # [policies], [datasets], [camera_map] (None: not in the file)
+    user_world: tuple[tuple[str, Any], ...] = ()
 
     def apply(self, base: Profile) -> Profile:
         """`base` with the file's values and its provenance (grid_file) set."""
         with_file = dataclasses.replace(base, protocol=base.protocol.replace(**dict(self.protocol)),
                                         grid_file=self.info)
+        with_file = with_user_world(with_file, **dict(self.user_world))
         return with_overrides(with_file, steps=self.steps, **dict(self.grid))
 
 
@@ -167,7 +180,34 @@ KEYS: dict[str, Callable] = {
     "control_encoders": _strings,
     "steps": _steps,
 }
-TABLES: dict[str, Callable] = {"protocol": _protocol}
+def _named_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
+    if not isinstance(table, dict) or not all(isinstance(v, str) and v for v in table.values()):
+        raise _fail(where, key, f"= {table!r}: give a [{key}] table of NAME = \"REPO_ID_OR_PATH\"")
+    folder = Path(where).parent
+    out = []
+    for name, target in table.items():
+        local = folder / Path(target).expanduser()
+        relative = not Path(target).expanduser().is_absolute() and local.exists()
+        out.append(f"{name}={local.resolve() if relative else target}")
+    try:
+        return parse_named(f"[{key}]", out)
+    except ValueError as e:
+        raise GridFileError(f"{where}: {e}") from None
+
+
+def _camera_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
+    if not isinstance(table, dict) or not all(isinstance(v, str) and v for v in table.values()):
+        raise _fail(where, key, f"= {table!r}: give a [{key}] table of POLICY_CAMERA = "
+                                "\"DATASET_CAMERA\"")
+    try:
+        return parse_camera_map(f"[{key}]", ",".join(f"{k}={v}" for k, v in table.items()))
+    except ValueError as e:
+        raise GridFileError(f"{where}: {e}") from None
+
+
+TABLES: dict[str, Callable] = {"protocol": _protocol, "policies": _named_table,
+                               "datasets": _named_table, "camera_map": _camera_table}
+USER_WORLD_TABLES = {"policies": "policies", "datasets": "datasets", "camera_map": "camera_map"}
 PROFILE_FIELDS = ("backbones", "suites", "encoders", "seeds", "controls", "control_encoders")
 
 
@@ -186,7 +226,9 @@ def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
         raise _fail(where, "steps", "is given twice (top level and [protocol]); keep one")
     return GridFile(info=info, profile=values.get("profile"),
                     grid=tuple((k, values[k]) for k in PROFILE_FIELDS if k in values),
-                    steps=values.get("steps"), protocol=protocol)
+                    steps=values.get("steps"), protocol=protocol,
+                    user_world=tuple((field, values[t]) for t, field in USER_WORLD_TABLES.items()
+                                     if t in values))
 
 
 def read_grid_file(path: str | Path) -> GridFile:

@@ -94,6 +94,12 @@ class Profile:
     # The study file (`--grid`) this profile was read from: provenance for every record. Not part
     # of `protocol`, so not of its hash: the file's [protocol] values are, through `protocol`.
     grid_file: GridFileInfo | None = None
+    # Your own policies and datasets (bench.grid.userworld): (NAME, PATH_OR_REPO_ID[@REV]) pairs,
+    # and the camera map, (POLICY_CAMERA, DATASET_CAMERA) pairs. Not part of `protocol`: the
+    # records carry the checkpoint's id and revision and the dataset's fingerprint instead.
+    policies: tuple[tuple[str, str], ...] = ()
+    datasets: tuple[tuple[str, str], ...] = ()
+    camera_map: tuple[tuple[str, str], ...] = ()
 
     @property
     def data_source(self) -> str:

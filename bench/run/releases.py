@@ -168,7 +168,12 @@ def normalizer_for(name: str, profile: Profile, suites, train_frames) -> Normali
 
 
 def checkpoint_id(name: str, profile: Profile) -> dict:
-    """The checkpoint a record was measured on: repo id and the commit the cache resolves."""
+    """The checkpoint a record was measured on: repo id and the commit the cache resolves (a
+    --policy folder: the sha256 of its weights, bench.run.userworld)."""
+    if name in dict(profile.policies):
+        from bench.run.userworld import user_checkpoint_id
+
+        return user_checkpoint_id(profile, name)
     entry = get_entry(name)
     if profile.source != "hub":
         return {"repo_id": f"tiny:{name}", "revision": None}

@@ -243,7 +243,23 @@ def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
                        "normalizer": ws.normalizer(cell.backbone, cell.suite).source,
                        "normalizer_fingerprint": backbone.normalizer_fingerprint()},
         **({"grid_file": grid_file.provenance()} if grid_file is not None else {}),
+        **user_world_fields(cell, ws, backbone),
     }
+
+
+def user_world_fields(cell: CellSpec, ws: Workspace, backbone) -> dict:
+    """A --policy's camera pairing and a --dataset's identity (absent for the registry's)."""
+    out = {}
+    if ws.is_user_policy(cell.backbone):
+        rename = getattr(backbone, "rename_map", {}) or {}
+        out["camera_map"] = {rename.get(k, k): k for k in backbone.camera_keys}
+    datasets = dict(ws.profile.datasets)
+    if cell.suite in datasets:
+        suite = ws.suite(cell.suite)
+        out["dataset"] = {"source": datasets[cell.suite], "root": suite.root,
+                          "repo_id": suite.repo_id, "fingerprint": suite.fingerprint,
+                          "fps": suite.fps, "cameras": list(suite.camera_keys)}
+    return out
 
 
 def training_fields(backbone, graft: Graft | None, training: Training, encoder) -> dict:

@@ -19,6 +19,8 @@ from bench.progress import say
 from bench.grid.protocol import Profile
 from bench.results.store import ResultStore
 from bench.suites import load_suite
+from bench.suites.user import load_user_suite
+from bench.run.userworld import load_user_policy, user_normalizer
 from bench.suites.windows import episode_frames, eval_windows, heldout_split
 from encoders import build_encoder
 
@@ -70,7 +72,9 @@ class Workspace:
             say(self.progress, f"suite {name} ({self.profile.data_source}): loading "
                                "(generated on first use, then cached)")
             start = time.monotonic()
-            suite = load_suite(name, self.profile.data_source)
+            datasets = dict(self.profile.datasets)
+            suite = (load_user_suite(name, datasets[name]) if name in datasets
+                     else load_suite(name, self.profile.data_source))
             say(self.progress, f"suite {name}: {len(suite.state)} frames, "
                                f"{len(set(suite.episode_index.tolist()))} episodes "
                                f"({time.monotonic() - start:.0f} s)")
@@ -91,6 +95,10 @@ class Workspace:
 
     def normalizer(self, name: str, suite: str | None) -> Normalizer:
         """Which stats backbone `name` normalises `suite` with (no policy is loaded for this)."""
+        if self.is_user_policy(name):  # its own saved stats, whatever the suite
+            if (name, None) not in self._normalizers:
+                self._normalizers[(name, None)] = user_normalizer(self.profile, name)
+            return self._normalizers[(name, None)]
         per_suite = self.profile.source == "hub" and get_entry(name).stats == "dataset"
         if per_suite and suite is None:
             raise ValueError(f"backbone {name!r} normalises per suite: name the suite")
@@ -106,6 +114,8 @@ class Workspace:
         """The released policy (frozen, eval), normalising `suite` as `normalizer` says. The
         policy is loaded once per backbone; per-suite dataset stats only swap its processors."""
         norm = self.normalizer(name, suite)
+        if self.is_user_policy(name):  # loaded per suite: the camera rule pairs per dataset
+            return self._user_backbone(name, suite, norm)
         if name not in self._released:
             suites = [self.suite(s) for s in self.released_suites()]
             train = {s.name: self.split(s.name).train_frames for s in suites}
@@ -125,6 +135,22 @@ class Workspace:
                     f"{name}: the loaded normaliser ({bb.normalizer_fingerprint()}) is not the "
                     f"expected {norm.source} one ({norm.fingerprint})"
                 )
+            self._backbones[key] = bb
+        return self._backbones[key]
+
+    def is_user_policy(self, name: str) -> bool:
+        return name in dict(self.profile.policies)
+
+    def _user_backbone(self, name: str, suite: str, norm: Normalizer):
+        """A `--policy` checkpoint on `suite`, through its adapter's load_policy (own stats)."""
+        key = (name, suite, norm.fingerprint)
+        if key not in self._backbones:
+            say(self.progress, f"policy {name}: loading {dict(self.profile.policies)[name]}")
+            bb = load_user_policy(self.profile, name, self.suite(suite))
+            bb.freeze()
+            if bb.normalizer_fingerprint() != norm.fingerprint:
+                raise RuntimeError(f"{name}: the loaded normaliser ({bb.normalizer_fingerprint()}) "
+                                   f"is not its saved one ({norm.fingerprint})")
             self._backbones[key] = bb
         return self._backbones[key]
 

@@ -85,8 +85,10 @@ def _check_contiguous(repo_id: str, episode_index: np.ndarray, frame_index: np.n
                                "re-export the dataset sorted by (episode_index, frame_index)")
 
 
-def suite_from_dataset(name: str, ds, images_in_memory: bool) -> Suite:
-    """A Suite from a loaded LeRobotDataset (global frame index = row of its hf_dataset)."""
+def suite_from_dataset(name: str, ds, images_in_memory: bool,
+                       camera_keys: tuple[str, ...] = IMAGE_KEYS) -> Suite:
+    """A Suite from a loaded LeRobotDataset (global frame index = row of its hf_dataset), its
+    cameras `camera_keys` (LIBERO's unless given: a dataset of your own, bench.suites.user)."""
     hf = ds.hf_dataset
     cols = _columns(hf, [STATE_KEY, ACTION_KEY, "episode_index", "frame_index", "task_index"])
     _check_contiguous(ds.repo_id, cols["episode_index"], cols["frame_index"])
@@ -94,7 +96,7 @@ def suite_from_dataset(name: str, ds, images_in_memory: bool) -> Suite:
     tasks = [str(t) for t in tasks_df.index]
     if list(tasks_df["task_index"]) != list(range(len(tasks))):
         raise SuiteUnavailable(f"{ds.repo_id}: task indices are not 0..{len(tasks) - 1}")
-    image_shape = libero.image_shape_chw(ds.features[IMAGE_KEYS[0]])
+    image_shape = libero.image_shape_chw(ds.features[camera_keys[0]])
     hasher = hashlib.sha256()
     for key in (STATE_KEY, ACTION_KEY, "episode_index", "frame_index", "task_index"):
         hasher.update(np.ascontiguousarray(cols[key]).tobytes())
@@ -103,14 +105,14 @@ def suite_from_dataset(name: str, ds, images_in_memory: bool) -> Suite:
     if images_in_memory:
         # Small suites: decode every image once, keep (N, 3, H, W) uint8.
         stored = {cam: torch.from_numpy(_columns(hf, [cam])[cam]).permute(0, 3, 1, 2).contiguous()
-                  for cam in IMAGE_KEYS}
-        for cam in IMAGE_KEYS:
+                  for cam in camera_keys}
+        for cam in camera_keys:
             hasher.update(stored[cam].numpy().tobytes())
 
         def image_loader(frames: torch.Tensor) -> dict[str, torch.Tensor]:
-            return {cam: stored[cam][frames] for cam in IMAGE_KEYS}
+            return {cam: stored[cam][frames] for cam in camera_keys}
     else:
-        image_loader = _dataset_image_loader(ds)
+        image_loader = _dataset_image_loader(ds, camera_keys)
         n = len(cols["action"])
         sample = torch.as_tensor(np.unique(np.linspace(0, n - 1, FINGERPRINT_IMAGE_SAMPLES).astype(int)))
         for cam, image in image_loader(sample).items():
@@ -123,7 +125,7 @@ def suite_from_dataset(name: str, ds, images_in_memory: bool) -> Suite:
         root=str(ds.root),
         fps=int(ds.fps),
         fingerprint=hasher.hexdigest()[:16],
-        camera_keys=IMAGE_KEYS,
+        camera_keys=tuple(camera_keys),
         image_shape=image_shape,
         state=torch.from_numpy(np.asarray(cols[STATE_KEY], dtype=np.float32)),
         action=torch.from_numpy(np.asarray(cols[ACTION_KEY], dtype=np.float32)),
@@ -136,16 +138,16 @@ def suite_from_dataset(name: str, ds, images_in_memory: bool) -> Suite:
     )
 
 
-def _dataset_image_loader(ds):
+def _dataset_image_loader(ds, camera_keys=IMAGE_KEYS):
     """frames -> {camera: (B, 3, H, W) float32 [0, 1]} decoded from the dataset on demand."""
-    video = any(ds.features[cam]["dtype"] == "video" for cam in IMAGE_KEYS)
+    video = any(ds.features[cam]["dtype"] == "video" for cam in camera_keys)
 
     def image_loader(frames: torch.Tensor) -> dict[str, torch.Tensor]:
         if video:  # LeRobot decodes video frames itself (needs FFmpeg)
             items = [ds[int(f)] for f in frames]
-            return {cam: torch.stack([it[cam] for it in items]) for cam in IMAGE_KEYS}
-        rows = ds.hf_dataset.select_columns(list(IMAGE_KEYS))[frames.tolist()]
-        return {cam: torch.stack(list(rows[cam])) for cam in IMAGE_KEYS}
+            return {cam: torch.stack([it[cam] for it in items]) for cam in camera_keys}
+        rows = ds.hf_dataset.select_columns(list(camera_keys))[frames.tolist()]
+        return {cam: torch.stack(list(rows[cam])) for cam in camera_keys}
 
     return image_loader
 
