@@ -17,6 +17,7 @@ from pathlib import Path
 
 from backbones import hub
 from backbones.base import only_step
+from backbones import paligemma
 from backbones.paligemma import (
     ACTION_KEY,
     PALIGEMMA_TOKENIZER_REPO,
@@ -183,3 +184,30 @@ def _require_cached(repo_id: str, revision: str | None = None) -> None:
 def _hub_errors_as_unavailable(repo_id: str, revision: str | None):
     return hub.errors_as_unavailable(repo_id, lambda: artifacts(repo_id, revision, repo_id),
                                      what=" or its tokenizer")
+
+
+def adapter_functions(backbone_cls: type[PaliGemmaBackbone]) -> dict:
+    """The module functions the registry reads (backbones/__init__.py) for one PaliGemma
+    family, bound to its Backbone class: pi0.py and pi05.py export these, nothing more."""
+    family = backbone_cls.family
+
+    def build_tiny_policy(stats: dict, camera_keys=("observation.images.image",
+                                                   "observation.images.wrist_image"),
+                          image_hw: tuple[int, int] = (64, 64), state_dim: int = 8,
+                          action_dim: int = 7, chunk_size: int = 10, seed: int = 0):
+        """A real LeRobot policy of this family with tiny sizes (~0.2M parameters), offline,
+        deterministic from `seed`."""
+        return paligemma.build_tiny_policy(backbone_cls, stats, camera_keys, image_hw,
+                                           state_dim, action_dim, chunk_size, seed)
+
+    def load(path_or_repo_id: str, stats: dict | None = None, *, revision: str | None = None,
+             device: str | None = None):
+        """A saved folder (tiny or real) or a hub repo id from the HF cache (load_policy above)."""
+        return load_policy(backbone_cls, path_or_repo_id, stats, revision=revision, device=device)
+
+    def check_real_shapes() -> dict[str, int]:
+        """The REAL model on the meta device (no weights), one 224 px image embedded."""
+        return paligemma.check_real_shapes(family)
+
+    return {"build_tiny_policy": build_tiny_policy, "save_pretrained": paligemma.save_pretrained,
+            "load_policy": load, "artifacts": artifacts, "check_real_shapes": check_real_shapes}

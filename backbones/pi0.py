@@ -13,9 +13,6 @@ normalisation of state and action (configuration_pi0.py:71-77); tokenizer length
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 from backbones import paligemma, paligemma_load
 from backbones.base import BackboneInfo
 from backbones.paligemma import PaliGemmaBackbone
@@ -52,45 +49,10 @@ class PI0Backbone(PaliGemmaBackbone):
     family = FAMILY
 
 
-def build_tiny_policy(
-    stats: dict,
-    camera_keys=("observation.images.image", "observation.images.wrist_image"),
-    image_hw: tuple[int, int] = (64, 64),
-    state_dim: int = 8,
-    action_dim: int = 7,
-    chunk_size: int = 10,
-    seed: int = 0,
-) -> PI0Backbone:
-    """A real PI0Policy with tiny sizes (~0.2M parameters), offline, deterministic from `seed`."""
-    return paligemma.build_tiny_policy(PI0Backbone, stats, camera_keys, image_hw, state_dim,
-                                       action_dim, chunk_size, seed)
-
-
-def save_pretrained(backbone: PI0Backbone, folder: str | os.PathLike) -> Path:
-    """Policy (config + safetensors), both processors and our marker into `folder`."""
-    return paligemma.save_pretrained(backbone, folder)
-
-
-def load_policy(path_or_repo_id: str, stats: dict | None = None, *, revision: str | None = None,
-                device: str | None = None) -> PI0Backbone:
-    """A saved folder (tiny or real) or a hub repo id from the HF cache (backbones.paligemma_load)."""
-    return paligemma_load.load_policy(PI0Backbone, path_or_repo_id, stats, revision=revision,
-                                      device=device)
-
-
-def artifacts(repo_id: str, revision: str | None, needed_by: str) -> list:
-    """What loading `repo_id` reads from the hub: the checkpoint and the PaliGemma tokenizer."""
-    return paligemma_load.artifacts(repo_id, revision, needed_by)
-
-
-def check_real_shapes() -> dict[str, int]:
-    """Build the REAL pi0 model on the meta device (no weights) and embed one 224 px image.
-
-    Returns {"tokens_per_camera": 256, "lm_width": 2048} for LeRobot's default PI0Config.
-    """
-    return paligemma.check_real_shapes(FAMILY)
-
-
-def _adapt_real_config(config, stats: dict | None) -> tuple[dict[str, str], tuple[str, ...]]:
-    """LIBERO view of a released pi0 config (in place): rename map, cameras kept."""
-    return paligemma_load.adapt_real_config(config, stats, FAMILY)
+# The module functions the registry reads: the PaliGemma family's, bound to PI0Backbone.
+_ADAPTER = paligemma_load.adapter_functions(PI0Backbone)
+build_tiny_policy = _ADAPTER["build_tiny_policy"]
+save_pretrained = _ADAPTER["save_pretrained"]
+load_policy = _ADAPTER["load_policy"]
+artifacts = _ADAPTER["artifacts"]
+check_real_shapes = _ADAPTER["check_real_shapes"]

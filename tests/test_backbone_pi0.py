@@ -13,7 +13,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from backbones import pi0, pi05
+from backbones import paligemma_load, pi0, pi05
 from backbones.base import BackboneUnavailable
 # The tiny PaliGemma test data (cameras, stats with mean/std AND quantiles, raw batches) is pi0.5's.
 from tests.test_backbone_pi05 import (
@@ -273,7 +273,7 @@ def test_libero_view_of_pi0_base_config():
         output_features={"action": PolicyFeature(FeatureType.ACTION, (32,))},
         device="cpu",
     )
-    rename_map, camera_keys = pi0._adapt_real_config(config, make_stats())
+    rename_map, camera_keys = paligemma_load.adapt_real_config(config, make_stats(), pi0.FAMILY)
     assert camera_keys == CAMERAS
     assert [rename_map[k] for k in CAMERAS] == list(config.image_features)
     assert "observation.images.right_wrist_0_rgb" not in config.input_features

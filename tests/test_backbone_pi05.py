@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from backbones import pi05
+from backbones import paligemma_load, pi05
 from backbones.base import BackboneUnavailable
 from backbones.tiny_pi05 import TinyPI05Arch, tiny_pi05_patches, tiny_vocabulary
 
@@ -234,7 +234,7 @@ def test_libero_view_of_pi05_base_config():
         output_features={"action": PolicyFeature(FeatureType.ACTION, (32,))},
         device="cpu",
     )
-    rename_map, camera_keys = pi05._adapt_real_config(config, make_stats())
+    rename_map, camera_keys = paligemma_load.adapt_real_config(config, make_stats(), pi05.FAMILY)
     assert camera_keys == CAMERAS
     assert [rename_map[k] for k in CAMERAS] == list(config.image_features)
     assert "observation.images.right_wrist_0_rgb" not in config.input_features
@@ -242,7 +242,7 @@ def test_libero_view_of_pi05_base_config():
 
 
 def test_dropping_an_unfed_camera_equals_lerobots_masked_empty_camera(tiny):
-    # Why _adapt_real_config may drop pi05_base's unmapped camera: LeRobot would feed it as a
+    # Why adapt_real_config may drop pi05_base's unmapped camera: LeRobot would feed it as a
     # masked -1 image; same weights without that camera give bit-identical actions and losses.
     cameras = (*CAMERAS, "observation.images.right_wrist")
     with_empty = pi05.build_tiny_policy(make_stats(), cameras, chunk_size=CHUNK, seed=0)

@@ -162,7 +162,9 @@ class Workspace:
         # The tiny release is trained on both tiny suites whatever -k selects, so its cache key
         # (and every number measured on it) does not depend on the selection.
         # Hub: which suites does not matter (stats are per suite or the checkpoint's own).
-        return ("spatial", "object") if self.profile.data_source == "tiny" else self.profile.suites[:1]
+        from bench.suites.synthetic import SUITE_PARAMS
+
+        return tuple(SUITE_PARAMS) if self.profile.data_source == "tiny" else self.profile.suites[:1]
 
     def encoder(self, name: str):
         if name not in self._encoders:
