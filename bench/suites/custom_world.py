@@ -14,7 +14,6 @@ Tests build it with `generate_world(root, ...)` and point `--dataset NAME=root` 
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -53,24 +52,13 @@ def generate_world(root: str | Path, seed: int = 0, tasks: int = 2, episodes_per
                    min_len: int = 20, max_len: int = 40) -> Path:
     """Write the world as a LeRobotDataset at `root` (must not exist); returns `root`.
     Tasks are the spatial suite's first `tasks` (colour x destination) instructions."""
-    import datasets
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
     rng = np.random.default_rng([seed, 6])
-    bars = datasets.is_progress_bar_enabled()
-    datasets.disable_progress_bars()
-    try:
-        ds = LeRobotDataset.create(f"local/{ROBOT}_world", fps=FPS, features=features(),
-                                   root=root, robot_type=ROBOT, use_videos=False)
+
+    def stream():
         for task in range(tasks):
             for _ in range(episodes_per_task):
                 text, frames = synthetic.spatial_episode(rng, task, min_len, max_len)
-                for frame in frames:
-                    ds.add_frame({**to_arm6(frame), "task": text})
-                ds.save_episode()
-        ds.finalize()
-    finally:
-        if bars:
-            datasets.enable_progress_bars()
-    shutil.rmtree(Path(root) / "images", ignore_errors=True)  # PNG staging, now in parquet
+                yield text, [to_arm6(frame) for frame in frames]
+
+    synthetic.write_dataset(root, f"local/{ROBOT}_world", features(), ROBOT, FPS, stream())
     return Path(root)

@@ -257,26 +257,19 @@ def content_key(name: str, seed: int, **params) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
-def repo_id(name: str) -> str:
-    return f"graftbench/tiny_libero_{name}"
-
-
-def generate_suite(name: str, root: str | Path, seed: int, **overrides) -> Path:
-    """Write suite `name` as a LeRobotDataset at `root` (must not exist); returns `root`.
-
-    `overrides` replace SUITE_PARAMS entries (episodes_per_task, min_len, max_len).
-    """
+def write_dataset(root: str | Path, repo: str, spec: dict, robot_type: str, fps: int,
+                  stream) -> None:
+    """Episodes `stream` of (task text, frames) as a LeRobotDataset at `root` (images stored in
+    the parquet, not as video): the one writer of every generated world."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     import datasets
 
-    params = {**SUITE_PARAMS[name], **overrides} if name in SUITE_PARAMS else overrides
-    stream = episodes(name, seed, **params)
     bars = datasets.is_progress_bar_enabled()
     datasets.disable_progress_bars()  # one "Map" bar per episode otherwise
     try:
-        ds = LeRobotDataset.create(repo_id(name), fps=FPS, features=features(), root=root,
-                                   robot_type="panda", use_videos=False)
+        ds = LeRobotDataset.create(repo, fps=fps, features=spec, root=root,
+                                   robot_type=robot_type, use_videos=False)
         for text, frames in stream:
             for frame in frames:
                 ds.add_frame({**frame, "task": text})
@@ -286,6 +279,19 @@ def generate_suite(name: str, root: str | Path, seed: int, **overrides) -> Path:
         if bars:
             datasets.enable_progress_bars()
     shutil.rmtree(Path(root) / "images", ignore_errors=True)  # PNG staging, now in parquet
+
+
+def repo_id(name: str) -> str:
+    return f"graftbench/tiny_libero_{name}"
+
+
+def generate_suite(name: str, root: str | Path, seed: int, **overrides) -> Path:
+    """Write suite `name` as a LeRobotDataset at `root` (must not exist); returns `root`.
+
+    `overrides` replace SUITE_PARAMS entries (episodes_per_task, min_len, max_len).
+    """
+    params = {**SUITE_PARAMS[name], **overrides} if name in SUITE_PARAMS else overrides
+    write_dataset(root, repo_id(name), features(), "panda", FPS, episodes(name, seed, **params))
     (Path(root) / "graftbench_suite.json").write_text(json.dumps(
         {"name": name, "seed": seed, "generator_version": GENERATOR_VERSION, **params}, indent=1))
     return Path(root)
