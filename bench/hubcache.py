@@ -5,6 +5,8 @@ names (policies, datasets, timm weights). Below every adapter, encoder and suite
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import os
 from pathlib import Path
 
@@ -66,3 +68,21 @@ def hub_artifact(kind: str, repo_id: str, files: tuple[str, ...], needed_by: str
     else:
         where, fix = str(cached_file(repo_id, files[0], revision).parent), ""
     return Artifact(kind, repo_id, needed_by, not missing, where, fix, revision, note)
+
+
+def folder_revision(folder: str | os.PathLike) -> str | None:
+    """A saved policy folder's revision: "sha256:<16 hex>" of its model.safetensors (a folder has
+    no commit; its weights name it), None without one. Hashed once per file version."""
+    weights = Path(folder) / "model.safetensors"
+    if not weights.is_file():
+        return None
+    return f"sha256:{_file_sha256(str(weights), weights.stat().st_mtime_ns)[:16]}"
+
+
+@functools.lru_cache(maxsize=None)
+def _file_sha256(path: str, mtime_ns: int) -> str:
+    hasher = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 22), b""):
+            hasher.update(block)
+    return hasher.hexdigest()

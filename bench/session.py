@@ -175,9 +175,12 @@ class GraftSession:
                 record.get("feature_dtype", "float32") != self.feature_dtype:
             return None  # features stored at another precision (records before it: float32)
         if record is not None:
-            # Measured with another normaliser (other stats or checkpoint): measure again.
-            expected = self.workspace().normalizer(cell.backbone, cell.suite).fingerprint
-            if (record.get("checkpoint") or {}).get("normalizer_fingerprint") != expected:
+            # Measured on other weights (another tiny release, revision or folder) or with
+            # another normaliser (other stats or checkpoint): measure again.
+            ws, saved = self.workspace(), record.get("checkpoint") or {}
+            if saved.get("revision") != ws.checkpoint(cell.backbone, cell.suite)["revision"]:
+                return None
+            if saved.get("normalizer_fingerprint") != ws.normalizer(cell.backbone, cell.suite).fingerprint:
                 return None
         return record
 

@@ -79,3 +79,20 @@ def test_a_record_from_another_normaliser_is_measured_again_not_resumed(tmp_path
     assert json.loads(path.read_text())["checkpoint"]["normalizer_fingerprint"] != "000000000000"
     third = run_bench(tmp_path, *one)
     assert "measured 0, resumed from store 1" in third.stdout
+
+
+def test_a_record_measured_on_other_weights_is_measured_again_not_resumed(tmp_path):
+    """The tiny release's revision is its weights' hash: the same release key trained under
+    another thread count (other bits) or another cache must not lend its records to this one."""
+    one = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "blind", "--seeds", "0",
+           "--controls", "none", "--steps", "5"]
+    assert run_bench(tmp_path, *one).returncode == 0
+    path = tmp_path / "results" / "cells" / "pi05-spatial-blind-seed0.json"
+    record = json.loads(path.read_text())
+    assert record["checkpoint"]["repo_id"] == "tiny:pi05"
+    assert record["checkpoint"]["revision"].startswith("sha256:")
+    record["checkpoint"]["revision"] = "sha256:0000000000000000"  # another release's weights
+    path.write_text(json.dumps(record))
+    again = run_bench(tmp_path, *one)
+    assert again.returncode == 0 and "measured 1, resumed from store 0" in again.stdout
+    assert json.loads(path.read_text())["checkpoint"]["revision"] != "sha256:0000000000000000"

@@ -23,6 +23,7 @@ import torch
 from backbones import adapter_module, get_entry
 from backbones.base import BackboneUnavailable
 from backbones.hub import download_command, resolved_revision, saved_normalizer_stats, stats_fingerprint
+from bench.hubcache import folder_revision
 from bench.progress import say
 from bench.grid.protocol import Profile
 from bench.results.provenance import stable_seed
@@ -167,27 +168,31 @@ def normalizer_for(name: str, profile: Profile, suites, train_frames) -> Normali
     return Normalizer("checkpoint", None, stats_fingerprint(saved))
 
 
-def checkpoint_id(name: str, profile: Profile) -> dict:
-    """The checkpoint a record was measured on: repo id and the commit the cache resolves (a
-    --policy folder: the sha256 of its weights, bench.run.userworld)."""
+def checkpoint_id(name: str, profile: Profile, release_dir: Path | None = None) -> dict:
+    """The checkpoint a record was measured on: repo id and the commit the cache resolves; a
+    tiny release or a --policy folder: the sha256 of its weights (a folder has no commit, and
+    the same key trained under another thread count gives other weights)."""
     if name in dict(profile.policies):
         from bench.run.userworld import user_checkpoint_id
 
         return user_checkpoint_id(profile, name)
     entry = get_entry(name)
     if profile.source != "hub":
-        return {"repo_id": f"tiny:{name}", "revision": None}
+        return {"repo_id": f"tiny:{name}",
+                "revision": folder_revision(release_dir) if release_dir else None}
     return {"repo_id": entry.repo_id, "revision": resolved_revision(entry.repo_id, entry.revision)}
 
 
 def load_released(name: str, profile: Profile, suites, train_frames, cache: Path,
                   chunk_size: int = 10, progress=True, stats: dict | None = None):
-    """The released policy for `name` in this profile's world, loaded with from_pretrained.
-    Hub: `stats` are the dataset stats to normalise with (None: the checkpoint's own)."""
+    """(the released policy for `name` in this profile's world, loaded with from_pretrained;
+    its checkpoint_id). Hub: `stats` are the dataset stats to normalise with (None: the
+    checkpoint's own)."""
     module = adapter_module(name)
     if profile.source == "hub":
         entry = get_entry(name)
-        return module.load_policy(entry.repo_id, stats=stats, revision=entry.revision)
+        backbone = module.load_policy(entry.repo_id, stats=stats, revision=entry.revision)
+        return backbone, checkpoint_id(name, profile)
     # The untrained build (seed 0) both keys the cache and, on a miss, is what gets trained.
     untrained = module.build_tiny_policy(union_stats(suites, train_frames), suites[0].camera_keys,
                                          chunk_size=chunk_size, seed=0)
@@ -201,7 +206,7 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
                               f"steps, once; cached in {folder})")
                 train_tiny_release(name, untrained, profile, suites, train_frames, folder,
                                    chunk_size, progress)
-    return module.load_policy(str(folder))
+    return module.load_policy(str(folder)), checkpoint_id(name, profile, folder)
 
 
 @contextlib.contextmanager

@@ -20,7 +20,6 @@ from bench.grid.kinds import GRAFT
 from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
-from bench.run.releases import checkpoint_id
 from bench.run.closed_loop import cell_rollouts
 from bench.results.record import ok_record
 from bench.suites.windows import raw_batch
@@ -239,7 +238,7 @@ def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
         "features_mode": features_mode if inputs.encoder is not None else None,
         **({"feature_dtype": ws.feature_dtype} if inputs.features is not None else {}),
         "profile": ws.profile.name, "protocol": p.to_dict(), "protocol_hash": p.hash,
-        "checkpoint": {**checkpoint_id(cell.backbone, ws.profile),
+        "checkpoint": {**ws.checkpoint(cell.backbone, cell.suite),
                        "normalizer": ws.normalizer(cell.backbone, cell.suite).source,
                        "normalizer_fingerprint": backbone.normalizer_fingerprint()},
         **({"grid_file": grid_file.provenance()} if grid_file is not None else {}),

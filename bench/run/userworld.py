@@ -16,14 +16,13 @@ Provenance: a hub id records the commit the cache resolves; a local folder recor
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from backbones import adapter_for_policy_type
 from backbones.hub import cached_file, resolved_revision, saved_normalizer_stats, stats_fingerprint
+from bench.hubcache import folder_revision
 from bench.grid.userworld import split_revision
 from bench.suites.base import ACTION_KEY, STATE_KEY
 from bench.suites.user import DatasetFacts, check_dataset, dataset_facts
@@ -202,16 +201,6 @@ def user_normalizer(profile, backbone: str):
 def user_checkpoint_id(profile, backbone: str) -> dict:
     """{repo_id: folder or hub id, revision: the resolved commit or sha256 of the weights}."""
     facts = policy_facts(backbone, dict(profile.policies)[backbone])
-    weights = Path(facts.source) / "model.safetensors"
-    revision = (f"sha256:{_file_sha256(str(weights), weights.stat().st_mtime_ns)[:16]}"
-                if weights.is_file() else resolved_revision(facts.source, facts.revision))
+    revision = (folder_revision(facts.source) if Path(facts.source).is_dir()
+                else resolved_revision(facts.source, facts.revision))
     return {"repo_id": facts.source, "revision": revision, "policy_type": facts.policy_type}
-
-
-@functools.lru_cache(maxsize=None)
-def _file_sha256(path: str, mtime_ns: int) -> str:
-    hasher = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 22), b""):
-            hasher.update(block)
-    return hasher.hexdigest()

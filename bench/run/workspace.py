@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 
 from backbones import get_entry
-from bench.run.releases import Normalizer, load_released, normalizer_for
+from bench.run.releases import Normalizer, checkpoint_id, load_released, normalizer_for
 from bench.run.features import FeatureStore
 from bench.paths import cache_dir
 from bench.progress import say
@@ -46,6 +46,7 @@ class Workspace:
     _suites: dict = field(default_factory=dict)
     _splits: dict = field(default_factory=dict)
     _released: dict = field(default_factory=dict)  # name -> loaded policy adapter
+    _checkpoints: dict = field(default_factory=dict)  # name -> its checkpoint_id
     _backbones: dict = field(default_factory=dict)  # (name, normaliser fingerprint) -> adapter
     _normalizers: dict = field(default_factory=dict)
     _encoders: dict = field(default_factory=dict)
@@ -121,8 +122,9 @@ class Workspace:
             train = {s.name: self.split(s.name).train_frames for s in suites}
             chunk = TINY_CHUNK if self.profile.source == "tiny" else None
             kwargs = {"chunk_size": chunk} if chunk else {}
-            bb = load_released(name, self.profile, suites, train, self.cache,
-                               progress=self.progress, stats=norm.stats, **kwargs)
+            bb, self._checkpoints[name] = load_released(
+                name, self.profile, suites, train, self.cache, progress=self.progress,
+                stats=norm.stats, **kwargs)
             bb.freeze()
             self._released[name] = bb
         key = (name, norm.fingerprint)
@@ -137,6 +139,15 @@ class Workspace:
                 )
             self._backbones[key] = bb
         return self._backbones[key]
+
+    def checkpoint(self, name: str, suite: str | None = None) -> dict:
+        """{repo_id, revision} of the policy `name` is measured on (loading it when needed: a tiny
+        release's revision is its weights' hash)."""
+        if self.is_user_policy(name):
+            return checkpoint_id(name, self.profile)
+        if name not in self._checkpoints:
+            self.backbone(name, suite)
+        return self._checkpoints[name]
 
     def is_user_policy(self, name: str) -> bool:
         return name in dict(self.profile.policies)
