@@ -1,6 +1,6 @@
 """What the adapters need from the Hugging Face cache and LeRobot's saved processors.
 
-Cache look-ups and fix lines: bench.hubcache. One owner here for: the overrides that make a
+Cache look-ups and fix lines: external.hubcache. One owner here for: the overrides that make a
 checkpoint's SAVED processor pipeline fit the policy we built (LeRobot's own lerobot_train.py
 ~356-377 passes the same ones), and the check that the resulting normaliser covers the state and
 action it will see (a hub `policy_preprocessor.json` may carry `"features": {}`, which makes the
@@ -17,7 +17,7 @@ from typing import Callable, Iterator
 import numpy as np
 import torch
 
-from bench.hubcache import (  # noqa: F401  (re-exported: the adapters read them as hub.*)
+from external.hubcache import (  # noqa: F401  (re-exported: the adapters read them as hub.*)
     cached_file, download_command, hub_artifact, hub_offline, resolved_revision,
 )
 

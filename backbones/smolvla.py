@@ -26,7 +26,9 @@ from torch import Tensor
 
 from backbones.base import Backbone, BackboneInfo, ImageEmbedder, only_step
 from backbones.tiny_smolvla import REAL_VLM, real_shape_forward, tiny_config, tokens_per_camera
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY
+from external.libero_format import (
+    ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
+)
 
 VLM_REPO_ID = "HuggingFaceTB/SmolVLM2-500M-Video-Instruct"  # smolvla_base's vlm_model_name
 NATIVE_FEATURE_DOC = (

@@ -10,7 +10,9 @@ import torch
 from backbones import hub
 from backbones.base import only_step
 from backbones.smolvla import VENDORED_VLM_DIR, VLM_REPO_ID, SmolVLABackbone
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY
+from external.libero_format import (
+    ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
+)
 
 
 def load_policy(

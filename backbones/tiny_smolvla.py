@@ -24,8 +24,10 @@ from pathlib import Path
 
 import torch
 
-from bench.paths import cache_dir
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY
+from external.paths import cache_dir
+from external.libero_format import (
+    ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
+)
 
 # Bump when the folder contents change in a way the spec hash below does not see.
 FOLDER_FORMAT = "1"

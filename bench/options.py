@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from bench.grid.gridfile import read_grid_file
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import get_profile, with_overrides
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Iterable, Sequence
 
-from bench.artifacts import Artifact
+from external.artifacts import Artifact
 
 def grid_artifacts(backbones: Iterable[str], encoders: Iterable[str],
                    suites: Iterable[str]) -> list[Artifact]:

@@ -20,7 +20,7 @@ from bench.grid.cells import GRAFT, CellSpec
 from bench.options import (
     build_profile, check_rollouts_possible, check_user_world, offline_env, report_path,
 )
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 from bench.progress import say
 from bench.regression.run import BaselineRun
 
@@ -188,7 +188,7 @@ class GraftSession:
         """--executor slurm|submitit-local: the first case submits every selected cell that has
         no current record as ONE job array; each case then waits for its own task."""
         from bench.run.executors import CellArray, CellJob, SlurmOptions
-        from bench.paths import cache_dir
+        from external.paths import cache_dir
         from bench.results.record import failure_record
 
         if self._cell_array is None:

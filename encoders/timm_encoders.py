@@ -17,7 +17,7 @@ from huggingface_hub import try_to_load_from_cache
 from timm.models._hub import HF_WEIGHTS_NAME, _get_safe_alternatives, check_cached_file
 from torch import Tensor
 
-from bench.artifacts import Artifact
+from external.artifacts import Artifact
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder, resized_normalised
 from encoders.registry import (EncoderUnavailable, get_spec, is_user_encoder, register,
                                register_prefix)
@@ -105,7 +105,7 @@ def _cached_weight_file(repo_id: str, revision: str | None, files: tuple[str, ..
 
 def fetch_command(repo_id: str, revision: str | None, filename: str) -> str:
     """The shell command that puts one weight file of `repo_id` in the HF hub cache."""
-    from bench.hubcache import download_command
+    from external.hubcache import download_command
 
     return download_command(repo_id, revision, files=(filename,))
 

@@ -276,7 +276,7 @@ def build_real_pi05(stats: dict, device):
 
     from backbones.pi05 import PI05Backbone
     from backbones.tiny_pi05 import TOKENIZER_DIRNAME, ensure_tiny_tokenizer, local_tokenizer
-    from bench.paths import cache_dir
+    from external.paths import cache_dir
 
     side = RAW_IMAGE_SIDE["real"]
     inputs = {key: PolicyFeature(FeatureType.VISUAL, (3, side, side)) for key in CAMERAS}

@@ -21,7 +21,7 @@ import pytest
 
 from bench.grid.cells import CellSpec
 from bench.run.executors import CellArray, CellJob, SlurmOptions
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 from bench.grid.protocol import TINY, with_overrides
 
 SLICE = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels,blind",

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from bench.run import feature_store as fs
 from bench.run.features import FeatureStore, encode_pooled, feature_key, pool_grid
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 from encoders import build_encoder
 
 CAMERAS = ("observation.images.image", "observation.images.wrist_image")

@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 
 SLICE = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels,blind",
          "--seeds", "0", "--controls", "native", "--steps", "5"]

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from bench import hubworld
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 
 SLICE = ["--profile", "paper", "--steps", "3", "--backbones", "smolvla,pi05,pi0", "--suites", "spatial",
          "--seeds", "0", "--encoders", "dinov2_s", "--controls", "native,zero_image"]

@@ -12,7 +12,7 @@ import pytest
 from bench.grid import kinds
 from bench.grid.cells import CellSpec, control_cells, graft_cells
 from bench.grid.kinds import CELL_KINDS, CellKind, control_kinds, register_kind, unregister_kind
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 from bench.grid.protocol import TINY_FULL, with_overrides
 from bench.results.record import validate_record
 from bench.results.records import load_results, make_record, save_record

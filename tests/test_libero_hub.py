@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from bench.suites import libero, load_suite
-from bench.suites.base import IMAGE_KEYS, SuiteUnavailable
+from external.libero_format import IMAGE_KEYS
+from bench.suites.base import SuiteUnavailable
 
 REPO = "lerobot/libero_spatial_image"
 SHA = "0123456789abcdef0123456789abcdef01234567"

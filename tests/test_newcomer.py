@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 
 ONE_CELL = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "blind", "--seeds", "0",
             "--controls", "none", "--steps", "5"]

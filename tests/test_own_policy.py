@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from bench.analysis.rankings import paired_window_bootstrap
-from bench.paths import cache_dir
+from external.paths import cache_dir
 from tests.test_grid_plugin import run_bench
 from tests.test_gridfile import Config
 

@@ -15,7 +15,7 @@ if not sim_env.libero_available():
 
 from bench.sim import demos  # noqa: E402
 from bench.suites import libero, suite_from_dataset  # noqa: E402
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY  # noqa: E402
+from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY  # noqa: E402
 
 # One task where the expert is known to succeed (LIBERO-Spatial task 0: 10/10 measured), small
 # images so the test stays around a minute on 2 cores.

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from bench.paths import cache_dir
+from external.paths import cache_dir
 from bench.suites import SUITES, libero, load_suite, suite_from_dataset, synthetic
-from bench.suites.base import IMAGE_KEYS, STATE_KEY, Suite, SuiteUnavailable
+from external.libero_format import IMAGE_KEYS, STATE_KEY
+from bench.suites.base import Suite, SuiteUnavailable
 from bench.suites.windows import (
     action_chunks,
     episode_frames,

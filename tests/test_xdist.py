@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 
 SLICE = ["--backbones", "pi05,smolvla", "--suites", "spatial", "--encoders", "pixels,blind",
          "--seeds", "0", "--controls", "none"]

@@ -21,7 +21,7 @@ from typing import Callable
 import pytest
 
 from bench.regression import baseline as B
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 
 DEFAULT_BASELINE_DIR = REPO_ROOT / ".graftbench" / "baselines"
 

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from bench.results.provenance import stable_seed
-from bench.suites.base import LIBERO_ACTION_DIM, STATE_KEY
+from external.libero_format import LIBERO_ACTION_DIM, STATE_KEY
 from bench.run.evaluate import sample_grafted
 from bench.grid.kinds import NO_CLOSED_LOOP, ZERO
 from bench.suites.libero import LIBERO_SUITES

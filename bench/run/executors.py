@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from bench.grid.cells import CellSpec
-from bench.paths import REPO_ROOT
+from external.paths import REPO_ROOT
 from bench.grid.protocol import Profile
 from bench.results.record import failure_record
 

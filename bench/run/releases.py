@@ -23,11 +23,11 @@ import torch
 from backbones import adapter_module, get_entry
 from backbones.base import BackboneUnavailable
 from backbones.hub import download_command, resolved_revision, saved_normalizer_stats, stats_fingerprint
-from bench.hubcache import folder_revision
+from external.hubcache import folder_revision
 from bench.progress import say
 from bench.grid.protocol import Profile
 from bench.results.provenance import stable_seed
-from bench.suites.base import STATE_KEY
+from external.libero_format import STATE_KEY
 from bench.run.train import FitConfig, fit
 
 RELEASE_VERSION = "1"

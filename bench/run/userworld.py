@@ -22,9 +22,9 @@ from pathlib import Path
 
 from backbones import adapter_for_policy_type
 from backbones.hub import cached_file, resolved_revision, saved_normalizer_stats, stats_fingerprint
-from bench.hubcache import folder_revision
+from external.hubcache import folder_revision
 from bench.grid.userworld import split_revision
-from bench.suites.base import ACTION_KEY, STATE_KEY
+from external.libero_format import ACTION_KEY, STATE_KEY
 from bench.suites.user import DatasetFacts, check_dataset, dataset_facts
 
 

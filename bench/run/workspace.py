@@ -14,7 +14,7 @@ import torch
 from backbones import get_entry
 from bench.run.releases import Normalizer, checkpoint_id, load_released, normalizer_for
 from bench.run.features import FeatureStore
-from bench.paths import cache_dir
+from external.paths import cache_dir
 from bench.progress import say
 from bench.grid.protocol import Profile
 from bench.results.store import ResultStore

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.paths import build_dataset_dir, cache_dir
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
+from external.paths import build_dataset_dir, cache_dir
+from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 GENERATOR_VERSION = "4"  # bump when a change here (or in the expert) changes generated data
 EXPERT_SUCCESS_FILE = "expert_success.json"

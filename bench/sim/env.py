@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.paths import cache_dir
+from external.paths import cache_dir
 from bench.suites import libero
-from bench.suites.base import IMAGE_KEYS, STATE_KEY
+from external.libero_format import IMAGE_KEYS, STATE_KEY
 
 # graftbench suite name -> LIBERO benchmark name, for the suites the scripted expert and demos
 # cover (bench.sim.expert): the others' scenes are not exercised here.

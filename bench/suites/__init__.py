@@ -17,13 +17,8 @@ import numpy as np
 import torch
 
 from bench.suites import libero, synthetic
-from bench.suites.base import (
-    ACTION_KEY,
-    IMAGE_KEYS,
-    STATE_KEY,
-    Suite,
-    SuiteUnavailable,
-)
+from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
+from bench.suites.base import Suite, SuiteUnavailable
 
 SOURCES = ("tiny", "hub", "sim")
 FINGERPRINT_IMAGE_SAMPLES = 32  # hub suites: frames whose image bytes enter the fingerprint

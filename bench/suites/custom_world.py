@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.suites import synthetic
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY
+from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 
 FRONT, WRIST = "observation.images.front", "observation.images.wrist"
 CAMERAS = (FRONT, WRIST)

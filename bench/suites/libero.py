@@ -16,16 +16,12 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.hubcache import hub_offline
-from bench.artifacts import Artifact
-from bench.suites.base import (
-    ACTION_KEY,
-    IMAGE_KEYS,
-    LIBERO_ACTION_DIM,
-    LIBERO_STATE_DIM,
-    STATE_KEY,
-    SuiteUnavailable,
+from external.hubcache import hub_offline
+from external.artifacts import Artifact
+from external.libero_format import (
+    ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
 )
+from bench.suites.base import SuiteUnavailable
 
 
 
@@ -125,7 +121,7 @@ def locate(repo_id: str, root: str | Path | None = None,
 
 def download_command(repo_id: str, revision: str | None = None) -> str:
     """The shell command that puts `repo_id` in the HF hub cache, where locate() finds it."""
-    from bench.hubcache import download_command as hf_download
+    from external.hubcache import download_command as hf_download
 
     return hf_download(repo_id, revision, repo_type="dataset")
 

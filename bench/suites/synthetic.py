@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.paths import build_dataset_dir, cache_dir
-from bench.suites.base import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
+from external.paths import build_dataset_dir, cache_dir
+from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 # Bump when a change to this file changes generated data: it is part of the cache key.
 GENERATOR_VERSION = "5"

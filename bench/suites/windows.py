@@ -10,7 +10,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from bench.suites.base import STATE_KEY, Suite
+from external.libero_format import STATE_KEY
+from bench.suites.base import Suite
 
 
 def episode_tasks(suite: Suite) -> dict[int, int]:
