@@ -1,21 +1,26 @@
 """Backbone registry: adding a backbone is one entry (a module with the adapter functions).
 
-Each module offers: INFO_REAL, build_tiny_policy(stats, camera_keys, ...), load_policy(path_or_repo,
-stats=None), save_pretrained(backbone, folder), check_real_shapes().
+Each entry names its LeRobot policy type and its adapter module; the module offers what
+backbones.seam.AdapterModule lists (INFO_REAL, BACKBONE_CLASS, RENAMES_CAMERAS,
+build_tiny_policy, load_policy, save_pretrained, check_real_shapes, artifacts,
+write_hub_release), checked when `adapter_module` first loads it.
 """
 
 from __future__ import annotations
 
 import difflib
+import functools
 import importlib
 from dataclasses import dataclass
-from types import ModuleType
+
+from backbones.seam import AdapterModule, check_adapter
 
 
 @dataclass(frozen=True)
 class BackboneEntry:
     name: str
-    module: str  # import path of the adapter module
+    policy_type: str  # the LeRobot config `type` the adapter loads ("smolvla", "pi05", "pi0")
+    module: str  # import path of the adapter module (backbones.seam.AdapterModule)
     repo_id: str  # the released checkpoint in the real world
     description: str
     # Hub commit the paper profile loads (None: whatever the cache's main is; the record still
@@ -46,24 +51,24 @@ def register(entry: BackboneEntry) -> None:
 
 
 # Revisions: docs/HUB_FACTS.md (the commit most projects pin / the main seen, 2026).
-register(BackboneEntry("smolvla", "backbones.smolvla", "lerobot/smolvla_base",
+register(BackboneEntry("smolvla", "smolvla", "backbones.smolvla", "lerobot/smolvla_base",
                        "SmolVLA-450M (SmolVLM2 LM, width 960, 64 image tokens per camera)",
                        revision="c83c3163b8ca9b7e67c509fffd9121e66cb96205", params=450e6))
-register(BackboneEntry("pi05", "backbones.pi05", "lerobot/pi05_base",
+register(BackboneEntry("pi05", "pi05", "backbones.pi05", "lerobot/pi05_base",
                        "pi0.5-3.3B (PaliGemma/Gemma-2B, width 2048, 256 image tokens per camera)",
                        revision="b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba", params=3.3e9))
 # pi0: PaliGemma like pi0.5, the state a continuous token (an option beside the study's two).
-register(BackboneEntry("pi0", "backbones.pi0", "lerobot/pi0_base",
+register(BackboneEntry("pi0", "pi0", "backbones.pi0", "lerobot/pi0_base",
                        "pi0-3.5B (PaliGemma/Gemma-2B, width 2048, 256 image tokens per camera, "
                        "continuous state token)",
                        revision="25c379b52ba2ff8788cab921758a3cc3fe3f77f2", study=False,
                        params=3.5e9))
 # LIBERO-trained releases: a native reference that acts on LIBERO (not the study's choice).
-register(BackboneEntry("smolvla_libero", "backbones.smolvla", "HuggingFaceVLA/smolvla_libero",
+register(BackboneEntry("smolvla_libero", "smolvla", "backbones.smolvla", "HuggingFaceVLA/smolvla_libero",
                        "SmolVLA-450M fine-tuned on LIBERO (its own saved stats)",
                        revision="6721902bc4d61e50a3bfdb11dfb4cb626f05d102", stats="checkpoint",
                        study=False, params=450e6))
-register(BackboneEntry("pi05_libero", "backbones.pi05", "lerobot/pi05_libero_finetuned",
+register(BackboneEntry("pi05_libero", "pi05", "backbones.pi05", "lerobot/pi05_libero_finetuned",
                        "pi0.5-3.3B fine-tuned on LIBERO (its own saved stats)",
                        revision="dbf8a3f794a9c4297b44f40b752712f50073d945", stats="checkpoint",
                        study=False, params=3.3e9))
@@ -79,18 +84,35 @@ def get_entry(name: str) -> BackboneEntry:
     return BACKBONES[name]
 
 
-def adapter_module(name: str) -> ModuleType:
-    return importlib.import_module(get_entry(name).module)
+def adapter_module(name: str) -> AdapterModule:
+    """The adapter module of backbone `name`, checked against the seam on first load."""
+    return _load_adapter(get_entry(name).module, name)
 
 
-def adapter_for_policy_type(policy_type: str) -> ModuleType:
-    """The adapter module for a LeRobot config `type` ("smolvla", "pi05", "pi0"): the module of
-    the registry's entries whose module name is that type. A checkpoint of your own is loaded by
-    it (`--policy NAME=PATH`)."""
-    modules = sorted({e.module for e in BACKBONES.values()})
-    for module in modules:
-        if module.rsplit(".", 1)[-1] == policy_type:
-            return importlib.import_module(module)
-    types = [m.rsplit(".", 1)[-1] for m in modules]
+@functools.lru_cache(maxsize=None)
+def _load_adapter(module_path: str, backbone: str) -> AdapterModule:
+    module = importlib.import_module(module_path)
+    check_adapter(module, backbone)
+    return module
+
+
+def adapter_for_policy_type(policy_type: str) -> AdapterModule:
+    """The adapter module for a LeRobot config `type` ("smolvla", "pi05", "pi0"): that of the
+    registry's entries of that policy type. A checkpoint of your own is loaded by it
+    (`--policy NAME=PATH`)."""
+    for entry in BACKBONES.values():
+        if entry.policy_type == policy_type:
+            return adapter_module(entry.name)
+    types = sorted({e.policy_type for e in BACKBONES.values()})
     raise ValueError(f"policy type {policy_type!r} has no graftbench adapter; adapters exist for "
                      f"{', '.join(types)} (docs/EXTENDING.md: a backbone)")
+
+
+def study_backbone(name: str) -> str:
+    """The study's backbone a backbone of ours belongs to: the study entry of its policy type
+    ('pi05_libero' -> 'pi05'); itself when it has none (pi0, a --policy name)."""
+    if name in BACKBONES:
+        for entry in BACKBONES.values():
+            if entry.study and entry.policy_type == BACKBONES[name].policy_type:
+                return entry.name
+    return name

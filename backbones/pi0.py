@@ -13,7 +13,10 @@ normalisation of state and action (configuration_pi0.py:71-77); tokenizer length
 
 from __future__ import annotations
 
-from backbones import paligemma, paligemma_load
+import sys
+from pathlib import Path
+
+from backbones import hub_world, paligemma, paligemma_load
 from backbones.base import BackboneInfo
 from backbones.paligemma import PaliGemmaBackbone
 
@@ -56,3 +59,11 @@ save_pretrained = _ADAPTER["save_pretrained"]
 load_policy = _ADAPTER["load_policy"]
 artifacts = _ADAPTER["artifacts"]
 check_real_shapes = _ADAPTER["check_real_shapes"]
+BACKBONE_CLASS = PI0Backbone
+RENAMES_CAMERAS = False  # a checkpoint is loaded with its saved camera names
+
+
+def write_hub_release(hub_cache: Path, repo_id: str, revision: str | None) -> None:
+    """lerobot/pi0_base shaped: its pre-processor saved with device cuda (docs/HUB_FACTS.md)."""
+    hub_world.write_paligemma_release(sys.modules[__name__], hub_cache, repo_id, revision,
+                                      device="cuda")

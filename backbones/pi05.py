@@ -10,7 +10,10 @@ prompt (processor_pi05.py ~63-75), so the inner forward takes no state; QUANTILE
 
 from __future__ import annotations
 
-from backbones import paligemma, paligemma_load
+import sys
+from pathlib import Path
+
+from backbones import hub_world, paligemma, paligemma_load
 from backbones.base import BackboneInfo
 from backbones.paligemma import PaliGemmaBackbone
 
@@ -53,3 +56,11 @@ save_pretrained = _ADAPTER["save_pretrained"]
 load_policy = _ADAPTER["load_policy"]
 artifacts = _ADAPTER["artifacts"]
 check_real_shapes = _ADAPTER["check_real_shapes"]
+BACKBONE_CLASS = PI05Backbone
+RENAMES_CAMERAS = False  # a checkpoint is loaded with its saved camera names
+
+
+def write_hub_release(hub_cache: Path, repo_id: str, revision: str | None) -> None:
+    """lerobot/pi05_base shaped: its processors saved with device cpu (docs/HUB_FACTS.md)."""
+    hub_world.write_paligemma_release(sys.modules[__name__], hub_cache, repo_id, revision,
+                                      device="cpu")

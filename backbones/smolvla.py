@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+import sys
 from pathlib import Path
 from typing import Iterator
 
 import torch
 from torch import Tensor
 
+from backbones import hub_world
 from backbones.base import Backbone, BackboneInfo, ImageEmbedder, only_step
 from backbones.tiny_smolvla import REAL_VLM, real_shape_forward, tiny_config, tokens_per_camera
 from external.libero_format import (
@@ -262,6 +264,14 @@ def check_real_shapes() -> dict:
         raise RuntimeError(f"real SmolVLA shapes (got, expected) disagree with INFO_REAL: {wrong}")
     return shapes
 
+
+def write_hub_release(hub_cache: Path, repo_id: str, revision: str | None) -> None:
+    """lerobot/smolvla_base shaped: SO-100 cameras and dims, its hub quirks (backbones.hub_world)."""
+    hub_world.write_smolvla_release(sys.modules[__name__], hub_cache, repo_id, revision)
+
+
+BACKBONE_CLASS = SmolVLABackbone
+RENAMES_CAMERAS = True  # load_policy takes rename_map, camera_keys, state_dim, action_dim
 
 # Loading a saved or released SmolVLA: backbones.smolvla_load (the registry reads them here).
 from backbones.smolvla_load import artifacts, load_policy  # noqa: E402,F401

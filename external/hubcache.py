@@ -38,6 +38,19 @@ def resolved_revision(repo_id: str, revision: str | None = None, repo_type: str 
     return ref.read_text().strip() if ref.is_file() else None
 
 
+def snapshot_dir(hub_cache: Path, repo_id: str, revision: str | None,
+                 repo_type: str = "model") -> Path:
+    """hub_cache/<type>s--ORG--NAME/snapshots/<rev>/ with refs/main -> rev, created (the layout
+    huggingface_hub reads; a `revision` of None: forty zeros). Writes the offline hub world."""
+    sha = revision or "0" * 40
+    folder = Path(hub_cache) / f"{repo_type}s--{repo_id.replace('/', '--')}"
+    (folder / "refs").mkdir(parents=True, exist_ok=True)
+    (folder / "refs" / "main").write_text(sha)
+    snap = folder / "snapshots" / sha
+    snap.mkdir(parents=True, exist_ok=True)
+    return snap
+
+
 def download_command(repo_id: str, revision: str | None = None, include: tuple[str, ...] = (),
                      repo_type: str = "model", files: tuple[str, ...] = ()) -> str:
     """The `hf download` line that puts `repo_id` (or just `files` of it) into the Hugging Face

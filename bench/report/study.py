@@ -16,6 +16,8 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
+from backbones import BACKBONES, study_backbone
+
 STUDY_SOURCE = ("Zeng & She, arXiv 2606.14153, via secondary summaries (MISSION.md): verify "
                 "against the paper")
 
@@ -57,11 +59,6 @@ def _every_encoder_at(study: int, ours: Any) -> bool:
     return isinstance(ours, Mapping) and all(size == study for size in ours.values())
 
 
-def study_backbone(name: str) -> str:
-    """The study's backbone a backbone of ours belongs to: 'pi05_libero' -> 'pi05'."""
-    return name.split("_")[0]
-
-
 def _per_backbone_agree(study: Mapping[str, Any], ours: Mapping[str, Any]) -> bool:
     """Every backbone of ours matches the study's value for its family (none known: False)."""
     families = {b: study_backbone(b) for b in ours}
@@ -97,6 +94,7 @@ STUDY_CONSTANTS: tuple[StudyConstant, ...] = (
                   "the study: one 224 px path for every encoder; ours: each encoder resized to "
                   "its own timm input size, then its own mean/std (the summaries do not say "
                   "whether one mean/std is shared)", _every_encoder_at),
+    # Published per study backbone (keys: the registry's study entries, tests check it).
     StudyConstant("pooling grid", {"smolvla": "8x8", "pi05": "16x16"}, None,
                   "the backbone's native token grid per camera; ours from graft records' grid",
                   _per_backbone_agree),
@@ -105,7 +103,8 @@ STUDY_CONSTANTS: tuple[StudyConstant, ...] = (
                   "n_windows)", _windows_agree),
     StudyConstant("seeds", range(2, 4), None, "seeds per backbone x suite; ours from graft records",
                   _seed_counts_agree),
-    StudyConstant("checkpoints", {"smolvla": "lerobot/smolvla_base", "pi05": "lerobot/pi05_base"},
+    # The study's BASE releases are the registry's study entries (backbones/__init__.py).
+    StudyConstant("checkpoints", {e.name: e.repo_id for e in BACKBONES.values() if e.study},
                   None, "the BASE releases; ours from the records' checkpoint field (or the "
                   "profile)",
                   _per_backbone_agree),

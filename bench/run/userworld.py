@@ -112,7 +112,8 @@ def check_pair(policy: PolicyFacts, dataset_name: str, data: DatasetFacts,
     """Can `policy` take dataset `data`? Its camera pairing and rule, else a one-line error."""
     check_dataset(dataset_name, data)
     both = f"{policy.describe()} x {_describe(dataset_name, data)}"
-    adapter_for_policy_type(policy.policy_type)  # a type without an adapter: its own line
+    # A type without an adapter: its own line, before the others.
+    renames = adapter_for_policy_type(policy.policy_type).RENAMES_CAMERAS
     for what, theirs, mine, saved in (("state", data.state_dim, policy.state_dim, policy.stats_widths[0]),
                                       ("action", data.action_dim, policy.action_dim, policy.stats_widths[1])):
         if mine != theirs:
@@ -124,10 +125,10 @@ def check_pair(policy: PolicyFacts, dataset_name: str, data: DatasetFacts,
                              f"{theirs}-D; fix: save the checkpoint with its pre/post-processors "
                              "(save_pretrained of the policy's processors, with the dataset's stats)")
     mapping, rule = pair_cameras(policy, dataset_name, data, explicit)
-    if policy.policy_type != "smolvla" and any(p != d for p, d in mapping.items()):
+    if not renames and any(p != d for p, d in mapping.items()):
         raise ValueError(f"{both}: a {policy.policy_type} checkpoint is loaded with its saved "
                          f"camera names, the pairing {mapping} renames; fix: name the dataset's "
-                         "cameras as the policy's (renaming is SmolVLA-only in this version)")
+                         "cameras as the policy's (its adapter renames no cameras)")
     return mapping, rule
 
 
@@ -181,7 +182,7 @@ def load_user_policy(profile, backbone: str, suite):
     facts = policy_facts(backbone, dict(profile.policies)[backbone])
     module = adapter_for_policy_type(facts.policy_type)
     mapping = camera_mapping(profile, backbone, suite)
-    if facts.policy_type != "smolvla":
+    if not module.RENAMES_CAMERAS:
         return module.load_policy(facts.source, None, revision=facts.revision)
     return module.load_policy(
         facts.source, None, rename_map={d: p for p, d in mapping.items() if p != d},
