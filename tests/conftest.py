@@ -18,3 +18,15 @@ def tiny_ws(tmp_path_factory):
     from bench.run.workspace import Workspace
 
     return Workspace(TINY, ResultStore(tmp_path_factory.mktemp("results")), progress=False)
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread for a module of tiny-policy tests, restored afterwards: tiny ops are all
+    thread overhead (with 2 shared cores a 10-step sample took 1.3 s on 2 threads, 0.1 s on 1)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
