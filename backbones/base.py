@@ -17,11 +17,15 @@ Batches:
 from __future__ import annotations
 
 import contextlib
+import hashlib
 from dataclasses import dataclass
 from typing import Callable, Iterator
 
+import numpy as np
 import torch
 from torch import Tensor
+
+from external.libero_format import ACTION_KEY, STATE_KEY
 
 # fn(image) -> (B, N_tokens, lm_width): called once per camera, in `camera_keys` order, with the
 # image tensor the policy itself would feed its vision tower (already resized/scaled by it).
@@ -107,8 +111,6 @@ class Backbone:
 
     def normalizer_fingerprint(self) -> str:
         """12 hex chars over the state/action stats the pre-processor really normalises with."""
-        from backbones.hub import normalizer_stats, stats_fingerprint
-
         return stats_fingerprint(normalizer_stats(self.preprocessor))
 
     # -- freezing ---------------------------------------------------------------------------
@@ -131,3 +133,23 @@ def only_step(pipeline, step: type | str):
         names = [type(s).__name__ for s in pipeline.steps]
         raise RuntimeError(f"expected one {name} among the processor steps {names}")
     return steps[0]
+
+
+def stats_fingerprint(stats: dict, keys=(STATE_KEY, ACTION_KEY)) -> str:
+    """12 hex chars over the state/action normalisation stats (sorted, float64 bytes)."""
+    hasher = hashlib.sha256()
+    for key in keys:
+        for name in sorted(stats.get(key, {})):
+            value = stats[key][name]
+            array = value.detach().cpu().double().numpy() if torch.is_tensor(value) else np.asarray(value, dtype=np.float64)
+            hasher.update(f"{key}.{name}".encode())
+            hasher.update(np.ascontiguousarray(array).tobytes())
+    return hasher.hexdigest()[:12]
+
+
+def normalizer_stats(pipeline) -> dict:
+    """The stats the pipeline's (un)normaliser actually uses, {key: {stat: tensor}}."""
+    for step in pipeline.steps:
+        if type(step).__name__ in ("NormalizerProcessorStep", "UnnormalizerProcessorStep"):
+            return step._tensor_stats
+    raise RuntimeError(f"{pipeline.name} has no (un)normaliser step")

@@ -10,18 +10,16 @@ normaliser pass the state through untouched without a word).
 from __future__ import annotations
 
 import contextlib
-import hashlib
 from pathlib import Path
 from typing import Callable, Iterator
 
-import numpy as np
 import torch
 
+from backbones.base import BackboneUnavailable
 from external.hubcache import (  # noqa: F401  (re-exported: the adapters read them as hub.*)
     cached_file, download_command, hub_artifact, hub_offline, resolved_revision,
 )
-
-STATE_KEY, ACTION_KEY = "observation.state", "action"
+from external.libero_format import ACTION_KEY, STATE_KEY
 
 
 def default_device() -> str:
@@ -78,31 +76,9 @@ def check_normalizer_covers(pipeline, source: str, keys=(STATE_KEY, ACTION_KEY))
             )
 
 
-def stats_fingerprint(stats: dict, keys=(STATE_KEY, ACTION_KEY)) -> str:
-    """12 hex chars over the state/action normalisation stats (sorted, float64 bytes)."""
-    hasher = hashlib.sha256()
-    for key in keys:
-        for name in sorted(stats.get(key, {})):
-            value = stats[key][name]
-            array = value.detach().cpu().double().numpy() if torch.is_tensor(value) else np.asarray(value, dtype=np.float64)
-            hasher.update(f"{key}.{name}".encode())
-            hasher.update(np.ascontiguousarray(array).tobytes())
-    return hasher.hexdigest()[:12]
-
-
-def normalizer_stats(pipeline) -> dict:
-    """The stats the pipeline's (un)normaliser actually uses, {key: {stat: tensor}}."""
-    for step in pipeline.steps:
-        if type(step).__name__ in ("NormalizerProcessorStep", "UnnormalizerProcessorStep"):
-            return step._tensor_stats
-    raise RuntimeError(f"{pipeline.name} has no (un)normaliser step")
-
-
 def require_present(artifacts) -> None:
     """Offline, raise BackboneUnavailable (one line, with the fix) for the first missing one;
     online, let LeRobot download what is missing."""
-    from backbones.base import BackboneUnavailable
-
     if not hub_offline():
         return
     for a in artifacts:
@@ -132,8 +108,6 @@ CAMERA_LAYOUTS = (
 def libero_rename_map(image_keys, policy_type: str) -> dict[str, str]:
     """{LIBERO camera: checkpoint camera} by the first layout the checkpoint has both slots of;
     a one-line error naming the checkpoint's cameras when none fits."""
-    from backbones.base import BackboneUnavailable
-
     for layout in CAMERA_LAYOUTS:
         if all(key in image_keys for key in layout):
             return dict(zip(LIBERO_CAMERAS, layout))
@@ -178,8 +152,6 @@ def errors_as_unavailable(repo_id: str, artifacts: Callable[[], list], what: str
     `artifacts()`. Errors loading local folders (`repo_id` and every `local` path) pass as they
     are: their own message is the clearest."""
     from huggingface_hub.errors import HfHubHTTPError
-
-    from backbones.base import BackboneUnavailable
 
     try:
         yield

@@ -25,14 +25,14 @@ from typing import Iterator
 import torch
 from torch import Tensor
 
-from backbones import hub_world
+from backbones import hub_world, smolvla_load
 from backbones.base import Backbone, BackboneInfo, ImageEmbedder, only_step
+from backbones.smolvla_load import VENDORED_VLM_DIR, VLM_REPO_ID, artifacts  # noqa: F401
 from backbones.tiny_smolvla import REAL_VLM, real_shape_forward, tiny_config, tokens_per_camera
 from external.libero_format import (
     ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
 )
 
-VLM_REPO_ID = "HuggingFaceTB/SmolVLM2-500M-Video-Instruct"  # smolvla_base's vlm_model_name
 NATIVE_FEATURE_DOC = (
     "SmolVLM's SigLIP vision tower output, vision_model(pixels).last_hidden_state reshaped to "
     "(B, C, h, w): taken BEFORE the connector's pixel shuffle and Linear to the LM width "
@@ -58,8 +58,6 @@ SMOLVLA_BASE_RENAME = {
 }
 # VLAFlowMatching.sample_time (modeling_smolvla.py ~549-550): Beta(1.5, 1.0) * 0.999 + 0.001.
 TIME_BETA_ALPHA, TIME_SCALE, TIME_OFFSET = 1.5, 0.999, 0.001
-# save_pretrained copies a local SmolVLM folder (the tiny one) here so the folder is self-contained.
-VENDORED_VLM_DIR = "smolvlm"
 
 
 class SmolVLABackbone(Backbone):
@@ -273,5 +271,9 @@ def write_hub_release(hub_cache: Path, repo_id: str, revision: str | None) -> No
 BACKBONE_CLASS = SmolVLABackbone
 RENAMES_CAMERAS = True  # load_policy takes rename_map, camera_keys, state_dim, action_dim
 
-# Loading a saved or released SmolVLA: backbones.smolvla_load (the registry reads them here).
-from backbones.smolvla_load import artifacts, load_policy  # noqa: E402,F401
+
+def load_policy(path_or_repo_id: str, stats: dict | None = None, **options) -> SmolVLABackbone:
+    """A saved SmolVLA (local folder or hub id in the HF cache), fitted to LIBERO's features.
+    `options` (rename_map, camera_keys, state_dim, action_dim, device, revision) and the rules:
+    backbones.smolvla_load.load_parts."""
+    return SmolVLABackbone(*smolvla_load.load_parts(path_or_repo_id, stats, **options))

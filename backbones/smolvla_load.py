@@ -9,13 +9,16 @@ import torch
 
 from backbones import hub
 from backbones.base import only_step
-from backbones.smolvla import VENDORED_VLM_DIR, VLM_REPO_ID, SmolVLABackbone
 from external.libero_format import (
     ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
 )
 
+VLM_REPO_ID = "HuggingFaceTB/SmolVLM2-500M-Video-Instruct"  # smolvla_base's vlm_model_name
+# save_pretrained copies a local SmolVLM folder (the tiny one) here so the folder is self-contained.
+VENDORED_VLM_DIR = "smolvlm"
 
-def load_policy(
+
+def load_parts(
     path_or_repo_id: str,
     stats: dict | None = None,
     *,
@@ -25,8 +28,9 @@ def load_policy(
     action_dim: int = LIBERO_ACTION_DIM,
     device: str | None = None,
     revision: str | None = None,
-) -> SmolVLABackbone:
-    """A saved SmolVLA (local folder or hub id in the HF cache), fitted to LIBERO's features.
+) -> tuple:
+    """(policy, preprocessor, postprocessor) of a saved SmolVLA (local folder or hub id in the HF
+    cache), fitted to LIBERO's features; backbones.smolvla.load_policy wraps them.
 
     When the checkpoint's features differ from LIBERO's (smolvla_base: cameras camera1/2/3, 6-dim
     state and action), its cameras are renamed (`rename_map`, default by hub.CAMERA_LAYOUTS),
@@ -71,7 +75,7 @@ def load_policy(
                                               rename_map)
     hub.check_normalizer_covers(preprocessor, source)
     hub.check_normalizer_covers(postprocessor, source)
-    return SmolVLABackbone(policy, preprocessor, postprocessor)
+    return policy, preprocessor, postprocessor
 
 
 def _point_at_vlm(config, local: Path, needed_by: str) -> None:

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from bench.sim import env as sim_env
-from bench.sim.rollout import RolloutSpec, rollout_env_seed, rollout_init_state, wilson_interval
+from bench.sim.rollout import RolloutSpec, rollout_env_seed, rollout_init_state
+from bench.stats import wilson_interval
 
 
 def test_wilson_interval_known_answers():
@@ -15,6 +16,7 @@ def test_wilson_interval_known_answers():
     assert lo == 0.0 and hi == pytest.approx(1.96**2 / (1 + 1.96**2), abs=1e-3)
     lo, hi = wilson_interval(5, 10)
     assert lo == pytest.approx(0.2366, abs=1e-3) and hi == pytest.approx(0.7634, abs=1e-3)
+    assert wilson_interval(0, 0) == (0.0, 1.0)  # no episode: every rate is consistent
 
 
 def test_init_states_and_seeds_depend_on_the_spec_only():

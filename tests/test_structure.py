@@ -62,3 +62,100 @@ def test_lower_layers_do_not_import_upper_ones(package, forbidden):
     bad = [f"{_rel(p)} imports {name}" for p in (REPO_ROOT / package).rglob("*.py")
            for name in _imports(p) if name.split(".")[0] in forbidden]
     assert not bad, bad
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO_ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """module -> the modules of ours it imports, anywhere in its AST (inside functions and under
+    TYPE_CHECKING too); `from pkg import sub` counts as importing pkg.sub, not pkg."""
+    modules = {_module_name(p): p for p in _modules()}
+    graph = {}
+    for name, path in modules.items():
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                deps |= {a.name for a in node.names if a.name in modules}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                for alias in node.names:
+                    sub = f"{node.module}.{alias.name}"
+                    deps.add(sub if sub in modules else node.module)
+        graph[name] = {d for d in deps if d in modules and d != name}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one node (Tarjan, iterative)."""
+    index, low, on_stack, stack, found, counter = {}, {}, set(), [], [], [0]
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, edges = work[-1]
+            nxt = next(edges, None)
+            if nxt is not None:
+                if nxt not in index:
+                    index[nxt] = low[nxt] = counter[0]
+                    counter[0] += 1
+                    stack.append(nxt)
+                    on_stack.add(nxt)
+                    work.append((nxt, iter(sorted(graph[nxt]))))
+                elif nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def _sub_package(module: str) -> str:
+    """bench.run.graft -> bench.run; bench.session -> bench.session; backbones.pi05 -> backbones."""
+    parts = module.split(".")
+    if parts[0] == "bench" and len(parts) > 2:
+        return ".".join(parts[:2])
+    return module if parts[0] == "bench" else parts[0]
+
+
+def test_no_import_cycle_between_modules():
+    """No two modules import each other, directly or round a loop (imports in functions count)."""
+    assert not _cycles(_import_graph())
+
+
+# Sub-package cycles known and owned elsewhere, each with why it is still there. The test fails
+# when one goes away as well, so that this list is emptied, never stale.
+KNOWN_PACKAGE_CYCLES = {
+    # bench.grid.cells takes `cell_id` from bench.results.record, which reads bench.grid.kinds:
+    # the cell id belongs with the cell (grid); it moves with the record rewrite (issue 23).
+    ("bench.grid", "bench.results"),
+}
+
+
+def test_no_import_cycle_between_sub_packages():
+    """bench's sub-packages (and backbones, encoders, external as wholes) import one way."""
+    graph: dict[str, set[str]] = {}
+    for module, deps in _import_graph().items():
+        graph.setdefault(_sub_package(module), set()).update(
+            _sub_package(d) for d in deps if _sub_package(d) != _sub_package(module))
+    for deps in list(graph.values()):
+        for d in deps:
+            graph.setdefault(d, set())
+    assert {tuple(c) for c in _cycles(graph)} == KNOWN_PACKAGE_CYCLES

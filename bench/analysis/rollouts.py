@@ -23,6 +23,7 @@ import scipy.stats
 from bench.analysis.rankings import CONFIDENCE, PRIMARY
 from bench.analysis.transfer import rank_agreement
 from bench.grid.kinds import record_label
+from bench.stats import wilson_interval
 
 DEFAULT_RESAMPLES = 1000
 
@@ -30,14 +31,6 @@ DEFAULT_RESAMPLES = 1000
 def rolled_out(record: dict) -> bool:
     """The record carries closed-loop episodes (not absent, not skipped)."""
     return bool((record.get("rollouts") or {}).get("episodes"))
-
-
-def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (scipy); (nan, nan) when n == 0."""
-    if n == 0:
-        return float("nan"), float("nan")
-    ci = scipy.stats.binomtest(int(successes), int(n)).proportion_ci(confidence, method="wilson")
-    return float(ci.low), float(ci.high)
 
 
 def episode_keys(rollouts: dict) -> list[tuple[int, int, int]]:

@@ -47,25 +47,12 @@ from pathlib import Path
 from typing import Any, Callable
 
 from bench.grid.kinds import control_kinds
-from bench.grid.protocol import PROFILES, Profile, Protocol, with_overrides
+from bench.grid.protocol import PROFILES, GridFileInfo, Profile, Protocol, with_overrides
 from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
 
 
 class GridFileError(ValueError):
     """A grid file that cannot be read or breaks the schema: one line naming file and key."""
-
-
-@dataclass(frozen=True)
-class GridFileInfo:
-    """Where a profile came from: the file as given, sha256 of its bytes, and its text."""
-
-    path: str
-    sha256: str
-    text: str
-
-    def provenance(self) -> dict:
-        """The record's `grid_file` field."""
-        return {"path": self.path, "sha256": self.sha256, "text": self.text}
 
 
 @dataclass(frozen=True)

@@ -10,12 +10,8 @@ import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from bench.grid.kinds import control_kinds
-
-if TYPE_CHECKING:
-    from bench.grid.gridfile import GridFileInfo
 
 
 @dataclass(frozen=True)
@@ -69,6 +65,19 @@ class Protocol:
 
 PAPER_ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 ALL_CONTROLS = control_kinds()  # the kinds of bench.grid.kinds's table, graft aside
+
+
+@dataclass(frozen=True)
+class GridFileInfo:
+    """Where a profile came from: the file as given, sha256 of its bytes, and its text."""
+
+    path: str
+    sha256: str
+    text: str
+
+    def provenance(self) -> dict:
+        """The record's `grid_file` field."""
+        return {"path": self.path, "sha256": self.sha256, "text": self.text}
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from bench.results.provenance import stable_seed
 from external.libero_format import LIBERO_ACTION_DIM, STATE_KEY
 from bench.run.evaluate import sample_grafted
 from bench.grid.kinds import NO_CLOSED_LOOP, ZERO
-from bench.suites.libero import LIBERO_SUITES
+from external.libero_format import LIBERO_SUITES
 
 # A function of one observation's images {camera: (B, 3, H, W)} (features, or other images).
 ObservationFn = Callable[[dict[str, Tensor]], dict[str, Tensor]]

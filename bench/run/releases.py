@@ -21,14 +21,15 @@ from pathlib import Path
 import torch
 
 from backbones import adapter_module, get_entry
-from backbones.base import BackboneUnavailable
-from backbones.hub import download_command, resolved_revision, saved_normalizer_stats, stats_fingerprint
+from backbones.base import BackboneUnavailable, stats_fingerprint
+from backbones.hub import download_command, resolved_revision, saved_normalizer_stats
 from external.hubcache import folder_revision
 from bench.progress import say
 from bench.grid.protocol import Profile
 from bench.results.provenance import stable_seed
 from external.libero_format import STATE_KEY
 from bench.run.train import FitConfig, fit
+from bench.run.userworld import policy_facts, user_checkpoint_id
 
 RELEASE_VERSION = "1"
 
@@ -168,13 +169,18 @@ def normalizer_for(name: str, profile: Profile, suites, train_frames) -> Normali
     return Normalizer("checkpoint", None, stats_fingerprint(saved))
 
 
+def user_normalizer(profile: Profile, name: str) -> Normalizer:
+    """A --policy checkpoint's normaliser: always its own saved stats."""
+    facts = policy_facts(name, dict(profile.policies)[name])
+    saved = saved_normalizer_stats(facts.source, facts.revision) or {}
+    return Normalizer("checkpoint", None, stats_fingerprint(saved))
+
+
 def checkpoint_id(name: str, profile: Profile, release_dir: Path | None = None) -> dict:
     """The checkpoint a record was measured on: repo id and the commit the cache resolves; a
     tiny release or a --policy folder: the sha256 of its weights (a folder has no commit, and
     the same key trained under another thread count gives other weights)."""
     if name in dict(profile.policies):
-        from bench.run.userworld import user_checkpoint_id
-
         return user_checkpoint_id(profile, name)
     entry = get_entry(name)
     if profile.source != "hub":

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from backbones import adapter_for_policy_type
-from backbones.hub import cached_file, resolved_revision, saved_normalizer_stats, stats_fingerprint
+from backbones.hub import cached_file, resolved_revision, saved_normalizer_stats
 from external.hubcache import folder_revision
 from bench.grid.userworld import split_revision
 from external.libero_format import ACTION_KEY, STATE_KEY
@@ -189,14 +189,6 @@ def load_user_policy(profile, backbone: str, suite):
         camera_keys=tuple(mapping[p] for p in facts.cameras),
         state_dim=int(suite.state.shape[1]), action_dim=int(suite.action.shape[1]),
         revision=facts.revision)
-
-
-def user_normalizer(profile, backbone: str):
-    from bench.run.releases import Normalizer
-
-    facts = policy_facts(backbone, dict(profile.policies)[backbone])
-    return Normalizer("checkpoint", None,
-                      stats_fingerprint(saved_normalizer_stats(facts.source, facts.revision) or {}))
 
 
 def user_checkpoint_id(profile, backbone: str) -> dict:

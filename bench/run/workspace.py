@@ -12,7 +12,9 @@ from pathlib import Path
 import torch
 
 from backbones import get_entry
-from bench.run.releases import Normalizer, checkpoint_id, load_released, normalizer_for
+from bench.run.releases import (
+    Normalizer, checkpoint_id, load_released, normalizer_for, user_normalizer,
+)
 from bench.run.features import FeatureStore
 from external.paths import cache_dir
 from bench.progress import say
@@ -20,7 +22,7 @@ from bench.grid.protocol import Profile
 from bench.results.store import ResultStore
 from bench.suites import load_suite
 from bench.suites.user import load_user_suite
-from bench.run.userworld import load_user_policy, user_normalizer
+from bench.run.userworld import load_user_policy
 from bench.suites.windows import episode_frames, eval_windows, heldout_split
 from encoders import build_encoder
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -27,7 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.sim.expert import ScriptedExpert, episode_seed
 from external.paths import build_dataset_dir, cache_dir
+from external.lerobot_dataset import write_dataset
 from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 GENERATOR_VERSION = "4"  # bump when a change here (or in the expert) changes generated data
@@ -68,12 +69,6 @@ def features(image_size: int) -> dict:
     return libero_features(image_size)
 
 
-def episode_seed(seed: int, task: int, init_state: int) -> int:
-    """The env seed of one attempt: a function of (seed, task, init state) only."""
-    digest = hashlib.sha256(f"demo:{seed}:{task}:{init_state}".encode()).digest()
-    return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
-
-
 @dataclass
 class Episode:
     """One expert attempt: per-frame arrays (T, ...) and its outcome."""
@@ -97,7 +92,6 @@ def run_expert_episode(env, suite: str, task: int, init_state: int, seed: int,
                        max_steps: int, description: str) -> Episode:
     """Run the scripted expert once from `init_state`, recording every observed frame."""
     from bench.sim import env as sim_env
-    from bench.sim.expert import ScriptedExpert
 
     start = time.perf_counter()
     obs = sim_env.reset_to(env, init_state, episode_seed(seed, task, init_state))
@@ -207,35 +201,26 @@ def expert_success(spec: DemoSpec, attempts: dict[tuple[int, int], dict]) -> dic
     return per_task
 
 
-def write_dataset(spec: DemoSpec, work: _Work, attempts: dict, root: Path) -> Path:
-    """Write the kept episodes of `spec` as a LeRobotDataset at `root` (must not exist)."""
-    import datasets
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
+def write_suite(spec: DemoSpec, work: _Work, attempts: dict, root: Path) -> Path:
+    """The kept episodes of `spec` as a LeRobotDataset at `root` (must not exist), written by the
+    one writer (external.lerobot_dataset), then the suite's own files: how it was generated and
+    the expert's measured success."""
     from bench.sim import env as sim_env
 
     descriptions = sim_env.task_descriptions(spec.suite)
     per_task = expert_success(spec, attempts)
-    bars = datasets.is_progress_bar_enabled()
-    datasets.disable_progress_bars()
-    try:
-        ds = LeRobotDataset.create(repo_id(spec.suite), fps=sim_env.CONTROL_HZ,
-                                   features=features(spec.image_size), root=root,
-                                   robot_type="panda", use_videos=False)
+
+    def stream():
         for task in spec.tasks:
             for init_state in per_task[str(task)]["init_states_kept"]:
                 data = work.load(task, init_state)
-                for i in range(data["action"].shape[0]):
-                    ds.add_frame({IMAGE_KEYS[0]: data["image"][i],
-                                  IMAGE_KEYS[1]: data["wrist_image"][i],
-                                  STATE_KEY: data["state"][i], ACTION_KEY: data["action"][i],
-                                  "task": descriptions[task]})
-                ds.save_episode()
-        ds.finalize()
-    finally:
-        if bars:
-            datasets.enable_progress_bars()
-    shutil.rmtree(root / "images", ignore_errors=True)  # PNG staging, now inside the parquet
+                yield descriptions[task], (
+                    {IMAGE_KEYS[0]: data["image"][i], IMAGE_KEYS[1]: data["wrist_image"][i],
+                     STATE_KEY: data["state"][i], ACTION_KEY: data["action"][i]}
+                    for i in range(data["action"].shape[0]))
+
+    write_dataset(root, repo_id(spec.suite), features(spec.image_size), "panda",
+                  sim_env.CONTROL_HZ, stream())
     episodes = [{"task": task, "init_state": init}
                 for task in spec.tasks for init in per_task[str(task)]["init_states_kept"]]
     (root / SUITE_FILE).write_text(json.dumps({
@@ -259,7 +244,7 @@ def generate(spec: DemoSpec, root: str | Path | None = None, progress: bool = Tr
     if short and progress:
         print(f"[sim demos] fewer than {spec.episodes_per_task} successes for tasks {short} "
               f"within {spec.max_attempts} attempts", file=sys.stderr)
-    return build_dataset_dir(final, lambda tmp: write_dataset(spec, work, attempts, tmp))
+    return build_dataset_dir(final, lambda tmp: write_suite(spec, work, attempts, tmp))
 
 
 def suite_path(spec: DemoSpec) -> Path:
@@ -282,26 +267,6 @@ def render_settings(root: str | Path):
     from bench.sim.env import RenderSettings
 
     return RenderSettings(**suite_info(root)["render"])
-
-
-def sim_suite(name: str, root: str | Path | None = None) -> Path:
-    """Folder of the generated "sim" suite `name` (generated on first use; needs the extra)."""
-    from bench.suites.base import SuiteUnavailable
-
-    if name not in DEFAULT_SPECS:
-        raise ValueError(f"suite {name!r} has no simulated version; choose one of "
-                         f"{sorted(DEFAULT_SPECS)}")
-    spec = DEFAULT_SPECS[name]
-    path = Path(root) if root is not None else suite_path(spec)
-    if (path / "meta" / "info.json").is_file():
-        return path
-    from bench.sim import env as sim_env
-
-    if not sim_env.libero_available():
-        raise SuiteUnavailable(f"sim suite {name!r} is not generated at {path} and the LIBERO "
-                               f"simulator is missing; {sim_env.INSTALL_HINT}, then "
-                               f"`.venv/bin/python -m bench.sim.demos --suite {name}`")
-    return generate(spec, path)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -21,13 +21,13 @@ import numpy as np
 import torch
 
 from external.paths import cache_dir
-from bench.suites import libero
+from external import libero_format
 from external.libero_format import IMAGE_KEYS, STATE_KEY
 
 # graftbench suite name -> LIBERO benchmark name, for the suites the scripted expert and demos
 # cover (bench.sim.expert): the others' scenes are not exercised here.
 SIMULATED = ("spatial", "object")
-LIBERO_SUITES = {name: libero.LIBERO_SUITES[name].benchmark for name in SIMULATED}
+LIBERO_SUITES = {name: libero_format.LIBERO_SUITES[name].benchmark for name in SIMULATED}
 # LIBERO camera -> LeRobot image key suffix (the public datasets' names: image, wrist_image).
 CAMERA_MAPPING = {"agentview_image": "image", "robot0_eye_in_hand_image": "wrist_image"}
 CONTROL_HZ = 20  # LiberoEnv / robosuite default control frequency (the datasets' fps)

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from bench.sim import env as sim_env
+from bench.stats import wilson_interval
 
 ActFn = Callable[[dict], torch.Tensor]  # raw obs (batch of B) -> (B, T, 7) raw actions
 
@@ -57,16 +58,6 @@ def rollout_init_state(episode: int, num_init_states: int) -> int:
 def rollout_env_seed(seed: int, task: int, episode: int) -> int:
     digest = hashlib.sha256(f"rollout:{seed}:{task}:{episode}".encode()).digest()
     return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
-
-
-def wilson_interval(successes: int, n: int) -> list[float]:
-    """95% Wilson score interval of a binomial proportion (scipy)."""
-    from scipy.stats import binomtest
-
-    if n == 0:
-        return [0.0, 1.0]
-    ci = binomtest(successes, n).proportion_ci(confidence_level=0.95, method="wilson")
-    return [float(ci.low), float(ci.high)]
 
 
 def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
@@ -164,12 +155,12 @@ def summarise(episodes: list[dict], spec: RolloutSpec, render: sim_env.RenderSet
         k = sum(e["success"] for e in rows)
         per_task[str(task)] = {"successes": k, "episodes": len(rows),
                                "success_rate": k / len(rows) if rows else 0.0,
-                               "ci95": wilson_interval(k, len(rows))}
+                               "ci95": list(wilson_interval(k, len(rows)))}
     return {
         "episodes": episodes,
         "success_rate": wins / len(episodes) if episodes else 0.0,
         "per_task": per_task,
-        "ci95": wilson_interval(wins, len(episodes)),
+        "ci95": list(wilson_interval(wins, len(episodes))),
         "settings": {
             "spec": asdict(spec),
             "libero_suite": sim_env.LIBERO_SUITES[spec.suite],

@@ -59,11 +59,30 @@ def load_suite(name: str, source: str, root: str | Path | None = None) -> Suite:
 
         from bench.sim import demos
 
-        path = demos.sim_suite(name, root)
+        path = _sim_suite_path(name, root)
         ds = LeRobotDataset(demos.repo_id(name), root=path)
         libero.validate_features(ds.features, demos.repo_id(name))
         return suite_from_dataset(name, ds, images_in_memory=True)
     raise ValueError(f"unknown suite source {source!r}; choose one of {list(SOURCES)}")
+
+
+def _sim_suite_path(name: str, root: str | Path | None = None) -> Path:
+    """Folder of the generated "sim" suite `name` (generated on first use; needs the extra)."""
+    from bench.sim import demos
+    from bench.sim import env as sim_env
+
+    if name not in demos.DEFAULT_SPECS:
+        raise ValueError(f"suite {name!r} has no simulated version; choose one of "
+                         f"{sorted(demos.DEFAULT_SPECS)}")
+    spec = demos.DEFAULT_SPECS[name]
+    path = Path(root) if root is not None else demos.suite_path(spec)
+    if (path / "meta" / "info.json").is_file():
+        return path
+    if not sim_env.libero_available():
+        raise SuiteUnavailable(f"sim suite {name!r} is not generated at {path} and the LIBERO "
+                               f"simulator is missing; {sim_env.INSTALL_HINT}, then "
+                               f"`.venv/bin/python -m bench.sim.demos --suite {name}`")
+    return demos.generate(spec, path)
 
 
 def _columns(hf_dataset, keys: list[str]) -> dict[str, np.ndarray]:

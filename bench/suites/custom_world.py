@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.suites import synthetic
+from external.lerobot_dataset import write_dataset
 from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 
 FRONT, WRIST = "observation.images.front", "observation.images.wrist"
@@ -60,5 +61,5 @@ def generate_world(root: str | Path, seed: int = 0, tasks: int = 2, episodes_per
                 text, frames = synthetic.spatial_episode(rng, task, min_len, max_len)
                 yield text, [to_arm6(frame) for frame in frames]
 
-    synthetic.write_dataset(root, f"local/{ROBOT}_world", features(), ROBOT, FPS, stream())
+    write_dataset(root, f"local/{ROBOT}_world", features(), ROBOT, FPS, stream())
     return Path(root)

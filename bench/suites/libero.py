@@ -13,35 +13,15 @@ validation with a one-line SuiteUnavailable.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 from external.hubcache import hub_offline
 from external.artifacts import Artifact
 from external.libero_format import (
-    ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
+    ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, LIBERO_SUITES, STATE_KEY,
 )
 from bench.suites.base import SuiteUnavailable
 
-
-
-@dataclass(frozen=True)
-class LiberoSuite:
-    """One LIBERO suite: its LeRobot dataset, its benchmark in LIBERO, its episode limit."""
-
-    name: str  # graftbench's suite name
-    repo_id: str  # the LeRobot image-format port on the hub
-    benchmark: str  # LIBERO's task-suite name (the simulator's scenes)
-    max_steps: int  # control steps per rollout episode: LeRobot's LiberoEnv limit
-
-
-# Adding a LIBERO suite is one entry (its tiny stand-in: bench.suites.synthetic.SUITE_PARAMS).
-LIBERO_SUITES: dict[str, LiberoSuite] = {s.name: s for s in (
-    LiberoSuite("spatial", "lerobot/libero_spatial_image", "libero_spatial", 280),
-    LiberoSuite("object", "lerobot/libero_object_image", "libero_object", 280),
-    LiberoSuite("goal", "lerobot/libero_goal_image", "libero_goal", 300),
-    LiberoSuite("10", "lerobot/libero_10_image", "libero_10", 520),
-)}
 LIBERO_REPO_IDS = {name: s.repo_id for name, s in LIBERO_SUITES.items()}
 # Hub revision each suite is pinned to; None: no pin (the hub cache's refs/main, LeRobot's default).
 LIBERO_REVISIONS: dict[str, str | None] = {name: None for name in LIBERO_REPO_IDS}

@@ -33,13 +33,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 
 from external.paths import build_dataset_dir, cache_dir
 from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
+from external.lerobot_dataset import write_dataset
 
 # Bump when a change to this file changes generated data: it is part of the cache key.
 GENERATOR_VERSION = "5"
@@ -255,30 +255,6 @@ def content_key(name: str, seed: int, **params) -> str:
     blob = json.dumps({"version": GENERATOR_VERSION, "name": name, "seed": seed,
                        "size": IMAGE_SIZE, "fps": FPS, **params}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
-
-
-def write_dataset(root: str | Path, repo: str, spec: dict, robot_type: str, fps: int,
-                  stream) -> None:
-    """Episodes `stream` of (task text, frames) as a LeRobotDataset at `root` (images stored in
-    the parquet, not as video): the one writer of every generated world."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    import datasets
-
-    bars = datasets.is_progress_bar_enabled()
-    datasets.disable_progress_bars()  # one "Map" bar per episode otherwise
-    try:
-        ds = LeRobotDataset.create(repo, fps=fps, features=spec, root=root,
-                                   robot_type=robot_type, use_videos=False)
-        for text, frames in stream:
-            for frame in frames:
-                ds.add_frame({**frame, "task": text})
-            ds.save_episode()
-        ds.finalize()
-    finally:
-        if bars:
-            datasets.enable_progress_bars()
-    shutil.rmtree(Path(root) / "images", ignore_errors=True)  # PNG staging, now in parquet
 
 
 def repo_id(name: str) -> str:
