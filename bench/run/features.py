@@ -30,12 +30,12 @@ from pathlib import Path
 from typing import Callable, Protocol
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from bench.run import feature_store as fs
 from bench.progress import Progress, say
 from encoders.base import Encoder
+from external.graft import pool_grid  # noqa: F401  (the one pooling, shared with the plugin)
 
 # Bump when a change to pooling, encoding or storage moves stored numbers on purpose.
 # 2: the store keeps the encoder's own grid (pooled per batch), in Workspace.feature_dtype.
@@ -56,13 +56,6 @@ class FeatureSource(Protocol):
     state: Tensor  # (N, 8): only its length (the number of frames) is used here
 
     def images(self, frames: Tensor) -> dict[str, Tensor]: ...
-
-
-def pool_grid(grid: Tensor, target: tuple[int, int]) -> Tensor:
-    """(B, C, h, w) -> (B, rows*cols, C) by adaptive average pooling; tokens in row-major order."""
-    rows, cols = target
-    pooled = F.adaptive_avg_pool2d(grid, (rows, cols))  # (B, C, rows, cols)
-    return pooled.flatten(2).transpose(1, 2)
 
 
 def encoder_device(encoder: Encoder) -> torch.device:
