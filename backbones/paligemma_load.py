@@ -27,6 +27,7 @@ from backbones.paligemma import (
     PaliGemmaFamily,
 )
 from backbones.tiny_pi05 import TinyPI05Arch, require_pinned_lerobot, tiny_pi05_patches
+from external.hubcache import cached_file, hub_artifact
 
 
 def load_policy(backbone_cls: type[PaliGemmaBackbone], path_or_repo_id: str,
@@ -57,7 +58,7 @@ def _read_marker(family: PaliGemmaFamily, source: str, marker_dir: Path | None,
     if marker_dir is not None:
         path = marker_dir / family.marker_file
         return json.loads(path.read_text()) if path.is_file() else {}
-    path = hub.cached_file(source, family.marker_file, revision)
+    path = cached_file(source, family.marker_file, revision)
     return {"tiny_arch": json.loads(path.read_text()).get("tiny_arch")} if path else {}
 
 
@@ -85,7 +86,7 @@ def _load(backbone_cls: type[PaliGemmaBackbone], source: str, stats: dict | None
     with patches, _hub_errors_as_unavailable(source, revision):
         policy = _policy_from_pretrained(family, source, config, revision)
         policy.to(config.device)
-        if marker_dir is not None or hub.cached_file(source, "policy_preprocessor.json", revision):
+        if marker_dir is not None or cached_file(source, "policy_preprocessor.json", revision):
             pre_over, post_over = hub.saved_processor_overrides(
                 policy.config, config.device, stats, rename_map)
             if tokenizer_dir is not None:
@@ -169,8 +170,8 @@ def artifacts(repo_id: str, revision: str | None, needed_by: str) -> list:
     """What loading `repo_id` reads from the hub: the checkpoint and the PaliGemma tokenizer
     (LeRobot reads the tokenizer at its main revision: processor_pi0(5).py ~141 takes no revision)."""
     return [
-        hub.hub_artifact("policy", repo_id, ("config.json", "model.safetensors"), needed_by, revision),
-        hub.hub_artifact("tokenizer", PALIGEMMA_TOKENIZER_REPO,
+        hub_artifact("policy", repo_id, ("config.json", "model.safetensors"), needed_by, revision),
+        hub_artifact("tokenizer", PALIGEMMA_TOKENIZER_REPO,
                          ("config.json", "tokenizer_config.json", "tokenizer.json"), needed_by,
                          include=TOKENIZER_INCLUDE, note=TOKENIZER_NOTE),
     ]

@@ -9,6 +9,7 @@ import torch
 
 from backbones import hub
 from backbones.base import only_step
+from external.hubcache import hub_artifact
 from external.libero_format import (
     ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
 )
@@ -99,7 +100,7 @@ VLM_INCLUDE = ("*.json", "*.txt", "*.jinja")  # config, processor, tokenizer: no
 
 
 def _vlm_artifact(vlm_repo_id: str, needed_by: str):
-    return hub.hub_artifact(
+    return hub_artifact(
         "vlm config", vlm_repo_id, ("config.json", "tokenizer_config.json", "processor_config.json"),
         needed_by, include=VLM_INCLUDE,
         note="LeRobot reads its config, processor and tokenizer at main (no revision); "
@@ -109,7 +110,7 @@ def _vlm_artifact(vlm_repo_id: str, needed_by: str):
 
 def artifacts(repo_id: str, revision: str | None, needed_by: str, vlm_repo_id: str = VLM_REPO_ID) -> list:
     """What loading `repo_id` reads from the hub: the checkpoint, and its VLM's config/tokenizer."""
-    return [hub.hub_artifact("policy", repo_id, ("config.json", "model.safetensors"), needed_by, revision),
+    return [hub_artifact("policy", repo_id, ("config.json", "model.safetensors"), needed_by, revision),
             _vlm_artifact(vlm_repo_id, needed_by)]
 
 

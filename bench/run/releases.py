@@ -22,8 +22,8 @@ import torch
 
 from backbones import adapter_module, get_entry
 from backbones.base import BackboneUnavailable, stats_fingerprint
-from backbones.hub import download_command, resolved_revision, saved_normalizer_stats
-from external.hubcache import folder_revision
+from backbones.hub import saved_normalizer_stats
+from external.hubcache import download_command, folder_revision, resolved_revision
 from bench.progress import say
 from bench.grid.protocol import Profile
 from bench.results.provenance import stable_seed

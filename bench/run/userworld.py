@@ -21,8 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from backbones import adapter_for_policy_type
-from backbones.hub import cached_file, resolved_revision, saved_normalizer_stats
-from external.hubcache import folder_revision
+from backbones.hub import saved_normalizer_stats
+from external.hubcache import cached_file, folder_revision, resolved_revision
 from bench.grid.userworld import split_revision
 from external.libero_format import ACTION_KEY, STATE_KEY
 from bench.suites.user import DatasetFacts, check_dataset, dataset_facts
