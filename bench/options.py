@@ -110,7 +110,8 @@ def build_profile(config: pytest.Config):
         valid = control_kinds()
         bad = [c for c in controls or () if c not in valid]
         if bad:
-            raise ValueError(f"unknown control kind(s) {bad}; valid: {', '.join(valid)}")
+            raise ValueError(f"--controls {opt('--controls')}: unknown control kind(s) {bad}; "
+                             f"valid: {', '.join(valid)} (or none)")
         return with_overrides(
             profile,
             backbones=_csv(opt("--backbones")),
@@ -137,25 +138,94 @@ def _user_world(profile, opt):
                     if opt("--camera-map") else None))
 
 
-def validate_names(profile) -> None:
-    """Unknown backbone/suite/encoder names fail at collection, listing the valid ones (user
-    policies and datasets: `check_user_world`, at start-up)."""
+FOLDED_FIELDS = ("backbones", "encoders", "suites", "seeds", "controls", "control_encoders")
+
+
+def option_labels(profile, config: pytest.Config) -> dict[str, str]:
+    """{profile field: where its values came from}, for messages: "--seeds 0,0" when given on
+    the command line, "study.toml: seeds" when read from the grid file, else the field."""
+    labels = {}
+    for field in FOLDED_FIELDS:
+        given = getattr(config.option, field, None) if field != "control_encoders" else None
+        labels[field] = (f"--{field} {given}" if given else
+                         f"{profile.grid_file.path}: {field}" if profile.grid_file else field)
+    return labels
+
+
+def fold_duplicates(profile, labels: dict[str, str]):
+    """(the profile with each name or seed listed twice kept once, one line per fold). A cell id
+    names one measurement, so `--seeds 0,0` can only mean seed 0: folded and said, not refused
+    (a name given twice with two meanings, `--policy a=X --policy a=Y`, is refused instead)."""
+    import dataclasses
+
+    changes, lines = {}, []
+    for field in FOLDED_FIELDS:
+        values = getattr(profile, field)
+        once = tuple(dict.fromkeys(values))
+        if once == values:
+            continue
+        twice = ", ".join(str(v) for v in dict.fromkeys(v for v in values if values.count(v) > 1))
+        lines.append(f"[graftbench] {labels[field]}: {twice} listed twice, folded: each cell runs "
+                     f"once ({field} {','.join(map(str, once))})")
+        changes[field] = once
+    return dataclasses.replace(profile, **changes), lines
+
+
+def collects_grid(config: pytest.Config) -> bool:
+    """Whether this run collects the grid (bench/test_grid.py, or a folder above it), so its
+    names and paths are checked at start-up: `pytest tests` does not pay for them."""
+    grid = Path(__file__).with_name("test_grid.py").resolve()
+    here = Path(config.invocation_params.dir)
+    if getattr(config.option, "help", False):
+        return False
+    for arg in config.args:
+        path = (here / str(arg).split("::", 1)[0]).resolve()
+        if path == grid or path in grid.parents:
+            return True
+    return False
+
+
+def check_startup(profile, report: Path, labels: dict[str, str] | None = None) -> list[str]:
+    """Every name, user path and output folder of the grid, before collection: each bad one a
+    one-line UsageError (exit 4, no cell run). Returns the camera pairing lines to print."""
+    validate_names(profile, labels)
+    lines = check_user_world(profile)
+    check_writable("--report", report.parent)
+    return lines
+
+
+def check_executor_options(config: pytest.Config) -> None:
+    """The Slurm numbers: one-line UsageErrors naming the option."""
+    for option, least in (("--slurm-time", 1), ("--slurm-gpus-per-task", 0),
+                          ("--slurm-array-parallelism", 1)):
+        value = config.getoption(option)
+        if value < least:
+            raise pytest.UsageError(f"{option} {value}: give a whole number >= {least}")
+
+
+def validate_names(profile, labels: dict[str, str] | None = None) -> None:
+    """Unknown backbone/suite/encoder names: a UsageError naming where the name came from
+    (`labels`, option_labels) and listing the valid ones. Timm names are checked on timm's
+    registry and a meta-device build (< 0.5 s); a user's MODULE:FACTORY is built and probed."""
     from backbones import get_entry
     from bench.suites import SUITES
     from encoders import get_spec
 
+    labels = labels or {}
     policies, datasets = dict(profile.policies), dict(profile.datasets)
-    try:
-        for b in profile.backbones:
-            if b not in policies:
-                get_entry(b)
-        for e in set(profile.encoders) | set(profile.control_encoders):
-            get_spec(e, profile.source)  # a user's MODULE:FACTORY is built (and checked) here
-    except ValueError as e:
-        raise pytest.UsageError(str(e)) from None
+    checks = [("backbones", b, get_entry) for b in profile.backbones if b not in policies]
+    checks += [("encoders", e, lambda e: get_spec(e, profile.source)) for e in profile.encoders]
+    checks += [("control_encoders", e, lambda e: get_spec(e, profile.source))
+               for e in profile.control_encoders if e not in profile.encoders]
+    for field, name, check in checks:
+        try:
+            check(name)
+        except ValueError as e:
+            raise pytest.UsageError(f"{labels.get(field, '--' + field)}: {e}") from None
     for s in profile.suites:
         if s not in SUITES and s not in datasets:
-            raise pytest.UsageError(f"unknown suite {s!r}; valid suites: {', '.join(SUITES)}")
+            raise pytest.UsageError(f"{labels.get('suites', '--suites')}: unknown suite {s!r}; "
+                                    f"valid suites: {', '.join(SUITES)}")
 
 
 def check_user_world(profile) -> list[str]:
@@ -165,6 +235,11 @@ def check_user_world(profile) -> list[str]:
     from bench.run.userworld import check_world
     from bench.suites.base import SuiteUnavailable
 
+    if profile.camera_map and not profile.policies:
+        given = ",".join(f"{p}={d}".replace("observation.images.", "")
+                         for p, d in profile.camera_map)
+        raise pytest.UsageError(f"--camera-map {given}: it maps the cameras of a --policy, and "
+                                "none is given; fix: add --policy NAME=FOLDER or drop --camera-map")
     if not profile.policies and not profile.datasets:
         return []
     try:

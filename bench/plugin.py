@@ -12,9 +12,9 @@ import pytest
 
 from bench.grid.cells import CellSpec, control_cells, graft_cells
 from bench.options import (  # noqa: F401  (pytest_addoption: the hook, found here by name)
+    check_startup,
     check_writable,
     pytest_addoption,
-    validate_names,
 )
 from bench.session import GraftSession
 from bench.summary import cell_id_of
@@ -24,9 +24,26 @@ SESSION_KEY = pytest.StashKey[GraftSession]()
 
 def pytest_configure(config: pytest.Config) -> None:
     _configure_scale(config)
-    session = GraftSession(config)
+    session = GraftSession(config)  # the start-up check: a bad option is a UsageError here
     config.stash[SESSION_KEY] = session
     config.pluginmanager.register(session, "graftbench-session")  # its hook methods below
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_sessionstart(session: pytest.Session):
+    """The start-up check's lines (folded duplicates, the camera rule's pairings), once, after
+    the terminal's header."""
+    result = yield
+    gs: GraftSession | None = session.config.stash.get(SESSION_KEY, None)
+    if gs is not None and not hasattr(session.config, "workerinput"):
+        _write_lines(session.config, gs.startup_lines)
+    return result
+
+
+def _write_lines(config: pytest.Config, lines: list[str]) -> None:
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    for line in lines if reporter is not None else ():
+        reporter.write_line(line)
 
 
 def _configure_scale(config: pytest.Config) -> None:
@@ -104,7 +121,10 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if "graft_cell" not in names and "control_cell" not in names:
         return
     session: GraftSession = metafunc.config.stash[SESSION_KEY]
-    validate_names(session.profile)
+    if not session.names_checked and not hasattr(metafunc.config, "workerinput"):
+        # A grid module outside bench/ (tests' own): checked here, at its collection.
+        session.names_checked = True
+        _write_lines(metafunc.config, check_startup(session.profile, session.report_path))
     cells = graft_cells(session.profile) if "graft_cell" in names else control_cells(session.profile)
     argname = "graft_cell" if "graft_cell" in names else "control_cell"
     metafunc.parametrize(
@@ -125,12 +145,9 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
             gs.selected.append(cell.id)
             cells.append(cell)
     if gs.selected and not hasattr(config, "workerinput"):
-        gs.store  # opens (creates, probes) the results dir: a one-line UsageError if it cannot
+        gs.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
         check_writable("--report", gs.report_path.parent)
-        gs.preflight(cells)
-        reporter = config.pluginmanager.get_plugin("terminalreporter")
-        for line in gs.camera_lines if reporter is not None else ():  # the camera rule's pairing
-            reporter.write_line(line)
+        gs.preflight(cells)  # the selected cells' artifacts (after -k)
         gs.store.write_grid(gs.selected, gs.profile.name)
 
 

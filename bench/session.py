@@ -18,7 +18,8 @@ import pytest
 
 from bench.grid.cells import GRAFT, CellSpec
 from bench.options import (
-    build_profile, check_rollouts_possible, check_user_world, offline_env, report_path,
+    build_profile, check_executor_options, check_rollouts_possible, check_startup,
+    collects_grid, fold_duplicates, offline_env, option_labels, report_path,
 )
 from external.paths import REPO_ROOT
 from bench.progress import say
@@ -51,8 +52,11 @@ class GraftSession:
 
     def __init__(self, config: pytest.Config) -> None:
         self.config = config
-        self.profile = build_profile(config)
-        self.camera_lines = check_user_world(self.profile)  # --policy x --dataset, at start-up
+        # Start-up: every option here, before collection (bench.options): a bad one is ONE
+        # UsageError screen, exit 4, no cell run. Lines to print at the session's start.
+        profile = build_profile(config)
+        labels = option_labels(profile, config)
+        self.profile, self.startup_lines = fold_duplicates(profile, labels)
         offline_env(self.profile.offline)
         results = config.getoption("--results-dir")
         self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name
@@ -66,6 +70,7 @@ class GraftSession:
             raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
         if self.rollouts:
             check_rollouts_possible(self.profile)
+        check_executor_options(config)
         # Seams (module docstring).
         self.cell_runner: Callable = _run_cell
         self.workspace_factory: Callable = _default_workspace
@@ -77,6 +82,12 @@ class GraftSession:
         self.selected: list[str] = []
         self.report_written: Path | None = None
         self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
+        # Names, user paths, output folders: checked here when this run collects the grid (an
+        # xdist worker's controller checked them); else at collection (bench.plugin).
+        self.names_checked = collects_grid(config) and not hasattr(config, "workerinput")
+        if self.names_checked:
+            self.startup_lines += check_startup(self.profile, self.report_path, labels)
+            self.store  # opens (creates, probes) the results dir
 
     @property
     def store(self):

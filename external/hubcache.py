@@ -54,15 +54,21 @@ def snapshot_dir(hub_cache: Path, repo_id: str, revision: str | None,
 def download_command(repo_id: str, revision: str | None = None, include: tuple[str, ...] = (),
                      repo_type: str = "model", files: tuple[str, ...] = ()) -> str:
     """The `hf download` line that puts `repo_id` (or just `files` of it) into the Hugging Face
-    cache graftbench reads. One owner for every fix message (policies, datasets, timm weights)."""
+    cache graftbench reads. One owner for every fix message (policies, datasets, timm weights).
+
+    One `--include` per pattern: the hf CLI (huggingface_hub 1.x) takes one value per option and
+    reads further words as file names, which then override every pattern
+    (tests/test_startup.py parses every command the preflight prints with the CLI's own parser)."""
+    if files and include:
+        raise ValueError(f"hf download {repo_id}: give files {files} or include patterns "
+                         f"{include}, not both (the CLI ignores --include beside file names)")
     parts = ["hf download"]
     if repo_type != "model":
         parts.append(f"--repo-type {repo_type}")
     parts += [repo_id, *files]
     if revision:
         parts.append(f"--revision {revision}")
-    if include:
-        parts.append("--include " + " ".join(f'"{p}"' for p in include))
+    parts += [f'--include "{p}"' for p in include]
     return " ".join(parts)
 
 

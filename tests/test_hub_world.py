@@ -112,7 +112,7 @@ def test_a_missing_artifact_stops_the_run_in_one_line_before_any_cell(world, tmp
     assert "Traceback" not in text
     assert not list((tmp_path / "results").glob("cells/*.json"))  # no cell ran
     assert "1 missing" in text and "MISSING tokenizer" in text
-    assert 'hf download google/paligemma-3b-pt-224 --include "config.json" "tokenizer*"' in text
+    assert 'hf download google/paligemma-3b-pt-224 --include "config.json" --include "tokenizer*"' in text
     assert "hf auth login" in text
 
 

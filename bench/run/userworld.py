@@ -48,11 +48,30 @@ def _is_folder(target: str) -> bool:
     return Path(target).expanduser().is_dir()
 
 
+def _not_a_repo_id(source: str) -> str | None:
+    """Why `source` (no folder) cannot be a hub repo id, or None when it can be one."""
+    from huggingface_hub.errors import HFValidationError
+    from huggingface_hub.utils import validate_repo_id
+
+    if source.startswith(("/", "./", "../", "~")) or source.count("/") > 1:
+        return "no such folder"
+    try:
+        validate_repo_id(source)
+    except HFValidationError:
+        return "neither a folder nor a hub repo id (OWNER/NAME)"
+    return None
+
+
 def policy_facts(name: str, target: str) -> PolicyFacts:
     """A checkpoint's type, cameras, state/action widths and saved stats' widths, from its
     config.json and saved pre-processor (no policy is built)."""
     source, revision = (target, None) if _is_folder(target) else split_revision(target)
     folder = Path(source).expanduser()
+    why = None if folder.is_dir() else _not_a_repo_id(source)
+    if why:
+        raise ValueError(f"--policy {name}={target}: {why}; fix: give the folder save_pretrained "
+                         "wrote (config.json, model.safetensors) or a cached hub repo id "
+                         "OWNER/NAME[@REVISION]")
     config_path = folder / "config.json" if folder.is_dir() else cached_file(source, "config.json", revision)
     if config_path is None or not Path(config_path).is_file():
         raise ValueError(f"--policy {name}={target}: no LeRobot checkpoint there (no config.json "
@@ -144,6 +163,26 @@ def _check_names(policies: dict, datasets: dict) -> None:
                              f"another name (built-in: {', '.join(taken)})")
 
 
+def _check_each(policies: dict, datasets: dict, explicit: dict) -> None:
+    """Each --policy and --dataset on its own, before any pair: there, readable, of a type with
+    an adapter; the camera map's policy cameras are cameras of a --policy."""
+    cameras = set()
+    for name, target in policies.items():
+        facts = policy_facts(name, target)
+        try:
+            adapter_for_policy_type(facts.policy_type)
+        except ValueError as e:
+            raise ValueError(f"--policy {name}={target}: {e}") from None
+        cameras.update(facts.cameras)
+    for name, target in datasets.items():
+        check_dataset(name, dataset_facts(target))
+    unknown = [p for p in explicit if p not in cameras]
+    if unknown:
+        raise ValueError(f"--camera-map: policy camera(s) {unknown} are no camera of "
+                         f"{', '.join(f'--policy {n}' for n in policies)} (cameras "
+                         f"{sorted(cameras)}); fix: map those cameras")
+
+
 def check_world(profile) -> list[str]:
     """Every user policy x suite and backbone x user dataset pair of the grid, at collection;
     the camera pairing of each, one line per pair. A registry backbone cannot take a user
@@ -152,6 +191,7 @@ def check_world(profile) -> list[str]:
     policies, datasets = dict(profile.policies), dict(profile.datasets)
     _check_names(policies, datasets)
     explicit = dict(profile.camera_map)
+    _check_each(policies, datasets, explicit)
     for backbone in profile.backbones:
         for suite in profile.suites:
             if suite in datasets and backbone not in policies:

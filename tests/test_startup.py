@@ -1,0 +1,222 @@
+"""The start-up check (issue 23): each bad option, name or user path of `pytest bench` is ONE
+UsageError screen (exit 4, no frames, no cell run), checked at pytest_configure, before
+collection; duplicates are folded and said. And every fetch command the paper preflight prints
+fetches what it says, as the pinned `hf` CLI's own parser reads it.
+
+The bad inputs run `pytest bench` in this process (pytester): each stops at configure, so a
+run costs well under a second, where a subprocess costs ~10 s here.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import re
+import shlex
+import warnings
+from pathlib import Path
+
+import pytest
+
+# Imported before pytester's sys.modules snapshot: the in-process runs reuse them (re-importing
+# torchvision ops would fail) and pay no import time.
+import backbones  # noqa: F401
+import bench.run.userworld  # noqa: F401
+import bench.suites.user  # noqa: F401
+import encoders  # noqa: F401
+from external.paths import REPO_ROOT
+
+pytest_plugins = ["pytester"]
+
+NO_CELLS = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels", "--controls",
+            "native", "--steps", "2"]
+
+
+@pytest.fixture
+def bench_run(pytester):
+    """`pytest bench ARGS` in this process, with a private results dir and report."""
+    results = pytester.path / "results"
+
+    def run(*args: str):
+        out = pytester.runpytest_inprocess(
+            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", "--results-dir", str(results),
+            "--report", str(pytester.path / "REPORT.md"), *args)
+        out.screen = "\n".join(out.outlines + out.errlines)
+        out.records = sorted(results.glob("cells/*.json"))
+        return out
+
+    run.path = pytester.path
+    return run
+
+
+# (arguments, what the screen must name: the option and the value, what it must say)
+BAD_INPUTS = [
+    (["--encoders", "timm:not_a_model_xyz"], "--encoders timm:not_a_model_xyz",
+     "unknown timm model 'not_a_model_xyz'"),
+    (["--encoders", "nosuchpkg.mod:make"], "--encoders nosuchpkg.mod:make",
+     "no module 'nosuchpkg.mod' to import"),
+    (["--encoders", "pixels,dinov3"], "--encoders pixels,dinov3", "unknown encoder 'dinov3'"),
+    (["--suites", "nope"], "--suites nope", "valid suites: spatial, object"),
+    (["--backbones", "nope"], "--backbones nope", "valid backbones: smolvla, pi05"),
+    (["--controls", "nope"], "--controls nope", "valid: native, native_wrapped"),
+    (["--seeds", "0,x"], "--seeds 0,x", "not a non-negative integer"),
+    (["--steps", "0"], "--steps 0", "at least 1"),
+    (["--profile", "nope"], "unknown profile 'nope'", "(--profile NAME)"),
+    (["--rollouts", "-1"], "--rollouts -1", ">= 0"),
+    (["--slurm-time", "0"], "--slurm-time 0", ">= 1"),
+    (["--policy", "mine=/nonexistent/policy"], "--policy mine=/nonexistent/policy",
+     "no such folder; fix: give the folder save_pretrained wrote"),
+    (["--policy", "mine=not//a repo"], "--policy mine=not//a repo", "no such folder"),
+    (["--policy", "mine=nobody/no_such_policy"], "--policy mine=nobody/no_such_policy",
+     "no LeRobot checkpoint there"),
+    (["--policy", "smolvla=/tmp"], "--policy smolvla", "the name of a built-in one"),
+    (["--dataset", "mine=/nonexistent/data"], "--dataset /nonexistent/data",
+     "no LeRobotDataset there"),
+    (["--grid", "/nonexistent/study.toml"], "--grid /nonexistent/study.toml", "no such file"),
+    (["--camera-map", "front=top"], "--camera-map front=top", "add --policy NAME=FOLDER"),
+    (["--camera-map", "front"], "--camera-map 'front'", "POLICY_CAMERA=DATASET_CAMERA"),
+]
+
+
+@pytest.mark.parametrize("args, names, says", BAD_INPUTS, ids=[" ".join(a) for a, _, _ in BAD_INPUTS])
+def test_a_bad_input_is_one_usage_error_screen_before_collection(bench_run, args, names, says):
+    out = bench_run(*args)
+    assert out.ret == pytest.ExitCode.USAGE_ERROR, out.screen
+    assert names in out.screen and says in out.screen, out.screen
+    assert "Traceback" not in out.screen and "pluggy" not in out.screen, out.screen
+    assert not re.search(r"^\S+\.py:\d+: in ", out.screen, re.MULTILINE), out.screen  # frames
+    lines = [line for line in out.screen.splitlines() if line.strip()]
+    assert len(lines) <= 3 and lines[0].startswith("ERROR: "), out.screen
+    assert "collected" not in out.screen and out.records == []
+
+
+def test_the_check_runs_under_collect_only_and_xdist(bench_run):
+    for extra in (["--collect-only"], ["-n", "2"]):
+        out = bench_run("--suites", "nope", *extra)
+        assert out.ret == pytest.ExitCode.USAGE_ERROR, out.screen
+        assert out.screen.splitlines()[0].startswith("ERROR: --suites nope: unknown suite")
+
+
+def test_a_bad_results_dir_and_report_are_refused_at_start(bench_run):
+    taken = bench_run.path / "a_file"
+    taken.write_text("")
+    out = bench_run(*NO_CELLS, "--results-dir", str(taken / "results"))
+    assert out.ret == pytest.ExitCode.USAGE_ERROR and "--results-dir" in out.screen, out.screen
+    out = bench_run(*NO_CELLS, "--report", str(taken / "REPORT.md"))
+    assert out.ret == pytest.ExitCode.USAGE_ERROR and "--report" in out.screen, out.screen
+
+
+def test_seeds_and_encoders_listed_twice_are_folded_and_said(bench_run):
+    out = bench_run("--backbones", "pi05", "--suites", "spatial", "--encoders",
+                    "pixels,blind,pixels", "--seeds", "0,0", "--controls", "native,native",
+                    "--collect-only", "-q")
+    assert out.ret == pytest.ExitCode.OK, out.screen
+    assert ("[graftbench] --seeds 0,0: 0 listed twice, folded: each cell runs once (seeds 0)"
+            in out.outlines)
+    assert ("[graftbench] --encoders pixels,blind,pixels: pixels listed twice, folded: each cell "
+            "runs once (encoders pixels,blind)") in out.outlines
+    assert any(line.startswith("[graftbench] --controls native,native:") for line in out.outlines)
+    ids = [line for line in out.outlines if "::test_" in line]
+    assert ids == ["bench/test_grid.py::test_graft[pi05-spatial-pixels-seed0]",
+                   "bench/test_grid.py::test_graft[pi05-spatial-blind-seed0]",
+                   "bench/test_grid.py::test_control[pi05-spatial-native-seed0]"]
+
+
+# --- the fetch commands the preflight prints, read by the pinned hf CLI -----------------------
+
+def hf_fetch(command: str, monkeypatch) -> dict:
+    """What `command` (`hf download ...`) would fetch: the pinned huggingface_hub CLI parses it
+    and runs its own download command, with its two fetchers replaced by recorders (no network).
+    {"repo_id", "repo_type", "revision", "filename" (one file) or "allow_patterns"}, "warnings"."""
+    from huggingface_hub.cli import download as cli_download
+    from huggingface_hub.cli import hf
+
+    calls = []
+    for fetcher in ("snapshot_download", "hf_hub_download"):
+        monkeypatch.setattr(cli_download, fetcher, lambda **kw: calls.append(kw) or "")
+    words = shlex.split(command)
+    assert words[:2] == ["hf", "download"], command
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        hf.app(args=words[1:], prog_name="hf", standalone_mode=False)
+    (call,) = calls
+    fetched = {k: call.get(k) for k in ("repo_id", "repo_type", "revision", "filename",
+                                        "allow_patterns")}
+    return {**fetched, "warnings": [str(w.message) for w in caught]}
+
+
+def test_the_old_pattern_list_is_what_the_cli_misreads(monkeypatch):
+    """The parser check sees the bug this module guards: a pattern after the first --include
+    value is a file name, and file names override every pattern: one file, literally `*.txt`."""
+    fetched = hf_fetch('hf download o/r --include "*.json" "*.txt"', monkeypatch)
+    assert (fetched["filename"], fetched["allow_patterns"]) == ("*.txt", None)
+    assert "Ignoring `--include` since filenames have been explicitly set." in fetched["warnings"]
+
+
+@pytest.fixture
+def empty_caches(monkeypatch, tmp_path):
+    """The Hugging Face and LeRobot caches empty: every artifact missing, every fix printed."""
+    import lerobot.utils.constants as lerobot_constants
+    from huggingface_hub import constants as hub_constants
+
+    monkeypatch.setattr(hub_constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
+    monkeypatch.setattr(lerobot_constants, "HF_LEROBOT_HOME", tmp_path / "lerobot")
+    monkeypatch.delenv("GRAFTBENCH_LIBERO_ROOT", raising=False)
+
+
+def _expected_patterns(artifact) -> list[str] | None:
+    """The include patterns the artifact's owner declares (None: the whole repo)."""
+    from backbones.paligemma_load import TOKENIZER_INCLUDE
+    from backbones.smolvla_load import VLM_INCLUDE
+
+    return {"vlm config": list(VLM_INCLUDE), "tokenizer": list(TOKENIZER_INCLUDE)}.get(artifact.kind)
+
+
+def test_every_fetch_command_the_preflight_prints_fetches_what_it_says(empty_caches, monkeypatch):
+    from backbones import BACKBONES
+    from bench.preflight import grid_artifacts, render
+    from bench.suites.libero import LIBERO_REPO_IDS
+    from encoders import get_spec, list_encoders
+    from encoders.timm_encoders import hub_weights
+
+    artifacts = grid_artifacts(BACKBONES, list_encoders(), LIBERO_REPO_IDS)
+    kinds = {a.kind for a in artifacts}
+    assert kinds == {"policy", "vlm config", "tokenizer", "encoder weights", "dataset"}, kinds
+    assert not any(a.present for a in artifacts)
+    printed = [line.strip() for line in render(artifacts).splitlines()
+               if line.strip().startswith("hf download")]
+    assert printed == [a.fix for a in artifacts]  # one command per artifact, as built
+    for artifact in artifacts:
+        fetched = hf_fetch(artifact.fix, monkeypatch)
+        assert fetched["warnings"] == [], (artifact.fix, fetched)
+        assert (fetched["repo_id"], fetched["revision"]) == (artifact.repo_id, artifact.revision)
+        assert fetched["repo_type"] == ("dataset" if artifact.kind == "dataset" else "model")
+        if artifact.kind == "encoder weights":
+            spec = get_spec(artifact.needed_by.removeprefix("encoder ").split(", ")[0])
+            assert fetched["filename"] == hub_weights(spec.timm_name)[2][0], artifact.fix
+            continue
+        assert fetched["filename"] is None
+        assert fetched["allow_patterns"] == _expected_patterns(artifact), artifact.fix
+        # The files the preflight looks for are among those the command fetches.
+        looked_for = artifact.where.rsplit(": ", 1)[1].split(", ") if artifact.kind != "dataset" \
+            else ["meta/info.json"]
+        patterns = fetched["allow_patterns"] or ["*"]
+        for name in looked_for:
+            assert any(fnmatch.fnmatch(name, p) for p in patterns), (artifact.fix, name)
+
+
+def test_the_readme_fetch_commands_parse_without_warnings(monkeypatch):
+    readme = (REPO_ROOT / "README.md").read_text()
+    commands = [line.strip() for line in readme.splitlines()
+                if line.strip().startswith("hf download ")]
+    assert len(commands) >= 10
+    for command in commands:
+        assert hf_fetch(command, monkeypatch)["warnings"] == [], command
+
+
+def test_download_command_takes_files_or_patterns_not_both():
+    from external.hubcache import download_command
+
+    assert download_command("o/r", "abc", include=("*.json", "*.txt")) == (
+        'hf download o/r --revision abc --include "*.json" --include "*.txt"')
+    with pytest.raises(ValueError, match="not both"):
+        download_command("o/r", include=("*.json",), files=("config.json",))
