@@ -1,5 +1,5 @@
 """Your own policy and data (`--policy`, `--dataset`, `--camera-map`): what they are, whether a
-policy can take a dataset (checked at collection, one line naming both sides and the fix), and
+policy can take a dataset (checked at start-up, one line naming both sides and the fix), and
 loading through the same adapter `load_policy` as the registry's checkpoints.
 
 Camera rule (one line printed for every user policy x dataset pair):
@@ -184,7 +184,7 @@ def _check_each(policies: dict, datasets: dict, explicit: dict) -> None:
 
 
 def check_world(profile) -> list[str]:
-    """Every user policy x suite and backbone x user dataset pair of the grid, at collection;
+    """Every user policy x suite and backbone x user dataset pair of the grid, at start-up;
     the camera pairing of each, one line per pair. A registry backbone cannot take a user
     dataset (its release is LIBERO's): an error."""
     lines = []
