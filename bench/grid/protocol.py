@@ -11,6 +11,7 @@ import hashlib
 import json
 from dataclasses import dataclass
 
+from backbones import BACKBONES
 from bench.grid.kinds import control_kinds
 
 
@@ -64,6 +65,8 @@ class Protocol:
 
 
 PAPER_ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
+# The study's two backbones, as the registry marks them (its base releases).
+STUDY_BACKBONES = tuple(name for name, entry in BACKBONES.items() if entry.study)
 ALL_CONTROLS = control_kinds()  # the kinds of bench.grid.kinds's table, graft aside
 
 
@@ -140,7 +143,7 @@ TINY_FULL = Profile(
         native_lr=1e-3,
         native_state_dropout=0.5,
     ),
-    backbones=("smolvla", "pi05"),
+    backbones=STUDY_BACKBONES,
     suites=("spatial", "object"),
     encoders=PAPER_ENCODERS + ("pixels", "blind"),
     seeds=(0, 1),
@@ -169,7 +172,7 @@ PAPER = Profile(
     # 8, bf16 on CUDA (bench.run.train.frozen_autocast). Warm-up, cosine decay, grad clip, split and
     # window stride are ours.
     protocol=Protocol(steps=2000, batch_size=8, lr=1e-4),
-    backbones=("smolvla", "pi05"),
+    backbones=STUDY_BACKBONES,
     suites=("spatial", "object"),
     encoders=PAPER_ENCODERS,
     seeds=(0, 1, 2),
@@ -184,7 +187,7 @@ SIM = Profile(
     suite_source="sim",
     offline=True,
     protocol=TINY_FULL.protocol.replace(heldout_episodes_per_task=1),
-    backbones=("smolvla", "pi05"),
+    backbones=STUDY_BACKBONES,
     suites=("spatial",),
     encoders=("dinov2_s", "pixels", "blind"),
     seeds=(0,),
