@@ -28,7 +28,7 @@ The contract, the least the harness needs to feed, cache and record an encoder h
   weights change, or the cache serves features of the old ones.
 - The harness feeds it as it feeds timm encoders (resize, normalise), freezes it (no gradients,
   eval mode for good) and runs one probe forward of a zero image, so a missing attribute or a
-  wrong grid fails in one line at collection, before any cell trains.
+  wrong grid fails in one line at start-up, before any cell trains.
 - The hub preflight lists no artifact for it: where its weights come from is its module's call.
 """
 
