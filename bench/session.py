@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -136,15 +137,15 @@ class GraftSession:
         try:
             record = self.cell_runner(cell, self.workspace(), self.features_mode)
         except Exception as e:
-            from bench.results.record import failure_record
+            from bench.results.record import Failure
 
-            self.store.write_failure(failure_record(cell, self.profile.protocol.hash, e))
+            self.store.write_failure(Failure.of(cell, self.profile.protocol.hash, e))
             if isinstance(e, _unavailable_errors()):  # a missing artifact: its line, no traceback
                 pytest.fail(f"{cell.id}: {type(e).__name__}: {e}", pytrace=False)
             raise
         self.outcomes[cell.id] = "measured"
-        say(self.workspace().progress, f"{cell.id}: MSE {record['mse']['normalized']:.4f} "
-                                       f"normalised ({record['timings_s']['total']:.1f} s)")
+        say(self.workspace().progress, f"{cell.id}: MSE {record.mse_in():.4f} "
+                                       f"normalised ({record.run.total_s:.1f} s)")
         return record
 
     def pytest_runtest_logreport(self, report) -> None:
@@ -174,33 +175,27 @@ class GraftSession:
         say(ws.progress, f"cell {position}/{len(self.selected)} {cell.id}: {work} "
                          "offline MSE on the held-out windows")
 
-    def _current(self, cell: CellSpec) -> dict | None:
-        """The stored record of `cell` if it is current: same protocol hash and, with
-        --rollouts, closed-loop episodes of the requested size."""
-        from bench.run.closed_loop import has_rollouts
+    def _current(self, cell: CellSpec):
+        """The stored record of `cell` if it may stand for this run (bench.results.current):
+        same protocol, feature precision, closed-loop size, weights and normaliser."""
+        from bench.results.current import RunConditions
+        from bench.results.record import checkpoint_revision
 
-        record = self.store.current(cell.id, self.profile.protocol.hash)
-        if record is not None and self.rollouts and not has_rollouts(record, self.rollouts):
-            return None  # the offline part is current, the closed loop is not: measure again
-        if record is not None and record.get("features_mode") == "cache" and \
-                record.get("feature_dtype", "float32") != self.feature_dtype:
-            return None  # features stored at another precision (records before it: float32)
-        if record is not None:
-            # Measured on other weights (another tiny release, revision or folder) or with
-            # another normaliser (other stats or checkpoint): measure again.
-            ws, saved = self.workspace(), record.get("checkpoint") or {}
-            if saved.get("revision") != ws.checkpoint(cell.backbone, cell.suite)["revision"]:
-                return None
-            if saved.get("normalizer_fingerprint") != ws.normalizer(cell.backbone, cell.suite).fingerprint:
-                return None
-        return record
+        run = RunConditions(protocol_hash=self.profile.protocol.hash,
+                            feature_dtype=self.feature_dtype, rollouts=self.rollouts)
+        if self.store.current(cell.id, run) is None:
+            return None  # the weights are only looked up (loaded) for a record that may stand
+        ws = self.workspace()
+        run = replace(run, revision=checkpoint_revision(ws.checkpoint(cell.backbone, cell.suite)),
+                      normalizer_fingerprint=ws.normalizer(cell.backbone, cell.suite).fingerprint)
+        return self.store.current(cell.id, run)
 
     def _run_submitted(self, cell: CellSpec) -> dict:
         """--executor slurm|submitit-local: the first case submits every selected cell that has
         no current record as ONE job array; each case then waits for its own task."""
         from bench.run.executors import CellArray, CellJob, SlurmOptions
         from external.paths import cache_dir
-        from bench.results.record import failure_record
+        from bench.results.record import Failure
 
         if self._cell_array is None:
             opt = self.config.getoption
@@ -221,7 +216,7 @@ class GraftSession:
         try:
             return self._cell_array.result(cell.id)
         except Exception as e:  # the task died before writing its own failure record
-            self.store.write_failure(failure_record(cell, self.profile.protocol.hash, e))
+            self.store.write_failure(Failure.of(cell, self.profile.protocol.hash, e))
             raise
 
     # --- the session's ends -----------------------------------------------------------------
@@ -244,8 +239,7 @@ class GraftSession:
 
     def finish_baseline(self) -> list[tuple[str, str]]:
         """The baseline's save / compare over the stored records; the report sections it adds."""
-        records = {cid: r for cid in self.selected
-                   if (r := self.store.load(cid)) and r.get("status") == "ok"}
+        records = {cid: r for cid in self.selected if (r := self.store.load(cid)) is not None}
         return self.baseline.finish(self.selected, records)
 
     def finish(self, sections: list[tuple[str, str]] = ()) -> Path | None:

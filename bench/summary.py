@@ -3,8 +3,9 @@ failure with its one-line reason), where the records and the report went, the he
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
+
+from bench.results.store import CELLS
 
 OUTCOME_PROPERTY = "graftbench"  # record_property name a grid case reports its outcome under
 
@@ -18,12 +19,11 @@ def cell_id_of(nodeid: str) -> str | None:
 
 def failure_line(results_dir: Path, cell_id: str, longrepr: str) -> str:
     """The failure record's error when the cell wrote one, else the report's last line."""
-    path = Path(results_dir) / "failed" / f"{cell_id}.json"
-    if path.is_file():
-        try:
-            return " ".join(str(json.loads(path.read_text())["error"]).split())[:300]
-        except (ValueError, KeyError, OSError):
-            pass
+    from bench.results.store import load_failure
+
+    failure = load_failure(results_dir, cell_id)
+    if failure is not None:
+        return " ".join(failure.error.split())[:300]
     lines = [ln.strip() for ln in longrepr.splitlines() if ln.strip()]
     return (lines[-1] if lines else "failed")[:300]
 
@@ -46,7 +46,7 @@ def summary_lines(profile: str, protocol_hash: str, outcomes: dict[str, str], se
     lines = [f"profile {profile}, protocol {protocol_hash}",
              f"cells selected {selected}: measured {measured}, resumed from store {resumed}, "
              f"failed {len(failed)}",
-             f"records: {results_dir / 'cells'}"]
+             f"records: {results_dir / CELLS}"]
     if written:
         lines.append(f"report: {report}")
     elif report.exists():

@@ -16,7 +16,7 @@ from bench.analysis.controls import (
 from bench.analysis.transfer import (
     min_exact_kendall_p, rank_agreement, support_counts, transfer_all,
 )
-from bench.results.records import make_grid, make_record
+from tests.factories import make_grid, make_record
 
 ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 RESAMPLES = 400  # enough for stable percentile intervals on these small, clean grids

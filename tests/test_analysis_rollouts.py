@@ -10,7 +10,7 @@ import pytest
 from bench.analysis.rollouts import closed_loop_all, rollout_agreement
 from bench.grid.kinds import record_label
 from bench.stats import wilson_interval
-from bench.results.records import make_record
+from tests.factories import make_record
 from bench.report.build import build_report
 
 
@@ -80,7 +80,7 @@ def test_wilson_interval_and_labels():
 
 
 def test_report_has_the_closed_loop_table_and_plot(tmp_path):
-    from bench.results.records import save_record
+    from tests.factories import save_record
 
     for r in cells({"a": (0.10, 0.9), "b": (0.20, 0.6), "c": (0.30, 0.2)}):
         save_record(tmp_path / "res", r)
@@ -92,7 +92,7 @@ def test_report_has_the_closed_loop_table_and_plot(tmp_path):
 
 
 def test_report_says_when_every_item_has_the_same_success(tmp_path):
-    from bench.results.records import save_record
+    from tests.factories import save_record
 
     for r in cells({"a": (0.10, 0.0), "b": (0.20, 0.0)}):
         save_record(tmp_path / "res", r)

@@ -12,7 +12,7 @@ import pytest
 import backbones  # noqa: F401  imported before pytester's sys.modules snapshot: the in-process
 import encoders  # noqa: F401   runs then reuse them (re-importing torchvision ops would fail)
 from bench.regression import baseline as B
-from bench.results.records import make_record
+from tests.factories import make_record
 
 pytest_plugins = ["pytester"]
 
@@ -92,8 +92,8 @@ def test_paired_interval_is_deterministic_and_pairs_by_window_id():
     a, b = _cell(0.08, noise=0.01), _cell(0.07, noise=0.01)
     assert B.paired_interval(*B.aligned(a, b, "normalized")) == \
         B.paired_interval(*B.aligned(a, b, "normalized"))
-    shuffled = dict(b, window_ids=b["window_ids"][::-1],
-                    per_window={k: v[::-1] for k, v in b["per_window"].items()})
+    shuffled = b.replace(window_ids=b["window_ids"][::-1],
+                         per_window={k: v[::-1] for k, v in b["per_window"].items()})
     assert np.allclose(B.aligned(a, shuffled, "raw")[1], B.aligned(a, b, "raw")[1])
 
 
@@ -142,9 +142,9 @@ def test_snapshot_round_trip_and_new_and_not_compared(tmp_path):
     records = [_cell(0.07, encoder="siglip"), _cell(0.08, encoder="dinov2_s")]
     path = tmp_path / "ci.json"
     path.write_text(json.dumps(B.snapshot(records, "ci", created="t", git_commit="c",
-                                          machine={"node": "n"})))
+                                          machine={"node": "n"}).to_json()))
     baseline = B.load_baseline(path)
-    assert baseline["protocol_hash"] == records[0]["protocol_hash"]
+    assert baseline.protocol_hash == records[0]["protocol_hash"]
     fresh = _cell(0.09, encoder="repvit")
     now = {r["cell_id"]: r for r in (records[0], fresh)}
     comp = B.compare_run("ci", baseline, list(now), now, [B.parse_compare_fail("mse:10%")])
@@ -174,7 +174,7 @@ def test_missing_or_corrupt_baseline_is_one_line_naming_the_file(tmp_path, conte
 
 def test_protocol_and_version_mismatch_are_named():
     base, now = _cell(), _cell()
-    now.update(protocol_hash="abc123", versions={**now["versions"], "torch": "9.9"})
+    now = now.replace(protocol_hash="abc123", versions={**now["versions"], "torch": "9.9"})
     assert B.provenance_mismatch(base, {}, now) == [
         f"protocol_hash abc123 (baseline {base['protocol_hash']})",
         "torch 9.9 (baseline 2.11.0)",
@@ -231,7 +231,7 @@ from pathlib import Path
 import pytest
 
 from bench.plugin import SESSION_KEY
-from bench.results.records import make_record
+from tests.factories import make_record
 
 pytest_plugins = ["bench.plugin"]
 
@@ -251,7 +251,8 @@ def pytest_configure(config):
                              encoder=cell.encoder, seed=cell.seed, variant=cell.variant,
                              level=levels.get(cell.id, 0.05))
         if cell.encoder in ws.feature_transforms:
-            record["feature_transform"] = ws.feature_transforms[cell.encoder].description
+            record = record.replace(
+                feature_transform=ws.feature_transforms[cell.encoder].description)
         gs.store.write(record)
         return record
 

@@ -142,7 +142,7 @@ def test_the_offline_switch_reads_the_files_profile(tmp_path):
 
 def test_records_carrying_a_grid_file_are_valid_and_the_report_names_it(tmp_path):
     from bench.results.record import validate_record
-    from bench.results.records import make_record, save_record
+    from tests.factories import make_record, save_record
     from bench.report.build import build_report
 
     grid_file = {"path": "study.toml", "sha256": "ab" * 32, "text": STUDY}

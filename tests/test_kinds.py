@@ -15,7 +15,8 @@ from bench.grid.kinds import CELL_KINDS, CellKind, control_kinds, register_kind,
 from external.paths import REPO_ROOT
 from bench.grid.protocol import TINY_FULL, with_overrides
 from bench.results.record import validate_record
-from bench.results.records import load_results, make_record, save_record
+from tests.factories import make_record, save_record
+from bench.results.store import load_results
 
 
 def test_every_consumer_knows_the_same_kinds():
@@ -42,7 +43,7 @@ def test_every_consumer_knows_the_same_kinds():
     compared = {cd.kind for cd in control_deltas(records)}
     assert compared == {k.name for k in CELL_KINDS.values() if k.control}
     with pytest.raises(ValueError, match="unknown cell kind"):
-        validate_record({**records[0], "kind": "retrained"})
+        validate_record({**records[0].to_json(), "kind": "retrained"})
 
 
 def test_no_module_spells_a_kind_name_outside_the_table():
@@ -98,11 +99,12 @@ def test_a_new_control_kind_runs_records_and_reports(twin_kind, tmp_path):
 
 
 def test_fabricated_records_follow_the_writers_format(tmp_path):
-    """Test records (bench.results.records.make_record) carry the ids CellSpec gives and read back."""
+    """Test records (tests.factories.make_record) carry the ids CellSpec gives and read back."""
     record = make_record(kind="pooling", encoder="pixels", variant="half")
     assert record["cell_id"] == CellSpec("pooling", "smolvla", "spatial", 0, "pixels", "half").id
     save_record(tmp_path, record)
-    assert load_results(tmp_path).records == [json.loads(json.dumps(record))]  # tuples: lists
+    assert [r.to_json() for r in load_results(tmp_path).records] == \
+        [json.loads(json.dumps(record.to_json()))]  # tuples: lists
 
 
 def test_kind_table_rejects_what_the_runner_cannot_do():

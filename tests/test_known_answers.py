@@ -91,7 +91,8 @@ def test_released_tiny_policy_beats_an_untrained_one(tiny_ws):
         p = tiny_ws.profile.protocol
         a = score(released, suite, split.windows, p.eval_batch_size, p.eval_noise_seed)
         b = score(untrained, suite, split.windows, p.eval_batch_size, p.eval_noise_seed)
-        paired({**a, "cell_id": f"released {name}"}, {**b, "cell_id": f"untrained {name}"}, 0.3)
+        paired({**a.to_json(), "cell_id": f"released {name}"},
+               {**b.to_json(), "cell_id": f"untrained {name}"}, 0.3)
 
 
 def test_lora_trainable_count_is_projector_plus_adapters_exactly(tiny_ws):

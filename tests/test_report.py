@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.results.records import load_results, make_failed, make_grid, make_record, save_record
+from tests.factories import make_failed, make_grid, make_record, save_record
+from bench.results.store import load_results
 from bench.report.build import SECTIONS, build_report, main
 
 ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
@@ -149,8 +150,9 @@ def test_window_mismatch_is_reported_not_raised(tmp_path):
 
 def test_load_results_skips_bad_files(tmp_path):
     write_grid(tmp_path, [make_record()])
-    (tmp_path / "cells" / "nan.json").write_text(json.dumps(
-        make_record(encoder="x", per_window=[0.1, float("nan")])))
+    diverged = make_record(encoder="x", per_window=[0.1, 0.2]).to_json()  # a valid one, then NaN
+    diverged["per_window"]["normalized"][1] = float("nan")
+    (tmp_path / "cells" / "nan.json").write_text(json.dumps(diverged))
     res = load_results(tmp_path)
     assert [r["cell_id"] for r in res.records] == ["smolvla-spatial-dinov2_s-seed0"]
     assert res.skipped and "non-finite" in res.skipped[0][1] and res.missing == []

@@ -2,24 +2,28 @@ import json
 
 import pytest
 
+from bench.results.current import RunConditions
 from bench.results.store import ResultStore, ResultsDirError, atomic_write_json
+from tests.factories import make_failed, make_record
+
+C1 = "smolvla-spatial-dinov2_s-seed0"
 
 
 def test_write_load_and_resume_by_protocol_hash(tmp_path):
     store = ResultStore(tmp_path)
-    store.write({"cell_id": "c1", "status": "ok", "protocol_hash": "aaa", "mse": {"normalized": 1.0}})
-    assert store.current("c1", "aaa")["mse"]["normalized"] == 1.0
-    assert store.current("c1", "bbb") is None  # other protocol: recompute
-    assert store.current("c2", "aaa") is None
+    store.write(make_record(per_window=[1.0, 1.0], protocol_hash="aaa"))
+    assert store.current(C1, RunConditions(protocol_hash="aaa")).mse_in() == 1.0
+    assert store.current(C1, RunConditions(protocol_hash="bbb")) is None  # other protocol
+    assert store.current("c2", RunConditions(protocol_hash="aaa")) is None
 
 
 def test_failure_never_counts_as_done_and_is_cleared_by_success(tmp_path):
     store = ResultStore(tmp_path)
-    store.write_failure({"cell_id": "c1", "error": "boom", "protocol_hash": "aaa"})
-    assert store.current("c1", "aaa") is None
-    assert (tmp_path / "failed" / "c1.json").exists()
-    store.write({"cell_id": "c1", "status": "ok", "protocol_hash": "aaa"})
-    assert not (tmp_path / "failed" / "c1.json").exists()
+    store.write_failure(make_failed(error="boom"))
+    assert store.load(C1) is None and store.load_failure(C1).error == "boom"
+    assert (tmp_path / "failed" / f"{C1}.json").exists()
+    store.write(make_record())
+    assert not (tmp_path / "failed" / f"{C1}.json").exists()
 
 
 def test_atomic_write_leaves_old_file_on_crash(tmp_path):
@@ -33,8 +37,8 @@ def test_atomic_write_leaves_old_file_on_crash(tmp_path):
 
 def test_corrupt_record_is_treated_as_missing(tmp_path):
     store = ResultStore(tmp_path)
-    store.cell_path("c1").write_text("{half a rec")
-    assert store.current("c1", "aaa") is None
+    store.cell_path(C1).write_text("{half a rec")
+    assert store.load(C1) is None
 
 
 def test_results_dir_that_is_a_file_is_a_clear_error(tmp_path):

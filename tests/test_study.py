@@ -8,7 +8,7 @@ import inspect
 import pytest
 
 from bench.grid.protocol import PAPER_ENCODERS, Protocol
-from bench.results.records import make_record
+from tests.factories import make_record
 from bench.report.study import (
     DISAGREES, MAPPED_FIELDS, NOT_RECORDED, OUR_CODE, OURS, STUDY, STUDY_CONSTANTS, as_text,
     compare_protocol, compare_records, observed_from_records,

@@ -17,8 +17,9 @@ from bench.analysis.rankings import (
     paired_window_bootstrap,
 )
 from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, NATIVE_SLOT, ZERO, get_kind, is_native_like, kind_of
+from bench.results.record import NORMALIZED, RAW
 
-METRICS = ("normalized", "raw")
+METRICS = (NORMALIZED, RAW)
 
 
 def relative_delta(value: float, reference: float) -> float:
@@ -31,24 +32,24 @@ def relative_delta(value: float, reference: float) -> float:
 def find_reference(record: dict, records: Sequence[dict]) -> tuple[dict | None, str]:
     """The record a control is compared against, and the id looked for.
 
-    Uses `record["reference"]`; without one, the graft cell of the same encoder and seed, or for
+    Uses `record.reference`; without one, the graft cell of the same encoder and seed, or for
     native_wrapped / native-image controls the native cell (same seed if there is one)."""
-    by_id = {r["cell_id"]: r for r in records}
-    wanted = record.get("reference")
+    by_id = {r.cell_id: r for r in records}
+    wanted = record.reference
     if wanted:
         return by_id.get(wanted), wanted
     native_like = is_native_like(record)
     kind = NATIVE if native_like else GRAFT
     candidates = [r for r in records
-                  if r["kind"] == kind and r["backbone"] == record["backbone"]
-                  and r["suite"] == record["suite"]
-                  and (native_like or r["encoder"] == record["encoder"])]
-    same_seed = [r for r in candidates if r["seed"] == record["seed"]]
+                  if r.kind == kind and r.backbone == record.backbone
+                  and r.suite == record.suite
+                  and (native_like or r.encoder == record.encoder)]
+    same_seed = [r for r in candidates if r.seed == record.seed]
     # The released policy does not depend on a cell seed: any seed's native cell will do.
     for r in same_seed or (candidates if native_like else []):
-        return r, r["cell_id"]
-    label = NATIVE if native_like else f"{record.get('encoder')} graft"
-    return None, f"({label}, seed {record['seed']})"
+        return r, r.cell_id
+    label = NATIVE if native_like else f"{record.encoder} graft"
+    return None, f"({label}, seed {record.seed})"
 
 
 @dataclass
@@ -74,18 +75,18 @@ class ControlDelta:
 def control_deltas(records: Sequence[dict]) -> list[ControlDelta]:
     """One ControlDelta per control record (native_wrapped, lora, pooling, zero/shuffled image)."""
     out = []
-    for r in sorted(records, key=lambda r: (r["backbone"], r["suite"], r["kind"], r["cell_id"])):
+    for r in sorted(records, key=lambda r: (r.backbone, r.suite, r.kind, r.cell_id)):
         kind = kind_of(r)
         if kind is None or not kind.control:
             continue
         ref, ref_id = find_reference(r, records)
-        cd = ControlDelta(cell_id=r["cell_id"], kind=r["kind"], backbone=r["backbone"],
-                          suite=r["suite"], encoder=r.get("encoder"), variant=r.get("variant"),
-                          seed=int(r["seed"]), reference_id=ref_id,
+        cd = ControlDelta(cell_id=r.cell_id, kind=r.kind, backbone=r.backbone,
+                          suite=r.suite, encoder=r.encoder, variant=r.variant,
+                          seed=int(r.seed), reference_id=ref_id,
                           reference_found=ref is not None,
-                          mse={m: float(r["mse"][m]) for m in METRICS})
+                          mse={m: float(r.mse_in(m)) for m in METRICS})
         if ref is not None:
-            cd.reference_mse = {m: float(ref["mse"][m]) for m in METRICS}
+            cd.reference_mse = {m: float(ref.mse_in(m)) for m in METRICS}
             cd.delta = {m: relative_delta(cd.mse[m], cd.reference_mse[m]) for m in METRICS}
         out.append(cd)
     return out
@@ -197,18 +198,18 @@ class VisionCheck:
 def _no_vision_controls(records: Sequence[dict], backbone: str, suite: str,
                         best: str) -> list[tuple[str, list[dict], bool]]:
     """(label, cells, seed_free) for every blind / zero-image control present, in that order."""
-    here = [r for r in records if r["backbone"] == backbone and r["suite"] == suite]
+    here = [r for r in records if r.backbone == backbone and r.suite == suite]
     groups: list[tuple[str, list[dict], bool]] = []
-    blind = [r for r in here if r["kind"] == GRAFT and r["encoder"] == BLIND]
+    blind = [r for r in here if r.kind == GRAFT and r.encoder == BLIND]
     if blind:
         groups.append(("blind graft", blind, False))
     # Controls whose policy sees no image at evaluation, in table order (zero_image).
     for kind in (k for k in CELL_KINDS.values() if k.control and k.eval_inputs == ZERO):
-        mine_of = [r for r in here if r["kind"] == kind.name]
+        mine_of = [r for r in here if r.kind == kind.name]
         for owner, seed_free in ((best, False), (NATIVE_SLOT, True)):
-            mine = [r for r in mine_of if (r.get("encoder") or NATIVE_SLOT) == owner]
-            for variant in sorted({r.get("variant") or "" for r in mine}):
-                cells = [r for r in mine if (r.get("variant") or "") == variant]
+            mine = [r for r in mine_of if (r.encoder or NATIVE_SLOT) == owner]
+            for variant in sorted({r.variant or "" for r in mine}):
+                cells = [r for r in mine if (r.variant or "") == variant]
                 label = kind.label(None if owner == NATIVE_SLOT else owner, variant or None)
                 groups.append((label, cells, seed_free))
     return groups
@@ -218,23 +219,23 @@ def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
                  n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> VisionCheck:
     """Best graft of `backbone` x `suite` against its blind / zero-image controls (VISION_RULE)."""
     check = VisionCheck(backbone=backbone, suite=suite)
-    grafts = [r for r in graft_records(records, backbone, suite) if r["encoder"] != BLIND]
+    grafts = [r for r in graft_records(records, backbone, suite) if r.encoder != BLIND]
     if not grafts:
         check.notes.append("no graft cells besides blind")
         return check
     seed_means: dict[str, list[float]] = {}
     for r in grafts:
-        seed_means.setdefault(r["encoder"], []).append(
-            float(np.mean(r["per_window"]["normalized"])))
+        seed_means.setdefault(r.encoder, []).append(
+            float(np.mean(r.scores.per_window_in(NORMALIZED))))
     means = {e: float(np.mean(v)) for e, v in seed_means.items()}
     check.best_encoder = min(means, key=lambda e: (means[e], e))
     check.best_mse = means[check.best_encoder]
-    best_cells = sorted((r for r in grafts if r["encoder"] == check.best_encoder),
-                        key=lambda r: int(r["seed"]))
+    best_cells = sorted((r for r in grafts if r.encoder == check.best_encoder),
+                        key=lambda r: int(r.seed))
     for label, controls, seed_free in _no_vision_controls(records, backbone, suite,
                                                           check.best_encoder):
-        by_seed = {int(r["seed"]): r for r in sorted(controls, key=lambda r: r["cell_id"])}
-        pairs = [(g, by_seed.get(int(g["seed"]), controls[0] if seed_free else None))
+        by_seed = {int(r.seed): r for r in sorted(controls, key=lambda r: r.cell_id)}
+        pairs = [(g, by_seed.get(int(g.seed), controls[0] if seed_free else None))
                  for g in best_cells]
         pairs = [(g, c) for g, c in pairs if c is not None]
         if not pairs:
@@ -247,15 +248,15 @@ def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
         except WindowMismatchError as err:
             check.notes.append(f"{label}: not compared: {err}")
             continue
-        values = [np.asarray(c["per_window"]["normalized"], dtype=float)[o]
+        values = [np.asarray(c.scores.per_window_in(NORMALIZED), dtype=float)[o]
                   for c, o in zip(cells, orders)]
         # (2, S, W): row 0 the best graft, row 1 the control, seed s paired with seed s
         per_window = np.stack([values[:len(pairs)], values[len(pairs):]])
         boot = paired_window_bootstrap(per_window, leader=0, n_resamples=n_resamples,
                                        random_seed=random_seed)
         check.comparisons.append(VisionComparison(
-            control=label, cell_ids=sorted({c["cell_id"] for _, c in pairs}),
-            seeds=[int(g["seed"]) for g, _ in pairs], control_mse=float(boot.mean[1]),
+            control=label, cell_ids=sorted({c.cell_id for _, c in pairs}),
+            seeds=[int(g.seed) for g, _ in pairs], control_mse=float(boot.mean[1]),
             diff=float(boot.diff[1]), diff_ci=(float(boot.diff_lo[1]), float(boot.diff_hi[1]))))
     return check
 
@@ -263,7 +264,7 @@ def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
 def vision_checks(records: Sequence[dict], *, n_resamples: int = DEFAULT_RESAMPLES,
                   random_seed: int = 0) -> list[VisionCheck]:
     """One VisionCheck per backbone x suite with graft cells, in the rankings' order."""
-    pairs = sorted({(r["backbone"], r["suite"]) for r in records if r["kind"] == GRAFT})
+    pairs = sorted({(r.backbone, r.suite) for r in records if r.kind == GRAFT})
     order = backbone_order([b for b, _ in pairs])
     return [vision_check(records, b, s, n_resamples=n_resamples, random_seed=random_seed)
             for b, s in sorted(pairs, key=lambda p: (p[1], order.index(p[0])))]

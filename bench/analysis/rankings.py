@@ -19,9 +19,10 @@ import numpy as np
 import scipy.stats
 
 from bench.grid.kinds import GRAFT
+from bench.results.record import NORMALIZED, RAW
 
-METRICS = ("normalized", "raw")
-PRIMARY = "normalized"
+METRICS = (NORMALIZED, RAW)
+PRIMARY = NORMALIZED
 DEFAULT_RESAMPLES = 2000
 CONFIDENCE = 0.95
 
@@ -181,17 +182,17 @@ def align_windows(cells: Sequence[dict]) -> tuple[list[int], list[np.ndarray]]:
 
     Raises WindowMismatchError naming both cells when a cell's window ids differ as a set."""
     reference = cells[0]
-    ref_ids = [int(w) for w in reference["window_ids"]]
+    ref_ids = [int(w) for w in reference.scores.window_ids]
     position = {w: i for i, w in enumerate(ref_ids)}
     orders = []
     for cell in cells:
-        ids = [int(w) for w in cell["window_ids"]]
+        ids = [int(w) for w in cell.scores.window_ids]
         if len(ids) != len(ref_ids) or set(ids) != set(ref_ids):
             extra = sorted(set(ids) - set(ref_ids))[:5]
             absent = sorted(set(ref_ids) - set(ids))[:5]
             raise WindowMismatchError(
-                f"{cell['cell_id']} was scored on other held-out windows than "
-                f"{reference['cell_id']} (extra ids {extra}, absent ids {absent}); all cells of a "
+                f"{cell.cell_id} was scored on other held-out windows than "
+                f"{reference.cell_id} (extra ids {extra}, absent ids {absent}); all cells of a "
                 f"backbone x suite must share the protocol's split (compare protocol_hash)")
         order = np.empty(len(ids), dtype=int)
         for i, w in enumerate(ids):
@@ -201,8 +202,8 @@ def align_windows(cells: Sequence[dict]) -> tuple[list[int], list[np.ndarray]]:
 
 
 def graft_records(records: Sequence[dict], backbone: str, suite: str) -> list[dict]:
-    return [r for r in records if r["kind"] == GRAFT and r["backbone"] == backbone
-            and r["suite"] == suite]
+    return [r for r in records if r.kind == GRAFT and r.backbone == backbone
+            and r.suite == suite]
 
 
 def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
@@ -214,14 +215,14 @@ def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
         ranking.error = "no graft cells"
         return ranking
     window_ids, orders = align_windows(cells)
-    encoders = sorted({c["encoder"] for c in cells})
-    seeds = sorted({int(c["seed"]) for c in cells})
+    encoders = sorted({c.encoder for c in cells})
+    seeds = sorted({int(c.seed) for c in cells})
     ranking.seeds, ranking.n_windows = seeds, len(window_ids)
     arrays = {m: np.full((len(encoders), len(seeds), len(window_ids)), np.nan) for m in METRICS}
     for cell, order in zip(cells, orders):
-        e, s = encoders.index(cell["encoder"]), seeds.index(int(cell["seed"]))
+        e, s = encoders.index(cell.encoder), seeds.index(int(cell.seed))
         for m in METRICS:
-            arrays[m][e, s] = np.asarray(cell["per_window"][m], dtype=float)[order]
+            arrays[m][e, s] = np.asarray(cell.scores.per_window_in(m), dtype=float)[order]
     point, _ = encoder_means(arrays[PRIMARY], 0)
     order_idx = sorted(range(len(encoders)), key=lambda i: (point[i], encoders[i]))
     leader = order_idx[0]
@@ -260,7 +261,7 @@ def rank_all(records: Sequence[dict], *, n_resamples: int = DEFAULT_RESAMPLES,
              random_seed: int = 0) -> list[Ranking]:
     """One Ranking per backbone x suite that has graft cells (mismatches become `error`)."""
     rankings = []
-    pairs = sorted({(r["backbone"], r["suite"]) for r in records if r["kind"] == GRAFT})
+    pairs = sorted({(r.backbone, r.suite) for r in records if r.kind == GRAFT})
     order = backbone_order([b for b, _ in pairs])
     for backbone, suite in sorted(pairs, key=lambda p: (p[1], order.index(p[0]))):
         try:

@@ -28,9 +28,9 @@ from bench.stats import wilson_interval
 DEFAULT_RESAMPLES = 1000
 
 
-def rolled_out(record: dict) -> bool:
+def rolled_out(record) -> bool:
     """The record carries closed-loop episodes (not absent, not skipped)."""
-    return bool((record.get("rollouts") or {}).get("episodes"))
+    return bool((record.run.rollouts or {}).get("episodes"))
 
 
 def episode_keys(rollouts: dict) -> list[tuple[int, int, int]]:
@@ -70,16 +70,16 @@ def rollout_agreement(records: Sequence[dict], backbone: str, suite: str, *,
                 n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> ClosedLoop:
     """Agreement of offline MSE and success over the rolled-out cells of backbone x suite."""
     out = ClosedLoop(backbone, suite, n_resamples=n_resamples)
-    rolled = [r for r in records if r["backbone"] == backbone and r["suite"] == suite
+    rolled = [r for r in records if r.backbone == backbone and r.suite == suite
               and rolled_out(r)]
     if not rolled:
         out.missing = "no cell with rollouts (run with --rollouts N on a simulated suite)"
         return out
-    keys = episode_keys(rolled[0]["rollouts"])
-    windows = rolled[0]["window_ids"]
+    keys = episode_keys(rolled[0].run.rollouts)
+    windows = rolled[0].scores.window_ids
     for r in rolled:
-        if episode_keys(r["rollouts"]) != keys or r["window_ids"] != windows:
-            out.missing = (f"{r['cell_id']} was rolled out from other init states or scored on other "
+        if episode_keys(r.run.rollouts) != keys or r.scores.window_ids != windows:
+            out.missing = (f"{r.cell_id} was rolled out from other init states or scored on other "
                            "windows than the rest: not paired, no agreement computed")
             return out
     groups: dict[str, list[dict]] = {}
@@ -87,16 +87,16 @@ def rollout_agreement(records: Sequence[dict], backbone: str, suite: str, *,
         groups.setdefault(record_label(r), []).append(r)
     out.items = sorted(groups)
     # (I, W) per-window MSE and (I, E) per-episode success, each averaged over the item's seeds.
-    per_window = np.array([np.mean([g["per_window"][PRIMARY] for g in groups[i]], axis=0)
+    per_window = np.array([np.mean([g.scores.per_window_in(PRIMARY) for g in groups[i]], axis=0)
                            for i in out.items])
-    per_episode = np.array([np.mean([[float(e["success"]) for e in g["rollouts"]["episodes"]]
+    per_episode = np.array([np.mean([[float(e["success"]) for e in g.run.rollouts["episodes"]]
                                      for g in groups[i]], axis=0) for i in out.items])
-    out.seeds = {i: sorted(g["seed"] for g in groups[i]) for i in out.items}
+    out.seeds = {i: sorted(g.seed for g in groups[i]) for i in out.items}
     out.mse = per_window.mean(axis=1).tolist()
     out.success = per_episode.mean(axis=1).tolist()
     for i in out.items:
-        n = sum(len(g["rollouts"]["episodes"]) for g in groups[i])
-        k = sum(bool(e["success"]) for g in groups[i] for e in g["rollouts"]["episodes"])
+        n = sum(len(g.run.rollouts["episodes"]) for g in groups[i])
+        k = sum(bool(e["success"]) for g in groups[i] for e in g.run.rollouts["episodes"])
         out.n_episodes.append(n)
         out.success_ci.append(wilson_interval(k, n))
     if len(out.items) < 2:
@@ -120,5 +120,5 @@ def rollout_agreement(records: Sequence[dict], backbone: str, suite: str, *,
 
 def closed_loop_all(records: Sequence[dict], **kwargs) -> list[ClosedLoop]:
     """One ClosedLoop per backbone x suite that has at least one rolled-out cell."""
-    pairs = sorted({(r["backbone"], r["suite"]) for r in records if rolled_out(r)})
+    pairs = sorted({(r.backbone, r.suite) for r in records if rolled_out(r)})
     return [rollout_agreement(records, b, s, **kwargs) for b, s in pairs]

@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from itertools import combinations
 from pathlib import Path
 from typing import Sequence
@@ -29,12 +29,16 @@ from typing import Sequence
 import numpy as np
 
 from bench.grid.kinds import GRAFT
+from bench.results.current import RunConditions, differences
+from bench.results.record import (
+    NORMALIZED, RAW, SCHEMA_KEY, Record, from_snapshot, snapshot_json,
+)
 
 # The baseline FILE's format (a snapshot of records), not the record's (bench.results.record).
 BASELINE_SCHEMA = 1
 CONFIDENCE = 0.95
 N_RESAMPLES = 2000
-METRIC_SPACES = {"mse": "normalized", "raw_mse": "raw"}
+METRIC_SPACES = dict(mse=NORMALIZED, raw_mse=RAW)  # the spec's metric names -> action space
 VALID_FORMS = "mse:10%, raw_mse:10%, mse:0.002 (absolute), mse:10%:paired, rank"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 _SPEC = re.compile(r"^(?P<metric>mse|raw_mse):(?:(?P<pct>\d+(?:\.\d+)?)%|"
@@ -65,12 +69,12 @@ def paired_interval(now: Sequence[float], base: Sequence[float], *,
     return float(boot.diff[1]), float(boot.diff_lo[1]), float(boot.diff_hi[1])
 
 
-def aligned(a: dict, b: dict, space: str) -> tuple[np.ndarray, np.ndarray]:
+def aligned(a: Record, b: Record, space: str) -> tuple[np.ndarray, np.ndarray]:
     """Per-window MSE of cells a and b in `space`, restricted to their common window ids."""
-    index_b = {w: i for i, w in enumerate(b["window_ids"])}
-    pairs = [(i, index_b[w]) for i, w in enumerate(a["window_ids"]) if w in index_b]
-    pa = np.asarray(a["per_window"][space], dtype=float)
-    pb = np.asarray(b["per_window"][space], dtype=float)
+    index_b = {w: i for i, w in enumerate(b.scores.window_ids)}
+    pairs = [(i, index_b[w]) for i, w in enumerate(a.scores.window_ids) if w in index_b]
+    pa = np.asarray(a.scores.per_window_in(space), dtype=float)
+    pb = np.asarray(b.scores.per_window_in(space), dtype=float)
     ia = [i for i, _ in pairs]
     ib = [j for _, j in pairs]
     return pa[ia], pb[ib]
@@ -105,9 +109,9 @@ class ThresholdCheck:
             return now_mse > base_mse * (1.0 + self.limit)
         return now_mse - base_mse > self.limit
 
-    def fails(self, base: dict, now: dict) -> str | None:
-        """A one-line message when `now` regressed against `base` (cell dicts), else None."""
-        b, n = base["mse"][self.space], now["mse"][self.space]
+    def fails(self, base: Record, now: Record) -> str | None:
+        """A one-line message when `now` regressed against `base`, else None."""
+        b, n = base.mse_in(self.space), now.mse_in(self.space)
         if not self.exceeded(b, n):
             return None
         note = ""
@@ -117,7 +121,7 @@ class ThresholdCheck:
                 return None  # threshold exceeded, but within the windows' noise
             note = (" (paired windows unavailable)" if math.isnan(lo)
                     else f" (paired 95% CI of now - baseline [{lo:+.4g}, {hi:+.4g}])")
-        return (f"{now['cell_id']}: {self.metric} {n:.4g} vs baseline {b:.4g} "
+        return (f"{now.cell_id}: {self.metric} {n:.4g} vs baseline {b:.4g} "
                 f"({_change(b, n)}) exceeds {self.spec}{note}")
 
 
@@ -126,11 +130,11 @@ class RankCheck:
     """`rank`: the encoder order of one backbone x suite x seed, beyond its tie band."""
 
     spec: str = "rank"
-    space: str = "normalized"
+    space: str = NORMALIZED
     scope = "group"
 
-    def flips(self, base_cells: dict[str, dict], now_cells: dict[str, dict]) -> list[str]:
-        """Descriptions of the flipped pairs; `*_cells` map encoder -> cell dict of one group."""
+    def flips(self, base_cells: dict[str, Record], now_cells: dict[str, Record]) -> list[str]:
+        """Descriptions of the flipped pairs; `*_cells` map encoder -> record of one group."""
         out = []
         for a, b in combinations(sorted(set(base_cells) & set(now_cells)), 2):
             bd, blo, bhi = paired_interval(*aligned(base_cells[a], base_cells[b], self.space))
@@ -141,7 +145,7 @@ class RankCheck:
                            f"now {worse} < {better} by {_gap(nd, nlo, nhi)}")
         return out
 
-    def fails(self, base_cells: dict[str, dict], now_cells: dict[str, dict]) -> str | None:
+    def fails(self, base_cells: dict[str, Record], now_cells: dict[str, Record]) -> str | None:
         flips = self.flips(base_cells, now_cells)
         return f"rank flip: {'; '.join(flips)} (exceeds rank)" if flips else None
 
@@ -173,8 +177,30 @@ def _change(base: float, now: float) -> str:
 # Baseline files
 
 
-CELL_FIELDS = ("kind", "backbone", "suite", "encoder", "seed", "variant", "protocol_hash",
-               "checkpoint", "versions", "mse", "per_window", "window_ids")
+@dataclass(frozen=True)
+class Baseline:
+    """A baseline file: a named snapshot of records (what a later run is compared on)."""
+
+    name: str
+    created: str
+    git_commit: str
+    protocol_hash: str | None  # the one protocol of its cells, or None when several
+    protocol_hashes: list[str]
+    protocol: dict | None
+    profile: str | None
+    versions: dict
+    hardware: list[str]
+    machine: dict
+    cells: dict[str, Record]  # cell id -> its record as snapshot (bench.results.record)
+    schema: int = BASELINE_SCHEMA
+
+    def to_json(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out[_CELLS] = {cid: snapshot_json(r) for cid, r in self.cells.items()}
+        return out
+
+
+_CELLS = "cells"
 
 
 def baseline_path(baseline_dir: Path, name: str) -> Path:
@@ -187,24 +213,22 @@ def baseline_path(baseline_dir: Path, name: str) -> Path:
     return Path(baseline_dir) / f"{name}.json"
 
 
-def snapshot(records: Sequence[dict], name: str, *, created: str, git_commit: str,
-             machine: dict) -> dict:
-    """The baseline file's content for `records` (finished cell records)."""
-    hashes = sorted({r["protocol_hash"] for r in records})
-    return {
-        "schema": BASELINE_SCHEMA, "name": name, "created": created, "git_commit": git_commit,
-        "protocol_hash": hashes[0] if len(hashes) == 1 else None, "protocol_hashes": hashes,
-        "protocol": records[0].get("protocol") if len(hashes) == 1 and records else None,
-        "profile": records[0].get("profile") if records else None,
-        "versions": records[0].get("versions", {}) if records else {},
-        "hardware": sorted({str(r.get("hardware")) for r in records}),
-        "machine": machine,
-        "cells": {r["cell_id"]: {"cell_id": r["cell_id"], **{k: r.get(k) for k in CELL_FIELDS}}
-                  for r in records},
-    }
+def snapshot(records: Sequence[Record], name: str, *, created: str, git_commit: str,
+             machine: dict) -> Baseline:
+    """The baseline of `records` (finished cell records)."""
+    hashes = sorted({r.measured.protocol_hash for r in records})
+    first = records[0] if records else None
+    return Baseline(
+        name=name, created=created, git_commit=git_commit,
+        protocol_hash=hashes[0] if len(hashes) == 1 else None, protocol_hashes=hashes,
+        protocol=first.measured.protocol if len(hashes) == 1 and first else None,
+        profile=first.measured.profile if first else None,
+        versions=first.run.versions if first else {},
+        hardware=sorted({str(r.run.hardware) for r in records}), machine=machine,
+        cells={r.cell_id: from_snapshot(snapshot_json(r)) for r in records})
 
 
-def load_baseline(path: Path) -> dict:
+def load_baseline(path: Path) -> Baseline:
     """Read and check a baseline file; BaselineError (one line, naming the file) when unusable."""
     path = Path(path)
     hint = "save one with --save-baseline NAME"
@@ -215,39 +239,31 @@ def load_baseline(path: Path) -> dict:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise BaselineError(f"baseline file {path} is unreadable ({str(e).splitlines()[0]}); "
                             f"{hint}") from None
-    cells = data.get("cells") if isinstance(data, dict) else None
-    if not isinstance(cells, dict) or data.get("schema") != BASELINE_SCHEMA:
+    cells = data.get(_CELLS) if isinstance(data, dict) else None
+    if not isinstance(cells, dict) or data.get(SCHEMA_KEY) != BASELINE_SCHEMA:
         raise BaselineError(f"baseline file {path} is not a schema-{BASELINE_SCHEMA} graftbench baseline; "
                             f"{hint}")
+    records = {}
     for cid, cell in cells.items():
         try:
-            n = len(cell["window_ids"])
-            ok = all(len(cell["per_window"][s]) == n and math.isfinite(cell["mse"][s])
-                     for s in METRIC_SPACES.values())
-        except (KeyError, TypeError):
-            ok = False
-        if not ok:
+            records[cid] = from_snapshot(cell)
+        except ValueError:
             raise BaselineError(f"baseline file {path}: cell {cid!r} lacks mse/per_window/"
-                                f"window_ids; {hint}")
-    return data
+                                f"window_ids; {hint}") from None
+    known = {f.name for f in fields(Baseline)}
+    return Baseline(**{**{k: None for k in known}, **{k: v for k, v in data.items() if k in known},
+                       _CELLS: records})
 
 
-def provenance_mismatch(base_cell: dict, baseline: dict, now: dict) -> list[str]:
-    """What differs between how the baseline cell and the current record were measured."""
-    out = []
-    if base_cell.get("protocol_hash") != now.get("protocol_hash"):
-        out.append(f"protocol_hash {now.get('protocol_hash')} (baseline "
-                   f"{base_cell.get('protocol_hash')})")
-    base_norm = (base_cell.get("checkpoint") or {}).get("normalizer_fingerprint")
-    now_norm = (now.get("checkpoint") or {}).get("normalizer_fingerprint")
-    if base_norm is not None and base_norm != now_norm:  # never compare across normalisers
-        out.append(f"normalizer {now_norm} (baseline {base_norm})")
-    base_versions = base_cell.get("versions") or baseline.get("versions") or {}
-    now_versions = now.get("versions") or {}
-    for pkg in sorted(set(base_versions) & set(now_versions)):
-        if base_versions[pkg] != now_versions[pkg]:
-            out.append(f"{pkg} {now_versions[pkg]} (baseline {base_versions[pkg]})")
-    return out
+def provenance_mismatch(base_cell: Record, baseline: Baseline | None, now: Record) -> list[str]:
+    """What differs between how the baseline cell and the current record were measured: the
+    freshness rule (bench.results.current) with the baseline cell's conditions."""
+    base = base_cell.measured
+    versions = base_cell.run.versions or (baseline.versions if baseline else None) or {}
+    wanted = RunConditions(protocol_hash=base.protocol_hash,
+                           normalizer_fingerprint=base.normalizer_fingerprint,  # never compare across normalisers
+                           versions=versions, label="baseline")
+    return differences(now, wanted)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -273,7 +289,7 @@ class CellRow:
 @dataclass
 class Comparison:
     name: str
-    baseline: dict
+    baseline: Baseline
     checks: list
     rows: list[CellRow] = field(default_factory=list)
     new: list[str] = field(default_factory=list)
@@ -294,20 +310,20 @@ class Comparison:
         return bool(self.regressed or self.flips)
 
 
-def cell_failures(base_cell: dict, now: dict, checks: Sequence) -> list[str]:
+def cell_failures(base_cell: Record, now: Record, checks: Sequence) -> list[str]:
     """Messages of the cell-scope checks that `now` fails against `base_cell`."""
     return [m for c in checks if c.scope == "cell" for m in [c.fails(base_cell, now)] if m]
 
 
-def group_id(cell: dict) -> str:
-    return f"{cell['backbone']}-{cell['suite']}-seed{cell['seed']}"
+def group_id(cell: Record) -> str:
+    return cell.identity.group
 
 
-def compare_run(name: str, baseline: dict, selected: Sequence[str], records: dict[str, dict],
+def compare_run(name: str, baseline: Baseline, selected: Sequence[str], records: dict[str, Record],
                 checks: Sequence) -> Comparison:
     """Compare the records of the `selected` cell ids (missing ones absent) with `baseline`."""
     comp = Comparison(name, baseline, list(checks))
-    cells = baseline["cells"]
+    cells = baseline.cells
     for cid in selected:
         now = records.get(cid)
         if cid not in cells:
@@ -316,8 +332,8 @@ def compare_run(name: str, baseline: dict, selected: Sequence[str], records: dic
             comp.not_compared.append(f"{cid} (no record this run)")
         else:
             base = cells[cid]
-            d, lo, hi = paired_interval(*aligned(now, base, "normalized"))
-            comp.rows.append(CellRow(cid, base["mse"]["normalized"], now["mse"]["normalized"],
+            d, lo, hi = paired_interval(*aligned(now, base, NORMALIZED))
+            comp.rows.append(CellRow(cid, base.mse_in(), now.mse_in(),
                                      d, lo, hi, cell_failures(base, now, checks),
                                      provenance_mismatch(base, baseline, now)))
     ran = set(selected)
@@ -328,10 +344,10 @@ def compare_run(name: str, baseline: dict, selected: Sequence[str], records: dic
         base_groups: dict[str, dict] = {}
         now_groups: dict[str, dict] = {}
         for cid in compared:
-            if cells[cid].get("kind") == GRAFT:
+            if cells[cid].kind == GRAFT:
                 gid = group_id(cells[cid])
-                base_groups.setdefault(gid, {})[cells[cid]["encoder"]] = cells[cid]
-                now_groups.setdefault(gid, {})[cells[cid]["encoder"]] = records[cid]
+                base_groups.setdefault(gid, {})[cells[cid].encoder] = cells[cid]
+                now_groups.setdefault(gid, {})[cells[cid].encoder] = records[cid]
         for gid in sorted(base_groups):
             if len(base_groups[gid]) < 2:
                 continue
@@ -348,9 +364,9 @@ def markdown_section(comp: Comparison, path: Path | str) -> str:
     b = comp.baseline
     checks = ", ".join(f"`{c.spec}`" for c in comp.checks) or "none (report only)"
     out = [
-        f"Baseline `{comp.name}` (`{path}`): saved {b.get('created')} at graftbench commit "
-        f"`{b.get('git_commit')}`, protocol {', '.join(b.get('protocol_hashes') or ['?'])}, "
-        f"on {'; '.join(b.get('hardware') or ['?'])}. Checks: {checks}.",
+        f"Baseline `{comp.name}` (`{path}`): saved {b.created} at graftbench commit "
+        f"`{b.git_commit}`, protocol {', '.join(b.protocol_hashes or ['?'])}, "
+        f"on {'; '.join(b.hardware or ['?'])}. Checks: {checks}.",
         "",
         "Change: mean over the shared held-out windows of (now - baseline) normalised MSE, with its "
         f"paired {CONFIDENCE:.0%} bootstrap interval over windows.",

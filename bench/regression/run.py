@@ -93,7 +93,7 @@ class BaselineRun:
         self.comparison: B.Comparison | None = None
         self.saved: tuple[Path, int, list[str]] | None = None
         self.checks: list = []
-        self.baseline: dict | None = None
+        self.baseline: B.Baseline | None = None
         try:
             specs = opt("--compare-fail")
             if (specs or self.strict) and not self.compare_name:
@@ -112,10 +112,10 @@ class BaselineRun:
         except B.BaselineError as e:
             raise pytest.UsageError(str(e)) from None
         if self.baseline is not None and self.strict:
-            if protocol_hash not in self.baseline.get("protocol_hashes", []):
+            if protocol_hash not in (self.baseline.protocol_hashes or []):
                 raise pytest.UsageError(
                     f"--compare-strict: this run's protocol {protocol_hash} differs from baseline "
-                    f"{self.compare_path}'s {self.baseline.get('protocol_hashes')}; rerun with "
+                    f"{self.compare_path}'s {self.baseline.protocol_hashes}; rerun with "
                     "--save-baseline after a deliberate protocol change")
 
     # -- per cell (in the process that runs the case) -----------------------------------------
@@ -127,8 +127,8 @@ class BaselineRun:
         """Never resume a degraded record; with --degrade-encoder, measure its cells again with
         the degradation installed as the workspace's feature transform (bench.run.workspace)."""
         record = store.load(cell.id)
-        if record is not None and (self.degrades(cell) or record.get("feature_transform")):
-            store.cell_path(cell.id).unlink(missing_ok=True)
+        if record is not None and (self.degrades(cell) or record.measured.feature_transform):
+            store.forget(cell.id)
         if self.degrades(cell):
             name, factor = self.degrade
             ws = workspace()
@@ -139,11 +139,11 @@ class BaselineRun:
             degrade.description = f"degraded {name}:{factor}"  # recorded by the runner
             ws.feature_transforms[name] = degrade
 
-    def check_cell(self, cell, record: dict) -> None:
+    def check_cell(self, cell, record) -> None:
         """Fail the case (one line) on a cell-scope regression against the baseline."""
-        if self.baseline is None or cell.id not in self.baseline["cells"]:
+        if self.baseline is None or cell.id not in self.baseline.cells:
             return
-        base = self.baseline["cells"][cell.id]
+        base = self.baseline.cells[cell.id]
         mismatch = B.provenance_mismatch(base, self.baseline, record)
         if mismatch and self.strict:
             pytest.fail(f"{cell.id}: not compared with baseline {self.compare_name}: "
@@ -160,7 +160,7 @@ class BaselineRun:
 
     # -- session end (controller) --------------------------------------------------------------
 
-    def finish(self, ids: list[str], records: dict[str, dict]) -> list[tuple[str, str]]:
+    def finish(self, ids: list[str], records: dict) -> list[tuple[str, str]]:
         """Compare and / or save; the report sections the comparison adds."""
         if not ids:
             return []
@@ -175,12 +175,12 @@ class BaselineRun:
             from bench.results.store import atomic_write_json
 
             kept = [records[c] for c in ids
-                    if c in records and not records[c].get("feature_transform")]
+                    if c in records and not records[c].measured.feature_transform]
             machine = {"node": platform.node(), "machine": platform.machine(),
                        "system": platform.system(), "python": platform.python_version()}
             data = B.snapshot(kept, self.save_name, git_commit=git_commit(), machine=machine,
                               created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
-            atomic_write_json(self.save_path, data)
+            atomic_write_json(self.save_path, data.to_json())
             self.saved = (self.save_path, len(kept), [c for c in ids if c not in records])
         return sections
 

@@ -23,7 +23,7 @@ from bench.analysis.controls import control_deltas, vision_checks, wrapper_neutr
 from bench.analysis.rollouts import closed_loop_all
 from bench.analysis.transfer import support_counts, transfer_all
 from bench.grid.kinds import GRAFT
-from bench.results.records import Results, load_results
+from bench.results.store import Results, load_results
 from bench.report.context import ReportContext
 from bench.report.provenance import per_task_section, provenance_section
 from bench.report.sections import (
@@ -31,6 +31,7 @@ from bench.report.sections import (
     rankings_section, seed_section, tie_section, transfer_section, vision_section,
     wrapper_section,
 )
+from bench.results.record import NORMALIZED, RAW
 
 
 SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
@@ -54,9 +55,9 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
     """Run every analysis over the stored records once."""
     records = results.records
     rankings = rank_all(records, n_resamples=n_resamples, random_seed=random_seed)
-    expected_backbones = {r["backbone"] for r in records} | {f.get("backbone")
+    expected_backbones = {r.backbone for r in records} | {f.backbone
                                                              for f in results.failed}
-    expected_suites = {r["suite"] for r in records if r["kind"] == GRAFT}
+    expected_suites = {r.suite for r in records if r.kind == GRAFT}
     transfers = transfer_all(rankings, backbones=[b for b in expected_backbones if b],
                              suites=sorted(expected_suites)) if rankings else []
     return ReportContext(results=results, out_path=out_path, rankings=rankings,
@@ -105,16 +106,17 @@ CSV_COLUMNS = [
 def cell_rows(results: Results) -> list[dict]:
     """Tidy rows, one per finished or failed cell (columns: CSV_COLUMNS)."""
     rows = []
-    for r in results.records:
-        t = r.get("timings_s") or {}
-        row = {k: r.get(k) for k in CSV_COLUMNS if k in r}
-        row.update(mse_normalized=r["mse"]["normalized"], mse_raw=r["mse"]["raw"],
+    for r in sorted(results.records, key=lambda r: r.cell_id):  # finished first, then failed
+        data, t = r.to_json(), r.run.timings_s
+        row = {k: data[k] for k in CSV_COLUMNS if k in data}
+        row.update(mse_normalized=r.mse_in(NORMALIZED), mse_raw=r.mse_in(RAW),
                    **{f"time_{p}_s": t.get(p) for p in ("build", "features", "train", "eval",
                                                         "total")})
         rows.append(row)
-    for f in results.failed:
-        rows.append({k: f.get(k) for k in CSV_COLUMNS if k in f} | {"status": "failed"})
-    return sorted(rows, key=lambda row: (row.get("status") != "ok", str(row.get("cell_id"))))
+    for f in sorted(results.failed, key=lambda f: f.cell_id):
+        data = f.to_json()
+        rows.append({k: data[k] for k in CSV_COLUMNS if k in data})
+    return rows
 
 
 def write_csv(results: Results, path: Path) -> Path:
@@ -148,12 +150,12 @@ def summary(ctx: ReportContext) -> dict:
     res = ctx.results
     return _jsonable({
         "answer": answer_lines(ctx),
-        "profiles": sorted({r.get("profile", "?") for r in ctx.records}),
-        "protocol_hashes": sorted({r.get("protocol_hash", "?") for r in ctx.records}),
+        "profiles": sorted({r.measured.profile or "?" for r in ctx.records}),
+        "protocol_hashes": sorted({r.measured.protocol_hash or "?" for r in ctx.records}),
         "rankings": ctx.rankings, "transfers": ctx.transfers, "support": ctx.support,
         "wrapper_neutrality": ctx.wrapper, "controls": ctx.controls,
         "closed_loop": ctx.closed_loop, "vision_use": ctx.vision,
-        "cells": {"finished": len(ctx.records), "failed": [f["cell_id"] for f in res.failed],
+        "cells": {"finished": len(ctx.records), "failed": [f.cell_id for f in res.failed],
                   "missing": res.missing, "skipped": res.skipped},
         "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},
     })

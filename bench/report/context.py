@@ -9,7 +9,7 @@ from bench.analysis.rankings import PRIMARY, Ranking
 from bench.analysis.controls import ControlDelta, VisionCheck, WrapperNeutrality
 from bench.analysis.rollouts import ClosedLoop
 from bench.analysis.transfer import Transfer
-from bench.results.records import Results
+from bench.results.store import Results
 from bench.report.format import pct
 
 

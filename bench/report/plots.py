@@ -88,11 +88,11 @@ def plot_horizon_curves(records: Sequence[dict], path: Path) -> Path | None:
     """One panel per backbone x suite: normalised MSE per action-chunk step, mean over seeds."""
     groups: dict[tuple[str, str], dict[str, list[list[float]]]] = {}
     for r in records:
-        curve = (r.get("per_horizon") or {}).get(PRIMARY)
+        curve = r.scores.per_horizon_in(PRIMARY)
         label = column_label(r)
         if not curve or label is None:
             continue
-        groups.setdefault((r["backbone"], r["suite"]), {}).setdefault(label, []).append(curve)
+        groups.setdefault((r.backbone, r.suite), {}).setdefault(label, []).append(curve)
     if not groups:
         return None
     fig, axes = _figure(len(groups))

@@ -25,8 +25,8 @@ def per_task_section(ctx: ReportContext) -> str:
         column = column_label(r)
         if column is None:
             continue
-        cols = groups.setdefault((r["backbone"], r["suite"]), {})
-        for task, values in (r.get("per_task") or {}).items():
+        cols = groups.setdefault((r.backbone, r.suite), {})
+        for task, values in (r.scores.per_task or {}).items():
             cols.setdefault(column, {}).setdefault(task, []).append(values.get(PRIMARY))
     if not groups:
         return "_No per-task results in the records._"
@@ -90,45 +90,45 @@ def provenance_section(ctx: ReportContext) -> str:
     parts = []
     hashes = defaultdict(list)
     for r in records:
-        hashes[r.get("protocol_hash", "unrecorded")].append(r)
+        hashes[r.measured.protocol_hash or "unrecorded"].append(r)
     # Relative to the report's folder: a committed report names no folder of one machine.
     results_dir = os.path.relpath(Path(res.root).resolve(), ctx.out_path.parent.resolve())
     lines = [
         f"Results dir: `{results_dir}` (relative to this report)",
-        f"Profile(s): {_distinct([r.get('profile') for r in records] + [res.grid_profile])}",
+        f"Profile(s): {_distinct([r.measured.profile for r in records] + [res.grid_profile])}",
         f"Protocol hash(es): {', '.join(f'`{h}` ({len(v)} cells)' for h, v in hashes.items())}"
         if hashes else "Protocol hash(es): none",
-        f"Seeds: {sorted({r['seed'] for r in records})}",
-        f"Backbones: {sorted({r['backbone'] for r in records})}; suites: "
-        f"{sorted({r['suite'] for r in records})}",
-        f"Git commit(s): {_distinct([r.get('git_commit') for r in records])}",
-        f"Versions: {_distinct([r.get('versions') for r in records])}",
-        f"Hardware: {_distinct([r.get('hardware') for r in records])}; device(s): "
-        f"{_distinct([r.get('device') for r in records])}",
+        f"Seeds: {sorted({r.seed for r in records})}",
+        f"Backbones: {sorted({r.backbone for r in records})}; suites: "
+        f"{sorted({r.suite for r in records})}",
+        f"Git commit(s): {_distinct([r.run.git_commit for r in records])}",
+        f"Versions: {_distinct([r.run.versions for r in records])}",
+        f"Hardware: {_distinct([r.run.hardware for r in records])}; device(s): "
+        f"{_distinct([r.run.device for r in records])}",
         f"Cells: {len(records)} finished, {len(res.failed)} failed, {len(res.missing)} missing"
         + (f" of {len(res.expected)} expected (grid.json)" if res.expected is not None
            else " (no grid.json: missing cells cannot be listed)")
         + f", {len(res.skipped)} unreadable files skipped",
     ]
-    grid_files = Counter((g["path"], g["sha256"]) for r in records if (g := r.get("grid_file")))
+    grid_files = Counter((g["path"], g["sha256"]) for r in records if (g := r.measured.grid_file))
     if grid_files:  # runs without --grid: no line, the report as it was
         lines.append("Grid file(s): " + ", ".join(f"`{path}` sha256 `{sha}` ({n} cells)"
                                                   for (path, sha), n in sorted(grid_files.items())))
     parts.append(bullets(lines))
     for h, recs in hashes.items():
         parts.append(f"Protocol `{h}`:\n\n```json\n"
-                     f"{json.dumps(recs[0].get('protocol', {}), indent=1, sort_keys=True)}\n```")
+                     f"{json.dumps(recs[0].measured.protocol or {}, indent=1, sort_keys=True)}\n```")
     parts.append(study_constants_section(records))
-    totals = {p: sum(float((r.get("timings_s") or {}).get(p, 0.0)) for r in records)
+    totals = {p: sum(float(r.run.timings_s.get(p, 0.0)) for r in records)
               for p in PHASES}
     parts.append("Wall time per phase, summed over finished cells (seconds):\n\n"
                  + table([[num(totals[p], 4) for p in PHASES]], list(PHASES)))
     rows = []
-    for r in sorted(records, key=lambda r: r["cell_id"]):
-        t = r.get("timings_s") or {}
-        rows.append([r["cell_id"]] + [num(t.get(p), 3) for p in PHASES]
-                    + [num(r.get("peak_memory_mb"), 4), r.get("trainable_params", "n/a"),
-                       r.get("created", "")])
+    for r in sorted(records, key=lambda r: r.cell_id):
+        t = r.run.timings_s
+        rows.append([r.cell_id] + [num(t.get(p), 3) for p in PHASES]
+                    + [num(r.run.peak_memory_mb, 4), r.training.trainable_params,
+                       r.run.created or ""])
     parts.append("Per cell (seconds; peak memory in MB):\n\n"
                  + table(rows, ["cell"] + list(PHASES) + ["peak MB", "trainable params",
                                                          "created"]))
@@ -137,7 +137,7 @@ def provenance_section(ctx: ReportContext) -> str:
                     ("none" if res.expected is not None else "unknown (no grid.json)")))
     if res.failed:
         parts.append("Failed cells:\n\n" + table(
-            [[f["cell_id"], _last_line(f.get("error"))] for f in res.failed], ["cell", "error (last line)"]))
+            [[f.cell_id, _last_line(f.error)] for f in res.failed], ["cell", "error (last line)"]))
     else:
         parts.append("Failed cells: none")
     if res.skipped:

@@ -13,6 +13,7 @@ from bench.grid.kinds import get_kind
 from bench.report.context import ReportContext
 from bench.report.format import bullets, half_width, interval, num, pct, table, yes_no
 from bench.report.study import DISAGREES, compare_records
+from bench.results.record import RAW
 
 TIER_RULE = (
     f"**Top tier (near-tie band)**: the leader (lowest mean normalised MSE over seeds) plus every "
@@ -97,10 +98,10 @@ def answer_lines(ctx: ReportContext) -> list[str]:
 
 
 def caveats(ctx: ReportContext) -> str:
-    profiles = sorted({r["profile"] for r in ctx.records if r.get("profile")}
+    profiles = sorted({r.measured.profile for r in ctx.records if r.measured.profile}
                       | ({ctx.results.grid_profile} if ctx.results.grid_profile else set()))
-    hashes = sorted({r["protocol_hash"] for r in ctx.records if r.get("protocol_hash")})
-    protocol = ctx.records[0].get("protocol", {}) if ctx.records else {}
+    hashes = sorted({r.measured.protocol_hash for r in ctx.records if r.measured.protocol_hash})
+    protocol = (ctx.records[0].measured.protocol or {}) if ctx.records else {}
     if all(k in protocol for k in ("split_seed", "heldout_episodes_per_task", "eval_noise_seed")):
         split = (f" (split_seed={protocol['split_seed']}, "
                  f"{protocol['heldout_episodes_per_task']} episodes per task)")
@@ -176,7 +177,7 @@ def rankings_section(ctx: ReportContext) -> str:
         for e in r.encoders:
             seeds = ", ".join(f"s{s}: {num(v)}" for s, v in e.per_seed[PRIMARY].items())
             rows.append([e.rank, e.encoder, num(e.mean[PRIMARY]), half_width(e.ci[PRIMARY]),
-                         interval(e.ci[PRIMARY]), num(e.mean["raw"]), interval(e.ci["raw"]),
+                         interval(e.ci[PRIMARY]), num(e.mean[RAW]), interval(e.ci[RAW]),
                          seeds, num(e.diff[PRIMARY], 3), interval(e.diff_ci[PRIMARY], 3),
                          yes_no(e.in_top_tier)])
         parts.append(table(rows, ["rank", "encoder", "norm. MSE", "±", "95% CI", "raw MSE",
@@ -225,7 +226,7 @@ def transfer_section(ctx: ReportContext) -> str:
                  f"comparisons and {s['seed_cells_supporting']} of {s['seed_cells_total']} "
                  f"seed-level cells support backbone-dependent rankings.**")
     if s["comparisons"]:
-        parts.append(table([[c["suite"], f"{c['source']} -> {c['target']}",
+        parts.append(table([[c['suite'], f"{c['source']} -> {c['target']}",
                              yes_no(c["supports"])] for c in s["comparisons"]],
                            ["suite", "source winner -> target tier", "supports"]))
     return "\n\n".join(parts)
@@ -269,11 +270,11 @@ def wrapper_section(ctx: ReportContext) -> str:
         if not get_kind(cd.kind).tower:
             continue
         rows.append([cd.backbone, cd.suite, cd.seed, num(cd.reference_mse.get(PRIMARY)),
-                     num(cd.mse[PRIMARY]), pct(cd.delta.get(PRIMARY)), pct(cd.delta.get("raw")),
+                     num(cd.mse[PRIMARY]), pct(cd.delta.get(PRIMARY)), pct(cd.delta.get(RAW)),
                      "" if cd.reference_found else f"reference {cd.reference_id} missing"])
     for (b, s), wn in sorted(ctx.wrapper.items()):
         if wn.mean:
-            rows.append([b, s, "mean", "", "", pct(wn.mean[PRIMARY]), pct(wn.mean["raw"]), ""])
+            rows.append([b, s, "mean", "", "", pct(wn.mean[PRIMARY]), pct(wn.mean[RAW]), ""])
     intro = ("Wrapper neutrality delta = (native_wrapped - native) / native on mean MSE, per "
              "seed and averaged over seeds. 0 would mean the wrapper alone costs nothing; the "
              "published study found +45..56% on SmolVLA and -50..52% on pi0.5.")
@@ -311,7 +312,7 @@ def vision_section(ctx: ReportContext) -> str:
 def controls_section(ctx: ReportContext) -> str:
     rows = [[cd.backbone, cd.suite, cd.label, cd.seed, num(cd.mse[PRIMARY]), cd.reference_id,
              num(cd.reference_mse.get(PRIMARY)) if cd.reference_found else "missing",
-             pct(cd.delta.get(PRIMARY)), pct(cd.delta.get("raw"))] for cd in ctx.controls]
+             pct(cd.delta.get(PRIMARY)), pct(cd.delta.get(RAW))] for cd in ctx.controls]
     intro = ("Every control cell against its reference record: delta = (control - reference) / "
              "reference. zero_image / shuffled_image near 0 means the policy barely uses vision; "
              "lora and pooling show whether a little backbone capacity or another token grid "

@@ -1,11 +1,24 @@
-"""The results store: one JSON record per cell, written atomically; resume by protocol hash."""
+"""The results store: the one reader and writer of record files. Every record read is validated
+(bench.results.record); every write is atomic. A results dir:
+
+    RESULTS_DIR/cells/<cell_id>.json    finished cells  (status "ok", schema 1)
+    RESULTS_DIR/failed/<cell_id>.json   failed cells    (status "failed", with "error")
+    RESULTS_DIR/grid.json               optional: {"expected": [cell_id, ...], "profile": "tiny"}
+"""
 
 from __future__ import annotations
 
 import json
 import os
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
+
+from bench.results.current import RunConditions, is_current
+from bench.results.record import Failure, Record
+
+CELLS, FAILED, GRID = "cells", "failed", "grid.json"  # the folder and file names, only here
+_GRID_EXPECTED, _GRID_PROFILE = "expected", "profile"
 
 
 class ResultsDirError(RuntimeError):
@@ -28,15 +41,93 @@ def atomic_write_json(path: Path, data: dict) -> None:
         raise
 
 
+def _read_json(path: Path) -> dict:
+    with open(path, encoding="utf-8") as f:
+        return json.load(f)
+
+
+def read_record(path: Path) -> Record:
+    """One validated record file; ValueError (or OSError) naming the problem."""
+    try:
+        return Record.from_json(_read_json(path))
+    except (TypeError, AttributeError) as e:  # a field of the wrong JSON type
+        raise ValueError(f"{type(e).__name__}: {e}") from None
+
+
+@dataclass
+class Results:
+    """Everything a results dir holds, validated. `skipped` lists (path, reason) of bad files."""
+
+    root: Path
+    records: list[Record] = field(default_factory=list)
+    failed: list[Failure] = field(default_factory=list)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    expected: list[str] | None = None
+    grid_profile: str | None = None
+
+    @property
+    def missing(self) -> list[str]:
+        """Cell ids in grid.json that have neither a record nor a failure file."""
+        if self.expected is None:
+            return []
+        seen = {r.cell_id for r in self.records} | {f.cell_id for f in self.failed}
+        return [cid for cid in self.expected if cid not in seen]
+
+
+def load_results(results_dir: str | Path) -> Results:
+    """Read cells/, failed/ and grid.json under `results_dir` (creating nothing); bad files go to
+    `skipped`."""
+    root = Path(results_dir)
+    results = Results(root=root)
+    seen: set[str] = set()
+    for path in sorted((root / CELLS).glob("*.json")):
+        where = str(path.relative_to(root))
+        try:
+            record = read_record(path)
+        except (OSError, ValueError) as err:
+            results.skipped.append((where, f"{type(err).__name__}: {err}"))
+            continue
+        if record.cell_id in seen:
+            results.skipped.append((where, f"duplicate cell_id {record.cell_id!r}"))
+            continue
+        seen.add(record.cell_id)
+        results.records.append(record)
+    for path in sorted((root / FAILED).glob("*.json")):
+        try:
+            failure = Failure.from_json(_read_json(path))
+        except (OSError, ValueError) as err:
+            results.skipped.append((str(path.relative_to(root)), f"{type(err).__name__}: {err}"))
+            continue
+        if failure.cell_id not in seen:  # a later successful rerun supersedes a failure
+            results.failed.append(failure)
+    if (root / GRID).exists():
+        try:
+            grid = _read_json(root / GRID)
+            results.expected = [str(c) for c in grid[_GRID_EXPECTED]]
+            results.grid_profile = grid.get(_GRID_PROFILE)
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            results.skipped.append((GRID, f"{type(err).__name__}: {err}"))
+    return results
+
+
+def load_failure(results_dir: str | Path, cell_id: str) -> Failure | None:
+    """The failure file of `cell_id` under `results_dir`; None when absent or unreadable."""
+    path = Path(results_dir) / FAILED / f"{cell_id}.json"
+    try:
+        return Failure.from_json(_read_json(path)) if path.is_file() else None
+    except (OSError, ValueError):
+        return None
+
+
 class ResultStore:
-    """RESULTS_DIR/cells/<cell_id>.json (finished), RESULTS_DIR/failed/<cell_id>.json (last
-    failure; never used to skip work), RESULTS_DIR/grid.json (the selected grid)."""
+    """A writable results dir (layout: module docstring). A failure file is never used to skip
+    work; a successful write clears it."""
 
     def __init__(self, root: Path | str) -> None:
         self.root = Path(root)
         try:
-            (self.root / "cells").mkdir(parents=True, exist_ok=True)
-            (self.root / "failed").mkdir(parents=True, exist_ok=True)
+            (self.root / CELLS).mkdir(parents=True, exist_ok=True)
+            (self.root / FAILED).mkdir(parents=True, exist_ok=True)
             # A private probe file: xdist workers open the same store at the same moment, and a
             # shared name let one worker's unlink break another's (a false "not writable").
             fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=self.root)
@@ -49,36 +140,51 @@ class ResultStore:
             ) from None
 
     def cell_path(self, cell_id: str) -> Path:
-        return self.root / "cells" / f"{cell_id}.json"
+        return self.root / CELLS / f"{cell_id}.json"
 
-    def load(self, cell_id: str) -> dict | None:
+    def failure_path(self, cell_id: str) -> Path:
+        return self.root / FAILED / f"{cell_id}.json"
+
+    def load(self, cell_id: str) -> Record | None:
+        """The stored record of `cell_id`, validated; None when absent, unreadable or invalid
+        (then it is measured again)."""
         path = self.cell_path(cell_id)
         if not path.exists():
             return None
         try:
-            return json.loads(path.read_text())
-        except json.JSONDecodeError:
-            return None  # unreadable: treated as missing, recomputed
+            return read_record(path)
+        except (OSError, ValueError):
+            return None
 
-    def current(self, cell_id: str, protocol_hash: str) -> dict | None:
-        """The stored record if it was measured under this protocol, else None."""
+    def current(self, cell_id: str, run: RunConditions) -> Record | None:
+        """The stored record if it may stand for `run` (bench.results.current), else None."""
         record = self.load(cell_id)
-        if record and record.get("status") == "ok" and record.get("protocol_hash") == protocol_hash:
-            return record
-        return None
+        return record if record is not None and is_current(record, run) else None
 
-    def write(self, record: dict) -> Path:
-        path = self.cell_path(record["cell_id"])
-        atomic_write_json(path, record)
-        failed = self.root / "failed" / f"{record['cell_id']}.json"
-        if failed.exists():
-            failed.unlink()
+    def forget(self, cell_id: str) -> None:
+        """Remove a stored record (it is measured again)."""
+        self.cell_path(cell_id).unlink(missing_ok=True)
+
+    def write(self, record: Record) -> Path:
+        path = self.cell_path(record.cell_id)
+        atomic_write_json(path, record.to_json())
+        self.failure_path(record.cell_id).unlink(missing_ok=True)
         return path
 
-    def write_failure(self, record: dict) -> Path:
-        path = self.root / "failed" / f"{record['cell_id']}.json"
-        atomic_write_json(path, {**record, "status": "failed"})
+    def write_failure(self, failure: Failure) -> Path:
+        path = self.failure_path(failure.cell_id)
+        atomic_write_json(path, failure.to_json())
         return path
+
+    def save(self, item: Record | Failure) -> Path:
+        """Write a record to cells/ or a failure to failed/."""
+        return self.write_failure(item) if isinstance(item, Failure) else self.write(item)
+
+    def load_failure(self, cell_id: str) -> Failure | None:
+        return load_failure(self.root, cell_id)
 
     def write_grid(self, expected: list[str], profile: str) -> None:
-        atomic_write_json(self.root / "grid.json", {"expected": expected, "profile": profile})
+        atomic_write_json(self.root / GRID, {_GRID_EXPECTED: expected, _GRID_PROFILE: profile})
+
+    def read_all(self) -> Results:
+        return load_results(self.root)

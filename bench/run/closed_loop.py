@@ -111,10 +111,9 @@ def rollout_spec(suite, episodes_per_task: int, n_action_steps: int):
 
 def has_rollouts(record: dict, episodes_per_task: int) -> bool:
     """Whether a stored record already carries rollouts of the requested size (or a skip)."""
-    rollouts = record.get("rollouts") or {}
-    if "skipped" in rollouts:
-        return True
-    return (rollouts.get("spec") or {}).get("episodes_per_task") == episodes_per_task
+    from bench.results.record import RunInfo
+
+    return RunInfo(rollouts=record.get("rollouts")).has_rollouts(episodes_per_task)
 
 
 def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, encoder=None,

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from backbones.base import Backbone
 from bench.results.provenance import stable_seed
+from bench.results.record import NORMALIZED, RAW, Scores, task_score
 from bench.suites.windows import raw_batch
 from bench.run.train import frozen_autocast
 
@@ -70,12 +71,12 @@ def score(
     feed=None,
     features_for: FeaturesFn | None = None,
     images_for: ImagesFn | None = None,
-) -> dict:
+) -> Scores:
     """Offline action MSE of the backbone (with `feed` spliced in when given) on `windows`."""
     info = backbone.info
     chunk = info.chunk_size
-    err = {"normalized": [], "raw": []}
-    horizon_sum = {"normalized": torch.zeros(chunk), "raw": torch.zeros(chunk)}
+    err = {NORMALIZED: [], RAW: []}
+    horizon_sum = {NORMALIZED: torch.zeros(chunk), RAW: torch.zeros(chunk)}
     horizon_n = torch.zeros(chunk)
     device = next(backbone.policy.parameters()).device
     for start in range(0, len(windows), batch_size):
@@ -93,8 +94,8 @@ def score(
         valid = ~raw["action_is_pad"]
         pred = pred[..., : target_raw.shape[-1]].float().cpu()
         pairs = {
-            "normalized": (pred, backbone.normalize_actions(target_raw).float().cpu()),
-            "raw": (backbone.unnormalize_actions(pred).float().cpu(), target_raw),
+            NORMALIZED: (pred, backbone.normalize_actions(target_raw).float().cpu()),
+            RAW: (backbone.unnormalize_actions(pred).float().cpu(), target_raw),
         }
         for space, (p, t) in pairs.items():
             per_window, per_step = masked_sq_error(p, t, valid)
@@ -107,30 +108,28 @@ def score(
 
 
 def summarise(suite, windows: Tensor, per_window: dict[str, Tensor],
-              per_horizon: dict[str, Tensor]) -> dict:
-    """The score fields of a record: cell MSE, per window, per task, per horizon step."""
+                per_horizon: dict[str, Tensor]) -> Scores:
+    """The score part of a record: cell MSE, per window, per task, per horizon step."""
     tasks = suite.task_index[windows]
     per_task = {}
     for t in sorted(set(tasks.tolist())):
         sel = tasks == t
-        per_task[suite.tasks[t]] = {
-            **{k: float(v[sel].mean()) for k, v in per_window.items()},
-            "n": int(sel.sum()),
-        }
+        per_task[suite.tasks[t]] = task_score({k: float(v[sel].mean()) for k, v in per_window.items()},
+                                              int(sel.sum()))
     for space, values in per_window.items():
         if not torch.isfinite(values).all():
             raise FloatingPointError(f"non-finite {space} action error on held-out windows")
-    return {
+    return Scores(
         # The cell MSE is the mean over windows (each window: mean over its real steps x dims).
-        "mse": {k: float(v.mean()) for k, v in per_window.items()},
-        "per_window": {k: v.tolist() for k, v in per_window.items()},
-        "window_ids": windows.tolist(),
-        "window_task": tasks.tolist(),
-        "tasks": list(suite.tasks),
-        "per_task": per_task,
-        "per_horizon": {k: v.tolist() for k, v in per_horizon.items()},
-        "n_windows": len(windows),
-    }
+        mse={k: float(v.mean()) for k, v in per_window.items()},
+        per_window={k: v.tolist() for k, v in per_window.items()},
+        window_ids=windows.tolist(),
+        n_windows=len(windows),
+        window_task=tasks.tolist(),
+        tasks=list(suite.tasks),
+        per_task=per_task,
+        per_horizon={k: v.tolist() for k, v in per_horizon.items()},
+    )
 
 
 def derangement(n: int, seed: int) -> Tensor:

@@ -21,7 +21,7 @@ from typing import Callable, Iterator
 from bench.grid.cells import CellSpec
 from external.paths import REPO_ROOT
 from bench.grid.protocol import Profile
-from bench.results.record import failure_record
+from bench.results.record import Failure, Record
 
 EXECUTORS = ("local", "slurm", "submitit-local")
 
@@ -51,7 +51,7 @@ class CellJob:
     feature_dtype: str = "fp16"  # --feature-dtype
 
 
-def run_cell_job(job: CellJob) -> dict:
+def run_cell_job(job: CellJob) -> Record:
     """Array-task entry point, in a fresh process: rebuild the workspace, run the cell, record."""
     os.environ["GRAFTBENCH_CACHE"] = job.cache_dir
     os.environ.setdefault("GRAFTBENCH_QUIET", "1")
@@ -68,7 +68,7 @@ def run_cell_job(job: CellJob) -> dict:
     try:
         return run_cell(job.cell, ws, features_mode=job.features_mode)
     except Exception as e:
-        store.write_failure(failure_record(job.cell, job.profile.protocol.hash, e))
+        store.write_failure(Failure.of(job.cell, job.profile.protocol.hash, e))
         raise
 
 

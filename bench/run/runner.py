@@ -21,7 +21,9 @@ from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
 from bench.run.closed_loop import cell_rollouts
-from bench.results.record import ok_record
+from bench.results.record import (
+    MeasuredUnder, Record, RunInfo, Training as TrainingPart, checkpoint_of, new_record,
+)
 from bench.suites.windows import raw_batch
 from bench.run.train import FitConfig, fit, frozen_autocast
 from bench.run.workspace import Workspace
@@ -107,7 +109,7 @@ class Training:
     projector_from: str | None = None  # the graft cell whose trained projector this cell took
 
 
-def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dict:
+def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> Record:
     """Measure one cell and write its record. features_mode: "cache" (pooled features computed
     once per frame) or "loop" (the encoder runs inside every step: the naive reference)."""
     if features_mode not in ("cache", "loop"):
@@ -148,18 +150,18 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> dic
         rollouts = cell_rollouts(cell, suite, backbone, ws.rollouts,
                                  feed=graft.feed if graft else None, encoder=inputs.encoder,
                                  grid=inputs.grid, progress=ws.progress)
-        timings["rollouts"] = time.perf_counter() - t0
+        timings.update(rollouts=time.perf_counter() - t0)  # the phase (a timings_s entry)
     timings["total"] = time.perf_counter() - t_start
 
-    record = ok_record(
+    record = new_record(
         cell,
-        measured_under=measured_under(cell, ws, backbone, inputs, features_mode),
+        measured=measured_under(cell, ws, backbone, inputs, features_mode),
         scores=scores,
         training=training_fields(backbone, graft, training, inputs.encoder),
-        run={"timings_s": {k: round(v, 3) for k, v in timings.items()},
-             "peak_memory_mb": peak_memory_mb(device), "device": str(device),
-             "hardware": hardware(), "versions": versions(), "git_commit": git_commit(),
-             "rollouts": rollouts})
+        run=RunInfo(timings_s={k: round(v, 3) for k, v in timings.items()},
+                    peak_memory_mb=peak_memory_mb(device), device=str(device),
+                    hardware=hardware(), versions=versions(), git_commit=git_commit(),
+                    rollouts=rollouts))
     ws.store.write(record)
     return record
 
@@ -227,51 +229,54 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
 
 
 def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
-                   features_mode: str) -> dict:
+                   features_mode: str) -> MeasuredUnder:
     p = ws.profile.protocol
     transform = ws.feature_transforms.get(cell.encoder) if inputs.encoder is not None else None
-    noted = {"feature_transform": getattr(transform, "description", "a feature transform")}
     grid_file = ws.profile.grid_file  # absent without --grid: those records stay as they were
-    return {
-        **(noted if transform is not None else {}),  # never resumed, never a baseline
-        "grid": list(inputs.grid),
-        "features_mode": features_mode if inputs.encoder is not None else None,
-        **({"feature_dtype": ws.feature_dtype} if inputs.features is not None else {}),
-        "profile": ws.profile.name, "protocol": p.to_dict(), "protocol_hash": p.hash,
-        "checkpoint": {**ws.checkpoint(cell.backbone, cell.suite),
-                       "normalizer": ws.normalizer(cell.backbone, cell.suite).source,
-                       "normalizer_fingerprint": backbone.normalizer_fingerprint()},
-        **({"grid_file": grid_file.provenance()} if grid_file is not None else {}),
-        **user_world_fields(cell, ws, backbone),
-    }
+    camera_map, dataset = user_world_fields(cell, ws, backbone)
+    return MeasuredUnder(
+        profile=ws.profile.name, protocol=p.to_dict(), protocol_hash=p.hash,
+        checkpoint=checkpoint_of(ws.checkpoint(cell.backbone, cell.suite),
+                                 ws.normalizer(cell.backbone, cell.suite).source,
+                                 backbone.normalizer_fingerprint()),
+        grid=list(inputs.grid),
+        features_mode=features_mode if inputs.encoder is not None else None,
+        feature_dtype=ws.feature_dtype if inputs.features is not None else None,
+        # never resumed, never a baseline
+        feature_transform=(getattr(transform, "description", "a feature transform")
+                           if transform is not None else None),
+        grid_file=grid_file.provenance() if grid_file is not None else None,
+        camera_map=camera_map, dataset=dataset,
+    )
 
 
-def user_world_fields(cell: CellSpec, ws: Workspace, backbone) -> dict:
-    """A --policy's camera pairing and a --dataset's identity (absent for the registry's)."""
-    out = {}
+def user_world_fields(cell: CellSpec, ws: Workspace, backbone) -> tuple[dict | None, dict | None]:
+    """A --policy's camera pairing and a --dataset's identity (None for the registry's)."""
+    camera_map = dataset = None
     if ws.is_user_policy(cell.backbone):
         rename = getattr(backbone, "rename_map", {}) or {}
-        out["camera_map"] = {rename.get(k, k): k for k in backbone.camera_keys}
+        camera_map = {rename.get(k, k): k for k in backbone.camera_keys}
     datasets = dict(ws.profile.datasets)
     if cell.suite in datasets:
         suite = ws.suite(cell.suite)
-        out["dataset"] = {"source": datasets[cell.suite], "root": suite.root,
-                          "repo_id": suite.repo_id, "fingerprint": suite.fingerprint,
-                          "fps": suite.fps, "cameras": list(suite.camera_keys)}
-    return out
+        dataset = {"source": datasets[cell.suite], "root": suite.root,
+                   "repo_id": suite.repo_id, "fingerprint": suite.fingerprint,
+                   "fps": suite.fps, "cameras": list(suite.camera_keys)}
+    return camera_map, dataset
 
 
-def training_fields(backbone, graft: Graft | None, training: Training, encoder) -> dict:
+def training_fields(backbone, graft: Graft | None, training: Training,
+                    encoder) -> TrainingPart:
     projector = graft.projector if graft else None
-    return {
-        "trainable_params": trainable_parameters(projector, backbone.policy) if projector else 0,
-        "projector_params": trainable_parameters(projector) if projector else 0,
-        "lora_params": graft.lora_params if graft else 0,
-        "projector_from": training.projector_from,
-        "loss_curve": training.curve,
-        "probe_loss": training.probe_losses,
-        "encoder_weights": getattr(encoder, "weights_id", None),
-    }
+    return TrainingPart(
+        trainable_params=trainable_parameters(projector, backbone.policy) if projector else 0,
+        projector_params=trainable_parameters(projector) if projector else 0,
+        lora_params=graft.lora_params if graft else 0,
+        projector_from=training.projector_from,
+        loss_curve=training.curve,
+        probe_loss=training.probe_losses,
+        encoder_weights=getattr(encoder, "weights_id", None),
+    )
 
 
 def _add_lora(backbone, p) -> int:
