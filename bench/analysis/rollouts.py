@@ -18,8 +18,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Sequence
 
 import numpy as np
-import scipy.stats
 
+from bench.analysis.agreement import as_float, kendall_tau_b
 from bench.analysis.rankings import CONFIDENCE, PRIMARY
 from bench.analysis.transfer import rank_agreement
 from bench.grid.kinds import record_label
@@ -61,9 +61,8 @@ class ClosedLoop:
 
 
 def _tau(mse: np.ndarray, success: np.ndarray) -> float:
-    if len(mse) < 2 or np.ptp(mse) == 0 or np.ptp(success) == 0:
-        return float("nan")  # a constant ranking has no order to agree with
-    return float(scipy.stats.kendalltau(mse, 1.0 - success, variant="b").statistic)
+    # a constant ranking has no order to agree with: undefined, NaN in the resample array
+    return as_float(kendall_tau_b(-mse, success))
 
 
 def rollout_agreement(records: Sequence[dict], backbone: str, suite: str, *,

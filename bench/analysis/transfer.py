@@ -20,6 +20,8 @@ from typing import Sequence
 import numpy as np
 import scipy.stats
 
+from bench.analysis.agreement import (as_float, is_defined, kendall_p_value, kendall_tau_b,
+                                      weighted_tau)
 from bench.analysis.rankings import PRIMARY, Ranking, backbone_order
 
 SUPPORT_RULES = (
@@ -35,17 +37,17 @@ SUPPORT_RULES = (
 def rank_agreement(mse_a: Sequence[float], mse_b: Sequence[float]) -> dict:
     """Kendall tau-b (scipy, exact p where no ties) and top-weighted tau of two MSE vectors (n,).
 
-    Lower MSE is better, so weightedtau gets -MSE: its hyperbolic weigher then weights
-    agreement at the top of the ranking (best encoders) most."""
-    a, b = np.asarray(mse_a, dtype=float), np.asarray(mse_b, dtype=float)
-    n = len(a)
-    if n < 2:
-        return {"n": n, "tau_b": float("nan"), "p_value": float("nan"),
-                "weighted_tau": float("nan")}
-    kt = scipy.stats.kendalltau(a, b, variant="b", method="auto")
-    wt = scipy.stats.weightedtau(-a, -b)
-    return {"n": n, "tau_b": float(kt.statistic), "p_value": float(kt.pvalue),
-            "weighted_tau": float(wt.statistic)}
+    Lower MSE is better, so bench.analysis.agreement gets -MSE: weighted tau's hyperbolic
+    weigher then weights agreement at the top of the ranking (best encoders) most. An undefined
+    statistic is NaN here (the report prints n/a) and its reason is under "undefined"."""
+    a, b = -np.asarray(mse_a, dtype=float), -np.asarray(mse_b, dtype=float)
+    stats = {"tau_b": kendall_tau_b(a, b), "p_value": kendall_p_value(a, b),
+             "weighted_tau": weighted_tau(a, b)}
+    out: dict = {"n": len(a)} | {k: as_float(v) for k, v in stats.items()}
+    undefined = {k: v.reason for k, v in stats.items() if not is_defined(v)}
+    if undefined:
+        out["undefined"] = undefined
+    return out
 
 
 def min_exact_kendall_p(n: int) -> float:

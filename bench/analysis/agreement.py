@@ -1,0 +1,165 @@
+"""Rank agreement between a cheaper tier and the one it stands in for: the one place for it.
+
+Every function takes two score vectors over the same items, `predicted` (the cheaper tier: a
+screen proxy, a short graft, another backbone's MSE) and `actual` (the tier it predicts: the full
+graft, the closed loop), each (n,) float, HIGHER IS BETTER in both (pass -MSE for an MSE).
+
+The tie rule (one rule, every statistic; quoted in the report, see TIE_RULE):
+- Two scores tie when they are exactly equal (no tolerance: a tolerance would make agreement
+  depend on the scale of the score).
+- A tie earns no credit for an order the other side shows. Kendall tau-b counts a pair tied on
+  either side as neither concordant nor discordant (tau-b's denominator corrects for ties);
+  weighted tau is scipy's, which does the same with its weights; MMRV counts a pair the
+  prediction ties but the actual separates as a violation (SimplerEnv's indicator
+  [(S_i > S_j) != (R_i > R_j)] does exactly that); top-1 regret takes the WORST actual score
+  among the items tied for the prediction's first place.
+- A side on which every score ties has no order: the statistic is `Undefined` with that reason,
+  never a 0 or a NaN inside a ranking. So are fewer than 2 items and non-finite scores.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence, Union
+
+import numpy as np
+import scipy.stats
+
+TIE_RULE = (
+    "Scores tie when exactly equal. A tie earns no credit for an order the other side shows: "
+    "Kendall tau-b counts a pair tied on either side as neither concordant nor discordant, MMRV "
+    "counts a pair the cheaper tier ties but the graft separates as a violation (SimplerEnv's "
+    "definition), top-1 regret takes the worst graft score among the picks tied for first. A "
+    "side whose scores all tie has no order: the statistic is reported undefined, with the reason."
+)
+
+
+@dataclass(frozen=True)
+class Undefined:
+    """A statistic that has no value on these inputs, and why (never a NaN inside a ranking)."""
+
+    reason: str
+
+    def __float__(self) -> float:
+        return float("nan")
+
+    def __str__(self) -> str:
+        return f"undefined ({self.reason})"
+
+
+Measure = Union[float, Undefined]
+
+
+def is_defined(x: Measure) -> bool:
+    """True when `x` is a number, False when it is `Undefined`."""
+    return not isinstance(x, Undefined)
+
+
+def as_float(x: Measure) -> float:
+    """`x` as a float for numeric consumers (plots, JSON): NaN when undefined."""
+    return float(x)
+
+
+def _pair(predicted: Sequence[float], actual: Sequence[float]
+          ) -> tuple[np.ndarray, np.ndarray] | Undefined:
+    s, r = np.asarray(predicted, dtype=float), np.asarray(actual, dtype=float)
+    if s.ndim != 1 or s.shape != r.shape:
+        raise ValueError(f"predicted and actual must be (n,) vectors of one length; got "
+                         f"{s.shape} and {r.shape}")
+    if len(s) < 2:
+        return Undefined(f"{len(s)} item(s): fewer than 2, nothing to rank")
+    for name, v in (("predicted", s), ("actual", r)):
+        bad = np.flatnonzero(~np.isfinite(v))
+        if len(bad):
+            return Undefined(f"{name} score of item {int(bad[0])} is {v[bad[0]]}, not finite")
+    return s, r
+
+
+def _ordered(predicted, actual, sides: tuple[str, ...] = ("predicted", "actual")
+             ) -> tuple[np.ndarray, np.ndarray] | Undefined:
+    """The two vectors, or Undefined when a side named in `sides` ties throughout."""
+    pair = _pair(predicted, actual)
+    if isinstance(pair, Undefined):
+        return pair
+    for name, v in zip(("predicted", "actual"), pair):
+        if name in sides and np.all(v == v[0]):
+            return Undefined(f"every {name} score ties ({v[0]:.6g}): no order")
+    return pair
+
+
+def kendall_tau_b(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
+    """Kendall tau-b of two (n,) score vectors, in [-1, 1]; undefined if a side ties throughout."""
+    pair = _ordered(predicted, actual)
+    if isinstance(pair, Undefined):
+        return pair
+    return float(scipy.stats.kendalltau(*pair, variant="b").statistic)
+
+
+def kendall_p_value(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
+    """Two-sided p of Kendall's test (scipy's method 'auto': exact when n is small and no ties)."""
+    pair = _ordered(predicted, actual)
+    if isinstance(pair, Undefined):
+        return pair
+    return float(scipy.stats.kendalltau(*pair, variant="b", method="auto").pvalue)
+
+
+def weighted_tau(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
+    """scipy's top-weighted tau (hyperbolic weigher, averaged over both rankings) of two (n,)
+    higher-is-better vectors: agreement among the best items weighs most."""
+    pair = _ordered(predicted, actual)
+    if isinstance(pair, Undefined):
+        return pair
+    return float(scipy.stats.weightedtau(*pair).statistic)
+
+
+def mmrv(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
+    """SimplerEnv's mean maximum rank violation of two (n,) higher-is-better vectors, in the
+    units of `actual`; 0 is perfect, lower is better.
+
+    mean_i max_j |R_i - R_j| * [(S_i > S_j) != (R_i > R_j)], S = predicted, R = actual.
+    Undefined when every actual score ties (no violation could be measured)."""
+    pair = _ordered(predicted, actual, sides=("actual",))
+    if isinstance(pair, Undefined):
+        return pair
+    s, r = pair
+    violated = (s[:, None] > s[None, :]) != (r[:, None] > r[None, :])
+    cost = np.abs(r[:, None] - r[None, :]) * violated
+    return float(cost.max(axis=1).mean())
+
+
+def top1_regret(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
+    """Best actual score minus the actual score of the prediction's pick, >= 0, in the units of
+    `actual` (for -MSE inputs: the pick's MSE minus the best MSE). Picks tied for first: the
+    worst of them counts. Undefined when every predicted score ties (no pick)."""
+    pair = _ordered(predicted, actual, sides=("predicted",))
+    if isinstance(pair, Undefined):
+        return pair
+    s, r = pair
+    picks = np.flatnonzero(s == s.max())
+    return float(r.max() - r[picks].min())
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """The four statistics of one cheaper tier against the tier it predicts, over n items."""
+
+    n: int
+    tau_b: Measure
+    weighted_tau: Measure
+    mmrv: Measure
+    top1_regret: Measure
+
+    def to_dict(self) -> dict:
+        """JSON-ready: numbers as floats, undefined ones as {"undefined": reason}."""
+        out: dict = {"n": self.n}
+        for name in ("tau_b", "weighted_tau", "mmrv", "top1_regret"):
+            value = getattr(self, name)
+            out[name] = {"undefined": value.reason} if isinstance(value, Undefined) else value
+        return out
+
+
+def agreement(predicted: Sequence[float], actual: Sequence[float]) -> Agreement:
+    """All four statistics of two (n,) higher-is-better score vectors over the same items."""
+    return Agreement(n=len(predicted), tau_b=kendall_tau_b(predicted, actual),
+                     weighted_tau=weighted_tau(predicted, actual), mmrv=mmrv(predicted, actual),
+                     top1_regret=top1_regret(predicted, actual))

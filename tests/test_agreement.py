@@ -1,0 +1,97 @@
+"""bench.analysis.agreement: hand-worked cases, ties included, and the undefined results."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from bench.analysis.agreement import (Undefined, agreement, as_float, is_defined,
+                                      kendall_p_value, kendall_tau_b, mmrv, top1_regret,
+                                      weighted_tau)
+
+
+def test_mmrv_perfect_order_is_zero():
+    assert mmrv([1, 2, 3], [10, 20, 30]) == 0.0
+
+
+def test_mmrv_reversed_order_by_hand():
+    # i=0: violated by j=1 (|3-2|) and j=2 (|3-1|) -> 2; i=1: j=0 and j=2 -> 1; i=2: j=0 -> 2.
+    assert mmrv([1, 2, 3], [3, 2, 1]) == pytest.approx(5 / 3)
+
+
+def test_mmrv_predicted_ties_are_violations_when_actual_separates():
+    # S all tie: i=0 (worst actual) violates nothing; i=1 is violated by j=0 (1); i=2 by j=0 (2).
+    assert mmrv([1, 1, 1], [1, 2, 3]) == pytest.approx((0 + 1 + 2) / 3)
+
+
+def test_mmrv_actual_ties_cost_nothing():
+    # the only disagreeing pair (1, 0) has |R_1 - R_0| = 0.
+    assert mmrv([1, 2, 3], [1, 1, 2]) == 0.0
+
+
+def test_mmrv_is_in_units_of_actual_and_matches_simplerenv_loop():
+    rng = np.random.default_rng(3)
+    s, r = rng.normal(size=7), rng.normal(size=7)
+    loop = np.mean([max(abs(r[i] - r[j]) if (s[i] > s[j]) != (r[i] > r[j]) else 0.0
+                        for j in range(7)) for i in range(7)])
+    assert mmrv(s, r) == pytest.approx(loop)
+    assert mmrv(s, 10 * r) == pytest.approx(10 * loop)
+
+
+def test_mmrv_undefined_when_every_actual_ties():
+    out = mmrv([1, 2, 3], [0.5, 0.5, 0.5])
+    assert isinstance(out, Undefined) and "every actual score ties" in out.reason
+
+
+def test_tau_b_with_a_tie_by_hand():
+    # 6 pairs, 5 concordant, 0 discordant, one pair tied in actual: 5 / sqrt(6 * 5).
+    assert kendall_tau_b([1, 2, 3, 4], [1, 2, 2, 3]) == pytest.approx(5 / math.sqrt(30))
+    assert kendall_tau_b([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+
+
+@pytest.mark.parametrize("predicted, actual, side", [
+    ([2, 2, 2], [1, 2, 3], "predicted"), ([1, 2, 3], [7, 7, 7], "actual")])
+def test_tau_of_a_tied_ranking_is_undefined_not_zero(predicted, actual, side):
+    for stat in (kendall_tau_b, weighted_tau, kendall_p_value):
+        out = stat(predicted, actual)
+        assert isinstance(out, Undefined) and f"every {side} score ties" in out.reason
+        assert not is_defined(out) and math.isnan(as_float(out))
+
+
+def test_too_few_items_and_non_finite_are_undefined_with_reason():
+    assert "fewer than 2" in kendall_tau_b([1.0], [2.0]).reason
+    assert "fewer than 2" in top1_regret([], []).reason
+    assert "not finite" in mmrv([1, float("nan")], [1, 2]).reason
+    with pytest.raises(ValueError, match="one length"):
+        mmrv([1, 2], [1, 2, 3])
+
+
+def test_weighted_tau_is_scipys_and_weighs_the_top():
+    base = [4, 3, 2, 1]
+    swap_top, swap_bottom = [3, 4, 2, 1], [4, 3, 1, 2]
+    assert weighted_tau(base, base) == pytest.approx(1.0)
+    assert weighted_tau(swap_top, base) < weighted_tau(swap_bottom, base)
+    assert weighted_tau(swap_top, base) == pytest.approx(
+        scipy.stats.weightedtau(swap_top, base).statistic)
+
+
+def test_top1_regret_by_hand_and_tied_picks_take_the_worst():
+    assert top1_regret([1, 3, 2], [0.1, 0.9, 1.0]) == pytest.approx(0.1)
+    assert top1_regret([3, 3, 1], [0.5, 0.9, 1.0]) == pytest.approx(0.5)
+    assert top1_regret([1, 2, 3], [1, 2, 3]) == 0.0
+    assert isinstance(top1_regret([5, 5], [1, 2]), Undefined)
+
+
+def test_regret_on_mse_is_pick_minus_best():
+    mse_cheap, mse_graft = np.array([0.2, 0.1, 0.3]), np.array([0.05, 0.07, 0.04])
+    assert top1_regret(-mse_cheap, -mse_graft) == pytest.approx(0.07 - 0.04)
+
+
+def test_agreement_bundles_and_serialises_undefined():
+    a = agreement([1, 2, 3], [5, 5, 5])
+    d = a.to_dict()
+    assert d["n"] == 3 and d["top1_regret"] == 0.0
+    assert set(d["tau_b"]) == {"undefined"} and "actual" in d["mmrv"]["undefined"]
