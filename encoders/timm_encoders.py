@@ -37,6 +37,9 @@ class TimmEncoder(Encoder):
         self.model = model
         self.input_size = input_size
         self.weights_id = weights_id
+        # What timm.create_model received besides num_classes=0 (set by build_timm_encoder): with
+        # spec.timm_name it rebuilds this architecture (the LeRobot export, lerobot_policy_graft).
+        self.timm_kwargs: dict = {}
         self.channels = int(model.num_features)
         self.output_fmt = str(getattr(model, "output_fmt", "NCHW"))
         self.register_buffer("mean", torch.tensor(spec.mean).view(1, 3, 1, 1), persistent=False)
@@ -188,7 +191,7 @@ def build_timm_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(TINY_SEED)
             model = timm.create_model(spec.timm_name, pretrained=False, **kwargs)
-        return TimmEncoder(spec, model, input_size, weights_id=f"tiny-init{TINY_SEED}")
+        return _with_kwargs(TimmEncoder(spec, model, input_size, f"tiny-init{TINY_SEED}"), kwargs)
 
     hub = hub_weights(spec.timm_name)
     command = fetch_command(hub[0], hub[1], hub[2][0]) if hub else _create_command(spec.timm_name)
@@ -203,7 +206,12 @@ def build_timm_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
                                  f"{_one_line(str(err))}); {_fix(command)}") from err
     cfg = model.pretrained_cfg
     weights_id = f"pretrained:{cfg.get('architecture', spec.timm_name)}.{cfg.get('tag') or ''}"
-    return TimmEncoder(spec, model, input_size, weights_id=weights_id)
+    return _with_kwargs(TimmEncoder(spec, model, input_size, weights_id=weights_id), kwargs)
+
+
+def _with_kwargs(encoder: TimmEncoder, kwargs: dict) -> TimmEncoder:
+    encoder.timm_kwargs = {k: v for k, v in kwargs.items() if k != "num_classes"}
+    return encoder
 
 
 def resolve_timm(model_name: str) -> EncoderSpec:

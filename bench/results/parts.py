@@ -12,7 +12,7 @@ NORMALIZED, RAW = "normalized", "raw"  # the two action spaces every score is gi
 SPACES = (NORMALIZED, RAW)
 # Written only when set (absent from records that have none; every other field is always written).
 _OMITTED_WHEN_NONE = {"feature_dtype", "feature_transform", "grid_file", "camera_map", "dataset",
-                      "rollouts"}
+                      "rollouts", "projector_file", "projector_sha256"}
 
 
 def flat(part) -> dict:
@@ -137,6 +137,10 @@ class Training:
     loss_curve: list = field(default_factory=list)  # [[step, loss], ...]
     probe_loss: dict | None = None  # {"before": float, "after": float}
     encoder_weights: str | None = None
+    # The trained projector, kept for bench.export (bench.run.projectors): its file relative to
+    # the results dir and the file's sha256.
+    projector_file: str | None = None
+    projector_sha256: str | None = None
 
     @property
     def probe_before_after(self) -> tuple[float, float] | None:

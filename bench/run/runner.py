@@ -14,7 +14,9 @@ from safetensors.torch import load_file, save_file
 
 from bench.grid.cells import CellSpec
 from bench.run.evaluate import derangement, score
-from bench.run.graft import GraftFeed, Projector, assert_only_trainable, trainable_parameters
+from bench.run.graft import assert_only_trainable, trainable_parameters
+from bench.run.projectors import save_projector
+from external.graft import GraftFeed, Projector
 from bench.run.inputs import CellInputs
 from bench.grid.kinds import GRAFT
 from bench.results.provenance import (
@@ -157,7 +159,9 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> Rec
         cell,
         measured=measured_under(cell, ws, backbone, inputs, features_mode),
         scores=scores,
-        training=training_fields(backbone, graft, training, inputs.encoder),
+        training=training_fields(backbone, graft, training, inputs.encoder,
+                                 save_projector(ws.store.root, cell.id, graft.projector)
+                                 if graft else (None, None)),
         run=RunInfo(timings_s={k: round(v, 3) for k, v in timings.items()},
                     peak_memory_mb=peak_memory_mb(device), device=str(device),
                     hardware=hardware(), versions=versions(), git_commit=git_commit(),
@@ -265,8 +269,9 @@ def user_world_fields(cell: CellSpec, ws: Workspace, backbone) -> tuple[dict | N
     return camera_map, dataset
 
 
-def training_fields(backbone, graft: Graft | None, training: Training,
-                    encoder) -> TrainingPart:
+def training_fields(backbone, graft: Graft | None, training: Training, encoder,
+                    projector_kept: tuple[str | None, str | None]) -> TrainingPart:
+    """projector_kept: (file relative to the results dir, sha256) of the trained projector."""
     projector = graft.projector if graft else None
     return TrainingPart(
         trainable_params=trainable_parameters(projector, backbone.policy) if projector else 0,
@@ -276,6 +281,7 @@ def training_fields(backbone, graft: Graft | None, training: Training,
         loss_curve=training.curve,
         probe_loss=training.probe_losses,
         encoder_weights=getattr(encoder, "weights_id", None),
+        projector_file=projector_kept[0], projector_sha256=projector_kept[1],
     )
 
 

@@ -1,0 +1,62 @@
+"""python -m bench.export CELL_ID --results-dir DIR --out OUT
+python -m bench.export --best BACKBONE SUITE --results-dir DIR --out OUT
+python -m bench.export --list --results-dir DIR
+
+Writes a LeRobot pretrained_model folder of a graft cell (bench.export). Bad input: one line on
+stderr naming the thing and the fix, exit 2, nothing written."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from bench.export.locate import ExportError
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m bench.export", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("cell_id", nargs="?", help="the graft cell to export")
+    parser.add_argument("--best", nargs=2, metavar=("BACKBONE", "SUITE"),
+                        help="export the report's winner on BACKBONE x SUITE instead")
+    parser.add_argument("--results-dir", required=True, help="the results dir of the run")
+    parser.add_argument("--out", help="the folder to write (must not exist)")
+    parser.add_argument("--list", action="store_true", help="list the exportable graft cells")
+    args = parser.parse_args(argv)
+    if not args.list and (bool(args.cell_id) == bool(args.best)):
+        parser.error("name one CELL_ID or --best BACKBONE SUITE")
+    if not args.list and not args.out:
+        parser.error("--out OUT is required: the new checkpoint folder")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse(argv)
+    try:
+        if args.list:
+            from bench.export.locate import exportable, results_of
+
+            for record in results_of(args.results_dir).records:
+                if record.kind == "graft" and exportable(record):
+                    print(f"{record.cell_id}  mse {record.mse_in('normalized'):.6g}")
+            return 0
+        from bench.export.build import export_cell
+
+        note = None
+        cell_id = args.cell_id
+        if args.best:
+            from bench.export.locate import best_cell
+
+            record, note = best_cell(args.results_dir, *args.best)
+            cell_id = record.cell_id
+        out = export_cell(args.results_dir, cell_id, args.out, note=note)
+    except ExportError as err:
+        print(f"bench.export: {err}", file=sys.stderr)
+        return 2
+    print(f"bench.export: {cell_id} -> {out} (lerobot-train --policy.path={out} ...: see "
+          f"{out}/README.md)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,94 @@
+"""README.md of an exported graft: what it is, the cell's record (MSE with its interval,
+protocol, provenance, the study file if any) and the LeRobot commands that take it further."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from bench.results.record import NORMALIZED, RAW, Record
+
+# LeRobot's LIBERO env names the wrist camera image2 (lerobot/envs/libero.py); datasets wrist_image.
+LIBERO_ENV_CAMERAS = {"observation.images.image": "observation.images.image",
+                      "observation.images.wrist_image": "observation.images.image2"}
+
+
+def mse_interval(record: Record, space: str) -> tuple[float, float, float]:
+    """(mean, lo, hi): the cell's MSE with its 95% window-bootstrap interval (the report's)."""
+    from bench.analysis.rankings import paired_window_bootstrap
+
+    per_window = np.asarray(record.scores.per_window_in(space), dtype=float)[None, None, :]
+    boot = paired_window_bootstrap(per_window, 0)
+    return float(boot.mean[0]), float(boot.mean_lo[0]), float(boot.mean_hi[0])
+
+
+def rename_flags(rename_map: dict[str, str]) -> tuple[str, str]:
+    """(lerobot-train flag, lerobot-eval flag) pairing the data's cameras with the policy's."""
+    train = {k: v for k, v in rename_map.items() if k != v}
+    env = {LIBERO_ENV_CAMERAS.get(k, k): v for k, v in
+           {**{k: k for k in LIBERO_ENV_CAMERAS}, **rename_map}.items()}
+    env = {k: v for k, v in env.items() if k != v}
+    flag = lambda m: f" --rename_map='{json.dumps(m)}'" if m else ""  # noqa: E731
+    return flag(train), flag(env)
+
+
+def _lines(record: Record, results_dir: Path, note: str | None, flags: tuple[str, str],
+           dataset: tuple[str, str], policy_type: str) -> list[str]:
+    mse = {space: mse_interval(record, space) for space in (NORMALIZED, RAW)}
+    ck = record["checkpoint"] or {}
+    train_flag, eval_flag = flags
+    repo_id, root = dataset
+    lines = [
+        f"# {record.encoder} grafted into {record.backbone} ({record.suite})", "",
+        f"A graftbench graft exported as a LeRobot policy (type `{policy_type}`): the "
+        "released backbone with its vision tower "
+        f"replaced by `{record.encoder}` -> pooling to the {record['grid'][0]}x"
+        f"{record['grid'][1]} token grid -> LayerNorm (no affine) -> the trained Linear "
+        "projector. Load it with the `lerobot_policy_graft` plugin installed "
+        "(graftbench's scripts/install.sh).", "",
+        "## Its graftbench record", "",
+        f"- cell: `{record.cell_id}` (seed {record.seed}), from `{results_dir}`",
+        f"- offline action MSE, normalised: {mse[NORMALIZED][0]:.6g} "
+        f"[{mse[NORMALIZED][1]:.6g}, {mse[NORMALIZED][2]:.6g}] (95% window bootstrap, "
+        f"{record.scores.n_windows} held-out windows)",
+        f"- raw units: {mse[RAW][0]:.6g} [{mse[RAW][1]:.6g}, {mse[RAW][2]:.6g}]",
+        "- offline action MSE is a pre-commitment diagnostic on held-out demonstrations, not "
+        "a closed-loop success rate",
+        f"- profile `{record['profile']}`, protocol {record['protocol_hash']}: "
+        f"`{json.dumps(record['protocol'], sort_keys=True)}`",
+        f"- backbone checkpoint: {ck.get('repo_id')} @ {ck.get('revision')}, normaliser "
+        f"{ck.get('normalizer')} ({ck.get('normalizer_fingerprint')})",
+        f"- features: {record.get('features_mode')} ({record.get('feature_dtype') or 'float32'}); "
+        f"encoder weights {record.get('encoder_weights')}",
+        f"- measured with graftbench {record.get('git_commit')} on {record.get('device')}, "
+        f"{record.get('created')}; versions {json.dumps(record.get('versions'), sort_keys=True)}",
+    ]
+    if record.get("grid_file"):
+        lines.append(f"- study file: `{json.dumps(record['grid_file'], sort_keys=True)}`")
+    if note:
+        lines.append(f"- chosen as the best: {note}")
+    lines += [
+        "", "## Take it further", "",
+        "Fine-tune (what trains: `--policy.train_scope` = projector | projector+encoder | "
+        "projector+policy; LoRA through LeRobot's own `--peft.*`):", "", "```",
+        f"lerobot-train --policy.path=THIS_FOLDER --dataset.repo_id={repo_id} "
+        f"--dataset.root={root} --policy.train_scope=projector{train_flag} "
+        "--output_dir=outputs/graft --steps=2000", "```", "",
+        "Evaluate in LIBERO (needs LeRobot's libero extra):", "", "```",
+        f"lerobot-eval --policy.path=THIS_FOLDER --env.type=libero "
+        f"--env.task=libero_{record.suite} --eval.n_episodes=10 --eval.batch_size=1{eval_flag}",
+        "```", "",
+    ]
+    return lines
+
+
+def write_card(folder: Path, record: Record, results_dir: Path, note: str | None,
+               policy_type: str, rename_map: dict[str, str] | None = None,
+               dataset: tuple[str, str] = ("DATASET_REPO_ID", "DATASET_ROOT")) -> Path:
+    """README.md in `folder`."""
+    path = folder / "README.md"
+    flags = rename_flags(rename_map or {})
+    path.write_text("\n".join(_lines(record, results_dir, note, flags, dataset, policy_type)))
+    return path

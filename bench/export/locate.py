@@ -1,0 +1,81 @@
+"""Which cell to export, and whether it can be: every bad input is one ExportError line naming
+the thing and the fix."""
+
+from __future__ import annotations
+
+import difflib
+from pathlib import Path
+
+from bench.grid.kinds import GRAFT
+from bench.results.record import NORMALIZED, Record
+from bench.results.store import load_failure, load_results
+
+
+class ExportError(RuntimeError):
+    """Bad input to bench.export: one line, naming the thing and the fix."""
+
+
+def results_of(results_dir: str | Path):
+    root = Path(results_dir)
+    if not (root / "cells").is_dir():
+        raise ExportError(f"no results at {root} (no cells/ folder): pass the --results-dir "
+                          "of a `pytest bench` run")
+    return load_results(root)
+
+
+def find_record(results_dir: str | Path, cell_id: str) -> Record:
+    """The finished graft record of `cell_id`, or an ExportError saying why not."""
+    results = results_of(results_dir)
+    by_id = {r.cell_id: r for r in results.records}
+    if cell_id not in by_id:
+        failure = load_failure(results_dir, cell_id)
+        if failure is not None:
+            raise ExportError(f"cell {cell_id} failed ({failure.error}): fix it and run it "
+                              f"again (pytest bench -k {cell_id} --results-dir {results_dir})")
+        close = difflib.get_close_matches(cell_id, list(by_id), n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise ExportError(f"no cell {cell_id!r} in {results_dir} ({len(by_id)} cells){hint} "
+                          "(`python -m bench.export --list --results-dir DIR` lists them)")
+    record = by_id[cell_id]
+    if record.kind != GRAFT:
+        raise ExportError(f"cell {cell_id} is a {record.kind!r} cell: only graft cells export "
+                          "(their encoder replaces the vision tower); pick a graft cell")
+    return record
+
+
+def exportable(record: Record) -> bool:
+    """A graft whose encoder is a timm architecture (the plugin rebuilds it by name)."""
+    from encoders import get_spec, is_user_encoder
+
+    if record.encoder is None or is_user_encoder(record.encoder):
+        return False
+    try:
+        return get_spec(record.encoder).timm_name is not None
+    except Exception:
+        return False
+
+
+def best_cell(results_dir: str | Path, backbone: str, suite: str) -> tuple[Record, str]:
+    """The report's winner on `backbone` x `suite`: the best-ranked exportable encoder (lowest
+    mean normalised MSE over seeds), its seed with the lowest MSE; and a line saying so."""
+    from bench.analysis.rankings import rank_encoders
+
+    results = results_of(results_dir)
+    ranking = rank_encoders(results.records, backbone, suite)
+    if ranking.error:
+        raise ExportError(f"no graft cells of {backbone} x {suite} in {results_dir}: run them "
+                          f"first (pytest bench -k \"{backbone} and {suite}\")")
+    for result in ranking.encoders:
+        cells = [r for r in results.records if r.kind == GRAFT and r.backbone == backbone
+                 and r.suite == suite and r.encoder == result.encoder]
+        if cells and exportable(cells[0]):
+            best = min(cells, key=lambda r: (r.mse_in(NORMALIZED), r.seed))
+            note = (f"rank {result.rank} of {len(ranking.encoders)} on {backbone} x {suite} "
+                    f"(mean normalised MSE {result.mean[NORMALIZED]:.4f} over seeds "
+                    f"{result.seeds}); seed {best.seed} has its lowest MSE")
+            if result.rank > 1:
+                note += (f"; the leader {ranking.leader!r} is not a timm encoder and does not "
+                         "export")
+            return best, note
+    raise ExportError(f"no graft encoder of {backbone} x {suite} is a timm architecture "
+                      f"(ranked: {[e.encoder for e in ranking.encoders]}): nothing to export")
