@@ -1,0 +1,316 @@
+"""Zero-training screen proxies on frozen features: LogME, ridge and k-NN probes, norm entropy.
+
+Pure functions, numpy in, float (or agreement.Undefined, with the reason) out. Memory is flat in
+the number of windows for LogME and ridge: both read only `Moments`, the sufficient statistics
+X^T X, X^T Y, Y^T Y of X = [features, 1], which a caller accumulates chunk by chunk (`add`) and
+per group of training episodes (the folds that choose a penalty or a k on training data only).
+k-NN needs the training features themselves, (N_train, D); its distances are computed in chunks
+of queries, so its extra memory is (chunk, N_train).
+
+Rules (stated in the report):
+- The supervised proxies centre every column and scale every feature column to unit variance by
+  the TRAINING windows' mean and standard deviation; a column constant on the training windows
+  (relative variance <= 1e-10) carries nothing and is dropped. No column left: undefined.
+- Ridge: the penalty is lambda = r * N_fit with r in RIDGE_GRID (N_fit: the fitting windows;
+  the standardised Gram has diagonal N_fit), chosen by the smallest summed squared error of
+  episode-wise folds of the training episodes (ties: the larger penalty); then refitted on all
+  training episodes and scored on the held-out windows. k-NN: k in KNN_GRID (<= the fitting
+  windows), chosen the same way; uniform mean of the k nearest (Euclidean, standardised).
+- LogME (You et al., 2021) is the exact evidence, with every one of the D eigenvalues of
+  F^T F in ln|A| (the reference's fast path drops (D - k) ln(alpha) and is wrong for D > N).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bench.analysis.agreement import Measure, Undefined
+
+RIDGE_GRID = tuple(float(r) for r in np.logspace(-4, 2, 13))
+KNN_GRID = (1, 2, 3, 5, 8, 13, 21, 34, 55)
+CONSTANT_REL_VAR = 1e-10
+LOGME_MAX_ITER = 100_000
+LOGME_TOL = 1e-13
+
+
+@dataclass
+class Moments:
+    """Sufficient statistics of (features (n, D), targets (n, C)): X = [features, 1],
+    xtx (D+1, D+1), xty (D+1, C), yty (C,), float64; n = xtx[-1, -1]. Add chunks with `add`."""
+
+    dim: int
+    outputs: int
+    xtx: np.ndarray = field(init=False)
+    xty: np.ndarray = field(init=False)
+    yty: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        self.xtx = np.zeros((self.dim + 1, self.dim + 1))
+        self.xty = np.zeros((self.dim + 1, self.outputs))
+        self.yty = np.zeros(self.outputs)
+
+    @property
+    def n(self) -> int:
+        return int(round(self.xtx[-1, -1]))
+
+    def add(self, features: np.ndarray, targets: np.ndarray) -> "Moments":
+        """Accumulate a chunk: features (b, D), targets (b, C)."""
+        x = np.concatenate([np.asarray(features, float), np.ones((len(features), 1))], axis=1)
+        y = np.asarray(targets, float)
+        self.xtx += x.T @ x
+        self.xty += x.T @ y
+        self.yty += (y * y).sum(axis=0)
+        return self
+
+    def plus(self, other: "Moments", sign: float = 1.0) -> "Moments":
+        out = Moments(self.dim, self.outputs)
+        out.xtx, out.xty = self.xtx + sign * other.xtx, self.xty + sign * other.xty
+        out.yty = self.yty + sign * other.yty
+        return out
+
+
+def moments(features: np.ndarray, targets: np.ndarray, chunk: int = 4096) -> Moments:
+    """Moments of features (N, D) and targets (N, C), read `chunk` rows at a time."""
+    m = Moments(features.shape[1], targets.shape[1])
+    for start in range(0, len(features), chunk):
+        m.add(features[start:start + chunk], targets[start:start + chunk])
+    return m
+
+
+@dataclass
+class Standardised:
+    """Training-standardised statistics: gram (d, d) = Z^T Z, zy (d, C) = Z^T Yc, yy (C,) =
+    column sums of Yc^2, over n windows; `keep` (D,) bool, `mean`, `scale` (D,), `ymean` (C,)."""
+
+    n: int
+    gram: np.ndarray
+    zy: np.ndarray
+    yy: np.ndarray
+    keep: np.ndarray
+    mean: np.ndarray
+    scale: np.ndarray
+    ymean: np.ndarray
+
+
+def standardise(m: Moments) -> Standardised | Undefined:
+    """Centre and scale by `m`'s own windows, dropping constant columns; undefined if none vary."""
+    n, d = m.n, m.dim
+    if n < 2:
+        return Undefined(f"{n} fitting window(s): too few windows")
+    mean, ymean = m.xtx[:d, -1] / n, m.xty[-1] / n
+    cov = m.xtx[:d, :d] - n * np.outer(mean, mean)
+    var = np.diag(cov) / n
+    keep = var > CONSTANT_REL_VAR * np.maximum(np.diag(m.xtx)[:d] / n, 1e-300)
+    if not keep.any():
+        return Undefined(f"all {d} feature columns constant over the {n} fitting windows")
+    scale = np.where(keep, np.sqrt(np.where(keep, var, 1.0)), 1.0)
+    k = keep
+    gram = cov[np.ix_(k, k)] / np.outer(scale[k], scale[k])
+    zy = (m.xty[:d][k] - n * np.outer(mean[k], ymean)) / scale[k, None]
+    yy = m.yty - n * ymean ** 2
+    return Standardised(n, gram, zy, yy, keep, mean, scale, ymean)
+
+
+def _evidence(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int, alpha: np.ndarray,
+              beta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(log evidence, gamma, m^T m, residual), each (C,), at (alpha, beta) (C,) from the
+    eigenvalues `sigma` (d,) of F^T F and z = V^T F^T Y (d, C): every one of the d eigenvalues
+    enters ln|A| = sum ln(alpha + beta sigma), so D > N is exact."""
+    denom = alpha[None, :] + beta[None, :] * sigma[:, None]  # (d, C)
+    z2 = z ** 2
+    mm = beta ** 2 * np.sum(z2 / denom ** 2, axis=0)
+    res = np.maximum(yy - 2 * beta * np.sum(z2 / denom, axis=0)
+                     + beta ** 2 * np.sum(sigma[:, None] * z2 / denom ** 2, axis=0), 1e-300)
+    gamma = np.sum(beta[None, :] * sigma[:, None] / denom, axis=0)
+    log_ev = (n / 2 * np.log(beta) + len(sigma) / 2 * np.log(alpha) - n / 2 * np.log(2 * np.pi)
+              - beta / 2 * res - alpha / 2 * mm - 0.5 * np.sum(np.log(denom), axis=0))
+    return log_ev, gamma, mm, res
+
+
+def logme_columns(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(maximised log evidence per sample, alpha, beta), each (C,), by LogME's fixed point run on
+    all C columns at once: alpha = gamma / m^T m, beta = (n - gamma) / residual, until the
+    evidence of every column moves less than LOGME_TOL per sample. When D >= N the optimum can
+    lie at beta -> infinity (a noise-free fit): the evidence then converges while beta grows."""
+    alpha, beta = np.ones(z.shape[1]), np.ones(z.shape[1])
+    log_ev, gamma, mm, res = _evidence(sigma, z, yy, n, alpha, beta)
+    for _ in range(LOGME_MAX_ITER):
+        alpha = np.minimum(gamma / np.maximum(mm, 1e-300), 1e300)
+        beta = np.minimum((n - gamma) / res, 1e300)
+        new_ev, gamma, mm, res = _evidence(sigma, z, yy, n, alpha, beta)
+        moved = np.max(np.abs(new_ev - log_ev)) / n
+        log_ev = new_ev
+        if moved < LOGME_TOL:
+            break
+    return log_ev / n, alpha, beta
+
+
+def logme_gram(gram: np.ndarray, fty: np.ndarray, yty: np.ndarray, n: int) -> Measure:
+    """Mean over the C target columns of LogME from F^T F (D, D), F^T Y (D, C), Y^T Y diag (C,)."""
+    if n < 2:
+        return Undefined(f"{n} window(s): too few windows")
+    if not np.any(yty > 0):
+        return Undefined("every target column is zero")
+    sigma, vecs = np.linalg.eigh(gram)
+    sigma = np.clip(sigma, 0.0, None)
+    if sigma.max() <= 0:
+        return Undefined("features are all zero")
+    live = yty > 0
+    return float(np.mean(logme_columns(sigma, vecs.T @ fty[:, live], yty[live], n)[0]))
+
+
+def logme_fit(features: np.ndarray, targets: np.ndarray) -> list[tuple[float, float, float]]:
+    """Per target column (log evidence per sample, alpha, beta) at LogME's optimum; features
+    (N, D), targets (N, C), as given. For checks against an explicit N x N evidence."""
+    f, y = np.asarray(features, float), np.asarray(targets, float)
+    sigma, vecs = np.linalg.eigh(f.T @ f)
+    ev, alpha, beta = logme_columns(np.clip(sigma, 0.0, None), vecs.T @ (f.T @ y),
+                                    (y * y).sum(axis=0), len(f))
+    return list(zip(ev.tolist(), alpha.tolist(), beta.tolist()))
+
+
+def logme(features: np.ndarray, targets: np.ndarray) -> Measure:
+    """LogME of features (N, D) for targets (N, C), as given (no centring): the mean over target
+    columns of the maximised log evidence per sample; exact for N < D as for N > D."""
+    f, y = np.asarray(features, float), np.asarray(targets, float)
+    return logme_gram(f.T @ f, f.T @ y, (y * y).sum(axis=0), len(f))
+
+
+def logme_moments(m: Moments) -> Measure:
+    """The screen's LogME: of the training-standardised features for the centred targets."""
+    s = standardise(m)
+    if isinstance(s, Undefined):
+        return s
+    return logme_gram(s.gram, s.zy, s.yy, s.n)
+
+
+def ridge_fit(m: Moments, ratio: float) -> tuple[np.ndarray, np.ndarray] | Undefined:
+    """(weights (D, C), bias (C,)) in raw feature units: ridge on `m`'s standardised windows,
+    penalty ratio * n, bias unpenalised (the centring)."""
+    s = standardise(m)
+    if isinstance(s, Undefined):
+        return s
+    wz = np.linalg.solve(s.gram + ratio * s.n * np.eye(len(s.gram)), s.zy)
+    weights = np.zeros((m.dim, m.outputs))
+    weights[s.keep] = wz / s.scale[s.keep, None]
+    return weights, s.ymean - s.mean @ weights
+
+
+def squared_error(m: Moments, weights: np.ndarray, bias: np.ndarray) -> float:
+    """Sum over `m`'s windows and columns of (features @ weights + bias - targets)^2, from m."""
+    w = np.concatenate([weights, bias[None, :]], axis=0)
+    return float(np.trace(w.T @ m.xtx @ w) - 2 * np.sum(w * m.xty) + m.yty.sum())
+
+
+def ridge_heldout(folds: list[Moments], heldout: Moments) -> tuple[Measure, float | None]:
+    """(held-out MSE per target element, chosen penalty ratio) of ridge; `folds` are the
+    training windows grouped by episode fold (>= 2), `heldout` the scored windows."""
+    if len(folds) < 2:
+        return Undefined(f"{len(folds)} training episode fold(s): the penalty cannot be chosen "
+                         "on training episodes"), None
+    total = folds[0]
+    for f in folds[1:]:
+        total = total.plus(f)
+    errors = []
+    for ratio in RIDGE_GRID:
+        sse = 0.0
+        for f in folds:
+            fit = ridge_fit(total.plus(f, -1.0), ratio)
+            if isinstance(fit, Undefined):
+                return fit, None
+            sse += squared_error(f, *fit)
+        errors.append(sse)
+    best = max(i for i, e in enumerate(errors) if e <= min(errors))  # ties: the larger penalty
+    fit = ridge_fit(total, RIDGE_GRID[best])
+    if isinstance(fit, Undefined):
+        return fit, None
+    if heldout.n == 0:
+        return Undefined("no held-out windows"), RIDGE_GRID[best]
+    return squared_error(heldout, *fit) / (heldout.n * heldout.outputs), RIDGE_GRID[best]
+
+
+def _standardiser(features: np.ndarray, chunk: int = 4096):
+    """f(x) -> standardised kept columns, by `features`' own mean and std; or Undefined."""
+    m = Moments(features.shape[1], 1)
+    for start in range(0, len(features), chunk):
+        part = features[start:start + chunk]
+        m.add(part, np.zeros((len(part), 1)))
+    s = standardise(m)
+    if isinstance(s, Undefined):
+        return s
+    return lambda x: (np.asarray(x, float)[:, s.keep] - s.mean[s.keep]) / s.scale[s.keep]
+
+
+def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarray,
+             reference_targets: np.ndarray, ks: tuple[int, ...], chunk: int) -> np.ndarray:
+    """(len(ks),) summed squared error of the k-NN mean prediction for each k, distances from
+    chunks of `queries` (q, d) to `reference` (r, d); distance ties broken by reference order."""
+    kmax = max(ks)
+    ref_sq = (reference ** 2).sum(axis=1)
+    sse = np.zeros(len(ks))
+    for start in range(0, len(queries), chunk):
+        q = queries[start:start + chunk]
+        dist = (q ** 2).sum(axis=1)[:, None] - 2 * q @ reference.T + ref_sq[None, :]
+        nearest = np.argsort(dist, axis=1, kind="stable")[:, :kmax]
+        running = np.cumsum(reference_targets[nearest], axis=1)  # (b, kmax, C)
+        truth = query_targets[start:start + chunk]
+        for i, k in enumerate(ks):
+            sse[i] += float(((running[:, k - 1] / k - truth) ** 2).sum())
+    return sse
+
+
+def knn_heldout(train_features: np.ndarray, train_targets: np.ndarray, train_fold: np.ndarray,
+                heldout_features: np.ndarray, heldout_targets: np.ndarray, chunk: int = 512
+                ) -> tuple[Measure, int | None]:
+    """(held-out MSE per target element, chosen k) of k-NN regression.
+
+    train_features (N, D), train_targets (N, C), train_fold (N,) int: the episode fold of each
+    training window (>= 2 folds; k chosen on them), heldout_* (M, D), (M, C)."""
+    folds = np.unique(train_fold)
+    if len(folds) < 2:
+        return Undefined(f"{len(folds)} training episode fold(s): k cannot be chosen on "
+                         "training episodes"), None
+    if len(heldout_features) == 0:
+        return Undefined("no held-out windows"), None
+    scale = _standardiser(train_features)
+    if isinstance(scale, Undefined):
+        return scale, None
+    z, y = scale(train_features), np.asarray(train_targets, float)
+    smallest = min(int((train_fold != f).sum()) for f in folds)
+    ks = tuple(k for k in KNN_GRID if k <= smallest)
+    sse = np.zeros(len(ks))
+    for f in folds:
+        inside = train_fold == f
+        sse += _knn_sse(z[inside], y[inside], z[~inside], y[~inside], ks, chunk)
+    k = ks[int(np.argmin(sse))]  # ties: the smaller k (argmin's first)
+    heldout_sse = _knn_sse(scale(heldout_features), np.asarray(heldout_targets, float), z, y,
+                           (k,), chunk)[0]
+    return heldout_sse / heldout_targets.size, k
+
+
+def token_norms(grid: np.ndarray) -> np.ndarray:
+    """Per-token L2 norms (N, h*w) of a token grid (N, C, h, w)."""
+    grid = np.asarray(grid, float)
+    return np.sqrt((grid ** 2).sum(axis=1)).reshape(len(grid), -1)
+
+
+def norm_entropy(norms: np.ndarray) -> Measure:
+    """Theia-style feature-norm entropy, label-free, in [0, 1]: per window, the Shannon entropy of
+    its tokens' norms normalised to a distribution, divided by ln(tokens); mean over windows.
+
+    norms (N, T) >= 0 (token_norms). 1 means every token has the same norm (no token stands out),
+    lower means a few tokens carry most of the norm. Windows whose norms are all 0 are skipped."""
+    norms = np.asarray(norms, float)
+    if norms.ndim != 2 or norms.shape[1] < 2:
+        return Undefined(f"needs (N, T) norms with T >= 2 tokens; got shape {norms.shape}")
+    total = norms.sum(axis=1)
+    live = total > 0
+    if not live.any():
+        return Undefined("every token norm is 0")
+    p = norms[live] / total[live, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = -np.where(p > 0, p * np.log(p), 0.0).sum(axis=1)
+    return float(np.mean(h / np.log(norms.shape[1])))
