@@ -26,8 +26,9 @@ BUNDLED_VLM = "smolvlm"  # a local VLM folder (the tiny SmolVLM) travels under t
 
 
 def export_cell(results_dir: str | Path, cell_id: str, out: str | Path, *,
-                note: str | None = None, progress: bool = False) -> Path:
-    """Export graft cell `cell_id` of `results_dir` to the new folder `out`; returns `out`."""
+                note: str | None = None, progress: bool = False, lend_from=None) -> Path:
+    """Export graft cell `cell_id` of `results_dir` to the new folder `out`; returns `out`.
+    `lend_from`: a Workspace of the same world whose loaded suites and releases are reused."""
     out = Path(out)
     if out.exists():
         raise ExportError(f"--out {out} already exists: pass a new folder (or remove it)")
@@ -45,7 +46,7 @@ def export_cell(results_dir: str | Path, cell_id: str, out: str | Path, *,
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     staging.chmod(0o755)  # mkdtemp makes it private; a checkpoint folder is for sharing
     try:
-        backbone, encoder, suite = rebuild_cell(results_dir, record, progress)
+        backbone, encoder, suite = rebuild_cell(results_dir, record, progress, lend_from)
         policy_type = write_folder(staging, record, backbone, encoder, projector)
         write_card(staging, record, Path(results_dir), note, policy_type,
                    getattr(backbone, "rename_map", None) or {},
@@ -58,7 +59,8 @@ def export_cell(results_dir: str | Path, cell_id: str, out: str | Path, *,
     return out
 
 
-def rebuild_cell(results_dir: str | Path, record: Record, progress: bool = False):
+def rebuild_cell(results_dir: str | Path, record: Record, progress: bool = False,
+                 lend_from=None):
     """(backbone adapter normalising the cell's suite, encoder) as the cell had them, checked
     against the record's checkpoint revision and normaliser fingerprint."""
     from bench.run.workspace import Workspace
@@ -76,8 +78,14 @@ def rebuild_cell(results_dir: str | Path, record: Record, progress: bool = False
     if protocol.hash != record["protocol_hash"]:
         raise ExportError(f"cell {record.cell_id}: its protocol does not hash to its "
                           f"protocol_hash ({protocol.hash} vs {record['protocol_hash']})")
-    ws = Workspace(dataclasses.replace(profile, protocol=protocol), ResultStore(results_dir),
-                   progress=progress)
+    profile = dataclasses.replace(profile, protocol=protocol)
+    store = ResultStore(results_dir)
+    same_world = (lend_from is not None and lend_from.profile.data_source == profile.data_source
+                  and lend_from.profile.source == profile.source
+                  and lend_from.profile.protocol.replace(steps=0) == protocol.replace(steps=0))
+    ws = (dataclasses.replace(lend_from, profile=profile, store=store, trained_projectors={},
+                              feature_transforms={}) if same_world
+          else Workspace(profile, store, progress=progress))
     backbone = ws.backbone(record.backbone, record.suite)
     checkpoint = record["checkpoint"] or {}
     now = ws.checkpoint(record.backbone, record.suite)

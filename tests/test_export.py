@@ -1,0 +1,216 @@
+"""bench.export and the lerobot_policy_graft plugin: a tiny graft cell of each backbone family,
+exported, read back by LeRobot's own loading (strictly), scored by graftbench's own scorer to
+the record's MSE, trained two steps by `lerobot-train`, loaded again after the copy."""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from backbones import adapter_module
+from backbones.base import only_step
+from bench.export import ExportError, export_cell
+from bench.grid.cells import CellSpec
+from bench.grid.protocol import TINY, with_overrides
+from bench.results.store import ResultStore
+from bench.run.evaluate import score
+from bench.run.runner import run_cell
+from external.paths import REPO_ROOT
+from tests.factories import make_failed, make_record, save_record
+from tests.worlds import lent_workspace
+
+pytest.importorskip("lerobot_policy_graft", reason="install the plugin: scripts/install.sh")
+
+FAMILIES = ("smolvla", "pi05", "pi0")
+PROFILE = with_overrides(TINY, steps=4)
+ENCODER = "dinov2_s"
+PLUGIN = REPO_ROOT / "plugins" / "lerobot_policy_graft" / "lerobot_policy_graft"
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory, one_torch_thread):
+    """One float32-feature graft cell per family (and an fp16 twin of smolvla's), exported."""
+    root = tmp_path_factory.mktemp("export")
+    out = {}
+    for dtype, families in (("float32", FAMILIES), ("fp16", ("smolvla",))):
+        results = root / f"results-{dtype}"
+        ws = lent_workspace(PROFILE, ResultStore(results), feature_dtype=dtype)
+        for family in families:
+            record = run_cell(CellSpec("graft", family, "spatial", 0, ENCODER), ws)
+            folder = export_cell(results, record.cell_id, root / f"{family}-{dtype}",
+                                 lend_from=ws)
+            out[(family, dtype)] = (record, folder, results)
+    return {"root": root, "cells": out, "ws": ws}
+
+
+def load_policy(folder: Path):
+    """What lerobot-train / lerobot-eval do: the type from config.json, the class by
+    LeRobot's convention, the processors from their JSON."""
+    from lerobot.configs import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    config = PreTrainedConfig.from_pretrained(folder)
+    policy = get_policy_class(config.type).from_pretrained(folder, config=config)
+    pre, post = make_pre_post_processors(config, pretrained_path=str(folder))
+    return policy, pre, post
+
+
+def as_backbone(family: str, policy, pre, post):
+    """The harness's adapter around a loaded policy (its own graft path: no feed spliced in)."""
+    module = adapter_module(family)
+    if module.RENAMES_CAMERAS:
+        backbone = module.BACKBONE_CLASS(policy, pre, post)
+    else:
+        rename = dict(only_step(pre, "RenameObservationsProcessorStep").rename_map)
+        dataset_key = {v: k for k, v in rename.items()}
+        cameras = tuple(dataset_key.get(k, k) for k in policy.config.image_features)
+        backbone = module.BACKBONE_CLASS(policy, pre, post, cameras, rename_map=rename)
+    backbone.freeze()
+    return backbone
+
+
+def heldout_mse(world, family: str, folder: Path) -> dict:
+    ws = world["ws"]
+    p = ws.profile.protocol
+    backbone = as_backbone(family, *load_policy(folder))
+    return score(backbone, ws.suite("spatial"), ws.split("spatial").windows,
+                 p.eval_batch_size, p.eval_noise_seed).mse
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_lerobot_loads_the_export_strictly(world, family):
+    from safetensors.torch import load_model
+
+    record, folder, _ = world["cells"][(family, "float32")]
+    policy, _, _ = load_policy(folder)
+    assert type(policy).__name__.startswith("Graft") and policy.config.type == f"graft_{family}"
+    missing, unexpected = load_model(policy, folder / "model.safetensors", strict=False)
+    assert (missing, unexpected) == (set(), set()) or (not missing and not unexpected)
+    saved = set(json.loads((folder / "config.json").read_text()))
+    assert {"encoder_timm_name", "graft_grid", "train_scope"} <= saved
+    assert policy.config.graft_cell == record.cell_id
+    trainable = {n for n, p in policy.named_parameters() if p.requires_grad}
+    assert trainable == {"graft.projector.linear.weight", "graft.projector.linear.bias"}
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_loaded_export_scores_the_records_mse_bit_for_bit(world, family):
+    record, folder, _ = world["cells"][(family, "float32")]
+    assert heldout_mse(world, family, folder) == record.scores.mse
+
+
+def test_loaded_export_of_an_fp16_cell_is_within_the_fp16_tolerance(world):
+    record, folder, _ = world["cells"][("smolvla", "fp16")]
+    mse = heldout_mse(world, "smolvla", folder)
+    for space, value in record.scores.mse.items():
+        assert abs(mse[space] - value) <= 2e-4 * abs(value), (space, mse[space], value)
+
+
+def test_loading_refuses_a_missing_or_unexpected_key(world, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    _, folder, _ = world["cells"][("pi05", "float32")]
+    state = load_file(folder / "model.safetensors")
+    for name, changed in (("missing", {k: v for k, v in state.items()
+                                       if k != "graft.projector.linear.bias"}),
+                          ("unexpected", {**state, "graft.extra": torch.zeros(1)})):
+        broken = tmp_path / name
+        shutil.copytree(folder, broken)
+        save_file(changed, broken / "model.safetensors")
+        with pytest.raises(RuntimeError, match="graft.projector.linear.bias|graft.extra"):
+            load_policy(broken)
+
+
+def test_a_copied_folder_loads_without_the_original(world, tmp_path):
+    record, folder, _ = world["cells"][("smolvla", "float32")]
+    copy = shutil.copytree(folder, tmp_path / "elsewhere" / "policy")
+    hidden = folder.with_name(folder.name + ".hidden")
+    folder.rename(hidden)  # an absolute reference into the original would now fail
+    try:
+        assert heldout_mse(world, "smolvla", copy) == record.scores.mse
+    finally:
+        hidden.rename(folder)
+
+
+def test_lerobot_train_trains_each_export_and_its_checkpoint_loads_as_a_graft(world):
+    """One interpreter runs LeRobot's own lerobot-train entry point once per family."""
+    suite = world["ws"].suite("spatial")
+    runs = {}
+    for family in FAMILIES:
+        _, folder, _ = world["cells"][(family, "float32")]
+        runs[family] = world["root"] / f"train-{family}"
+        runs[family + "-argv"] = [
+            "lerobot-train", f"--policy.path={folder}", f"--dataset.repo_id={suite.repo_id}",
+            f"--dataset.root={suite.root}", "--steps=2", f"--output_dir={runs[family]}",
+            "--batch_size=2", "--num_workers=0"]
+    script = ("import json, sys\nfrom lerobot.scripts.lerobot_train import main\n"
+              "for argv in json.loads(sys.argv[1]):\n    sys.argv = argv\n    main()\n")
+    argvs = json.dumps([runs[f + "-argv"] for f in FAMILIES])
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HF_HUB_OFFLINE": "1"}
+    done = subprocess.run([sys.executable, "-c", script, argvs], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for family in FAMILIES:
+        checkpoint = runs[family] / "checkpoints" / "000002" / "pretrained_model"
+        policy, _, _ = load_policy(checkpoint)
+        assert policy.config.type == f"graft_{family}"
+        _, folder, _ = world["cells"][(family, "float32")]
+        exported, _, _ = load_policy(folder)
+        before, after = exported.state_dict(), policy.state_dict()
+        assert set(before) == set(after)
+        assert not torch.equal(before["graft.projector.linear.weight"],
+                               after["graft.projector.linear.weight"])  # it trained
+        assert torch.equal(before["graft.encoder.model.patch_embed.proj.weight"],
+                           after["graft.encoder.model.patch_embed.proj.weight"])  # frozen
+
+
+# -- bad input: one line each, nothing written ------------------------------------------------
+
+def _export_fails(results, cell_id, out, match, out_existed=False):
+    with pytest.raises(ExportError, match=match) as info:
+        export_cell(results, cell_id, out)
+    assert "\n" not in str(info.value)
+    assert out.exists() == out_existed
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.partial")]
+
+
+def test_bad_input_is_one_line_and_writes_nothing(world, tmp_path):
+    record, folder, results = world["cells"][("pi0", "float32")]
+    out = tmp_path / "out"
+    _export_fails(results, "pi0-spatial-dinov3-seed0", out, "no cell 'pi0-spatial-dinov3-seed0'")
+    _export_fails(results, record.cell_id, folder, "already exists", out_existed=True)
+    own = tmp_path / "results"
+    save_record(own, make_failed(backbone="pi0", encoder="dinov2_s", error="RuntimeError: oom"))
+    _export_fails(own, "pi0-spatial-dinov2_s-seed0", out, "failed .*oom.*run it again")
+    save_record(own, make_record(backbone="smolvla", encoder="dinov2_s"))
+    _export_fails(own, "smolvla-spatial-dinov2_s-seed0", out, "names no projector file")
+    corrupt = tmp_path / "corrupt"
+    shutil.copytree(results, corrupt)
+    projector = corrupt / record["projector_file"]
+    projector.write_bytes(projector.read_bytes()[:-1] + b"\0")
+    _export_fails(corrupt, record.cell_id, out, "has sha256 .* the record .* says")
+
+
+def test_plugin_is_light_and_below_the_harness():
+    """No bench import anywhere; no timm / encoders / backbones / modeling at import time (every
+    LeRobot CLI imports the plugin at start)."""
+    heavy = ("timm", "encoders", "backbones", "lerobot_policy_graft.modeling_graft")
+    for path in sorted(PLUGIN.glob("*.py")):
+        tree = ast.parse(path.read_text())
+        every = {n.module if isinstance(n, ast.ImportFrom) else a.name
+                 for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
+                 for a in getattr(n, "names", [])}
+        assert not [m for m in every if m and m.split(".")[0] == "bench"], path
+        if path.name != "modeling_graft.py":
+            top = {n.module if isinstance(n, ast.ImportFrom) else a.name
+                   for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))
+                   for a in getattr(n, "names", [])}
+            assert not [m for m in top if m.startswith(heavy)], (path.name, top)
