@@ -31,11 +31,23 @@ def test_bad_cells_are_rejected(kwargs, match):
 
 
 @pytest.mark.parametrize("profile", [TINY, TINY_FULL], ids=["tiny", "tiny-full"])
-def test_tiny_grid_size_and_unique_ids(profile):
+def test_every_graft_cell_once_and_ids_unique(profile):
     grafts = graft_cells(profile)
-    assert len(grafts) == 2 * len(profile.suites) * len(profile.encoders) * 2
+    keys = [(c.backbone, c.suite, c.encoder, c.seed) for c in grafts]
+    assert len(keys) == len(set(keys)) and all(c.kind == "graft" for c in grafts)
+    assert {c.encoder for c in grafts} == set(profile.encoders)
     ids = [c.id for c in grafts + control_cells(profile)]
     assert len(ids) == len(set(ids))
+
+
+def test_a_seed_more_adds_that_seeds_cells_and_nothing_else():
+    grafts = {c.id for c in graft_cells(TINY)}
+    more = {c.id for c in graft_cells(with_overrides(TINY, seeds=(0, 1, 2)))}
+    added = sorted(more - grafts)
+    assert grafts < more and all(i.endswith("-seed2") for i in added)
+    assert added == ["pi05-spatial-blind-seed2", "pi05-spatial-dinov2_s-seed2",
+                     "pi05-spatial-pixels-seed2", "smolvla-spatial-blind-seed2",
+                     "smolvla-spatial-dinov2_s-seed2", "smolvla-spatial-pixels-seed2"]
 
 
 def test_default_grid_is_the_full_tiny_grid_cut_down_on_the_same_protocol():

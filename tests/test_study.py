@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import inspect
 
 import pytest
 
@@ -129,14 +128,44 @@ def test_as_text():
     assert as_text(None) == "not recorded" and as_text(["q_proj", "v_proj"]) == "q_proj, v_proj"
 
 
+def _fitted_weight(optimiser_steps: int, weight_decay: float):
+    """One weight w fitted by bench.run.train.fit on loss w * 1 (gradient 1 every step), and the
+    same weight after AdamW with fit's schedule, one optimiser step per batch."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from bench.run.train import FitConfig, fit, lr_factor
+
+    cfg = FitConfig(steps=optimiser_steps, batch_size=2, lr=0.1, weight_decay=weight_decay,
+                    warmup_steps=1, grad_clip=0.0, log_every=1)
+    weight = torch.nn.Parameter(torch.ones(1))
+    toy = SimpleNamespace(
+        info=SimpleNamespace(chunk_size=1, max_action_dim=1), policy=torch.nn.Linear(1, 1),
+        preprocess=lambda raw: raw, sample_time=lambda n, g: torch.rand(n, generator=g),
+        loss=lambda batch, noise, time: (weight * batch["x"]).expand(len(time)))
+    fit(toy, [weight], torch.arange(8), lambda rows: ({"x": torch.tensor(1.0)}, None), cfg,
+        seed=0, progress=False)
+    reference = torch.nn.Parameter(torch.ones(1))
+    optimiser = torch.optim.AdamW([reference], lr=cfg.lr, weight_decay=weight_decay)
+    for step in range(optimiser_steps):
+        optimiser.param_groups[0]["lr"] = cfg.lr * lr_factor(step, cfg)
+        optimiser.zero_grad()
+        reference.sum().backward()
+        optimiser.step()
+    return weight.detach(), reference.detach()
+
+
 def test_our_code_facts_match_the_code():
-    """OUR_CODE states facts no record carries; these fail when the code moves under them."""
-    import bench.run.train
+    """OUR_CODE states facts no record carries; these fail when the code moves under them: the
+    optimiser is AdamW (decoupled weight decay: one step of lr 0.1, decay 0.5 from w = 1 gives
+    0.85, where Adam's L2 decay would give 0.9), stepped once per batch (no accumulation)."""
     from encoders.registry import get_spec
 
-    source = inspect.getsource(bench.run.train)
-    assert "torch.optim.AdamW(" in source and OUR_CODE["optimiser"] == "AdamW"
-    assert "accumulat" not in source.lower() and OUR_CODE["gradient accumulation"] is False
+    one_step, _ = _fitted_weight(1, weight_decay=0.5)
+    assert OUR_CODE["optimiser"] == "AdamW" and abs(one_step.item() - 0.85) < 1e-6
+    fitted, adamw = _fitted_weight(3, weight_decay=0.0)
+    assert OUR_CODE["gradient accumulation"] is False and fitted.equal(adamw)
     assert set(OUR_CODE["input sizes"]) == set(PAPER_ENCODERS)
     for name, size in OUR_CODE["input sizes"].items():
         assert get_spec(name).input_size == size, f"update OUR_CODE['input sizes'][{name!r}]"
