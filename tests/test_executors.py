@@ -48,6 +48,7 @@ def measured(record: dict) -> dict:
     return {k: record[k] for k in keys}
 
 
+@pytest.mark.slow  # three fresh interpreters: the controller and two submitit tasks
 def test_submitit_local_gives_the_local_records(tmp_path):
     run_grid(tmp_path / "local")
     done = run_grid(tmp_path / "submitit", "--executor", "submitit-local")

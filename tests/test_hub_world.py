@@ -49,6 +49,7 @@ def run_bench(world: dict, tmp_path: Path, *extra: str) -> subprocess.CompletedP
     return subprocess.run(args, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=900)
 
 
+@pytest.mark.slow  # `pytest bench` in a fresh interpreter that reads the world at import
 def test_paper_profile_runs_end_to_end_offline_on_every_backbone(world, tmp_path):
     out = run_bench(world, tmp_path)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
@@ -99,6 +100,7 @@ def test_removing_any_one_artifact_makes_the_preflight_name_exactly_it(in_world,
         assert absent[0].fix.startswith("hf download ") and repo_id in absent[0].fix
 
 
+@pytest.mark.slow  # `pytest bench` in a fresh interpreter that reads the world at import
 def test_a_missing_artifact_stops_the_run_in_one_line_before_any_cell(world, tmp_path):
     tokenizer = _artifact_paths(Path(world["HF_HUB_CACHE"]))["google/paligemma-3b-pt-224"]
     aside = tmp_path / "aside"

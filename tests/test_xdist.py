@@ -1,4 +1,5 @@
-"""`pytest bench -n 2` gives the records and REPORT.md numbers of a serial run.
+"""`pytest bench -n 2` gives the records and REPORT.md numbers of a serial run (both in a fresh
+interpreter: xdist workers are processes, and the serial run must match their thread count).
 
 Two backbones, so each xdist worker gets one (`-n` implies `--dist loadgroup`, cells carry
 `xdist_group(backbone)`); the controller alone writes REPORT.md from the shared results store.
@@ -17,16 +18,20 @@ import pytest
 
 from external.paths import REPO_ROOT
 
+pytestmark = pytest.mark.slow  # fresh interpreters (docs/TESTING.md: tiers)
+
+# 20 projector steps: what is compared is the bits of two runs, not how well they trained.
 SLICE = ["--backbones", "pi05,smolvla", "--suites", "spatial", "--encoders", "pixels,blind",
-         "--seeds", "0", "--controls", "none"]
+         "--seeds", "0", "--controls", "none", "--steps", "20"]
+# One torch thread per process in BOTH runs: the thread count must not differ between them.
+ENV = {"OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1", "HF_HUB_OFFLINE": "1"}
 
 
 def run_grid(results: Path, *extra: str) -> str:
-    # One torch thread per process in BOTH runs: the thread count must not differ between them.
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1", "HF_HUB_OFFLINE": "1"}
     cmd = [sys.executable, "-m", "pytest", "bench", "-p", "no:randomly", "-p", "no:cacheprovider",
            *SLICE, "--results-dir", str(results), "--report", str(results / "REPORT.md"), *extra]
-    done = subprocess.run(cmd, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=600)
+    done = subprocess.run(cmd, cwd=REPO_ROOT, env={**os.environ, **ENV}, capture_output=True,
+                          text=True, timeout=600)
     # Every case must pass: two runs that fail alike are not two runs that agree.
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     return done.stdout
