@@ -21,7 +21,8 @@ find_python() {
 }
 
 stamp=".venv/.graftbench-installed"
-want="$(sha256sum constraints.txt pyproject.toml | sha256sum | cut -c1-16)"
+plugin="plugins/lerobot_policy_graft"  # LeRobot policy plugin (graft_smolvla, graft_pi05, graft_pi0)
+want="$(sha256sum constraints.txt pyproject.toml "$plugin/pyproject.toml" | sha256sum | cut -c1-16)"
 if [ -x .venv/bin/python ] && [ "$(cat "$stamp" 2>/dev/null)" = "$want" ]; then
     echo "[install] .venv is current"
     exit 0
@@ -32,5 +33,8 @@ py="$(find_python)"
 # The constraints pin every package (torch 2.11.0 CUDA build included: it runs on the CPU).
 # PIP_CONSTRAINT is cleared so a machine-wide pip constraint cannot pull in another torch.
 PIP_CONSTRAINT= .venv/bin/python -m pip install -q -c constraints.txt -e .
+# The plugin rides on the stack above: --no-deps, so it can never pull in another torch.
+# LeRobot imports it by its distribution name (lerobot_policy_*) in lerobot-train / lerobot-eval.
+PIP_CONSTRAINT= .venv/bin/python -m pip install -q --no-deps -e "$plugin"
 echo "$want" > "$stamp"
 echo "[install] done: $(.venv/bin/python -c 'import torch, lerobot; print("torch", torch.__version__, "lerobot", lerobot.__version__)')"
