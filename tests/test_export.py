@@ -37,18 +37,50 @@ PLUGIN = REPO_ROOT / "plugins" / "lerobot_policy_graft" / "lerobot_policy_graft"
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory, one_torch_thread):
-    """One float32-feature graft cell per family (and an fp16 twin of smolvla's), exported."""
+    """One float32-feature graft cell per family (and an fp16 twin of smolvla's), exported. The
+    lerobot-train interpreter starts first (its imports take longest) and is handed the
+    exports when they exist; the tests below run while it trains."""
     root = tmp_path_factory.mktemp("export")
-    out = {}
-    for dtype, families in (("float32", FAMILIES), ("fp16", ("smolvla",))):
-        results = root / f"results-{dtype}"
-        ws = lent_workspace(PROFILE, ResultStore(results), feature_dtype=dtype)
-        for family in families:
-            record = run_cell(CellSpec("graft", family, "spatial", 0, ENCODER), ws)
-            folder = export_cell(results, record.cell_id, root / f"{family}-{dtype}",
-                                 lend_from=ws)
-            out[(family, dtype)] = (record, folder, results)
-    return {"root": root, "cells": out, "ws": ws}
+    train = start_lerobot_train(root)
+    try:
+        out = {}
+        for dtype, families in (("float32", FAMILIES), ("fp16", ("smolvla",))):
+            results = root / f"results-{dtype}"
+            ws = lent_workspace(PROFILE, ResultStore(results), feature_dtype=dtype)
+            for family in families:
+                record = run_cell(CellSpec("graft", family, "spatial", 0, ENCODER), ws)
+                folder = export_cell(results, record.cell_id, root / f"{family}-{dtype}",
+                                     lend_from=ws)
+                out[(family, dtype)] = (record, folder, results)
+        world = {"root": root, "cells": out, "ws": ws, "train": train}
+        train.stdin.write(json.dumps(lerobot_train_argvs(world)))
+        train.stdin.close()
+        yield world
+    finally:
+        if train.poll() is None:
+            train.kill()
+            train.wait()
+
+
+def start_lerobot_train(root: Path) -> subprocess.Popen:
+    """One interpreter that runs LeRobot's own lerobot-train entry point (the console script's
+    `main`, which registers the plugins) once per argv list it reads from stdin."""
+    script = ("import json, sys\nfrom lerobot.scripts.lerobot_train import main\n"
+              "for argv in json.loads(sys.stdin.read()):\n    sys.argv = argv\n    main()\n")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HF_HUB_OFFLINE": "1"}
+    log = open(root / "lerobot-train.log", "w")
+    return subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=log,
+                            stderr=subprocess.STDOUT, text=True, env=env)
+
+
+def lerobot_train_argvs(world) -> list[list[str]]:
+    """`lerobot-train --policy.path=EXPORT --dataset.repo_id --dataset.root --steps=2` per family
+    (+ where to write, and a small batch without workers for speed)."""
+    suite = world["ws"].suite("spatial")
+    return [["lerobot-train", f"--policy.path={world['cells'][(family, 'float32')][1]}",
+             f"--dataset.repo_id={suite.repo_id}", f"--dataset.root={suite.root}", "--steps=2",
+             f"--output_dir={world['root'] / f'train-{family}'}", "--batch_size=2",
+             "--num_workers=0"] for family in FAMILIES]
 
 
 def load_policy(folder: Path):
@@ -85,6 +117,7 @@ def heldout_mse(world, family: str, folder: Path) -> dict:
                  p.eval_batch_size, p.eval_noise_seed).mse
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", FAMILIES)
 def test_lerobot_loads_the_export_strictly(world, family):
     from safetensors.torch import load_model
@@ -101,12 +134,14 @@ def test_lerobot_loads_the_export_strictly(world, family):
     assert trainable == {"graft.projector.linear.weight", "graft.projector.linear.bias"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", FAMILIES)
 def test_loaded_export_scores_the_records_mse_bit_for_bit(world, family):
     record, folder, _ = world["cells"][(family, "float32")]
     assert heldout_mse(world, family, folder) == record.scores.mse
 
 
+@pytest.mark.slow
 def test_loaded_export_of_an_fp16_cell_is_within_the_fp16_tolerance(world):
     record, folder, _ = world["cells"][("smolvla", "fp16")]
     mse = heldout_mse(world, "smolvla", folder)
@@ -114,6 +149,7 @@ def test_loaded_export_of_an_fp16_cell_is_within_the_fp16_tolerance(world):
         assert abs(mse[space] - value) <= 2e-4 * abs(value), (space, mse[space], value)
 
 
+@pytest.mark.slow
 def test_loading_refuses_a_missing_or_unexpected_key(world, tmp_path):
     from safetensors.torch import load_file, save_file
 
@@ -129,6 +165,7 @@ def test_loading_refuses_a_missing_or_unexpected_key(world, tmp_path):
             load_policy(broken)
 
 
+@pytest.mark.slow
 def test_a_copied_folder_loads_without_the_original(world, tmp_path):
     record, folder, _ = world["cells"][("smolvla", "float32")]
     copy = shutil.copytree(folder, tmp_path / "elsewhere" / "policy")
@@ -140,26 +177,13 @@ def test_a_copied_folder_loads_without_the_original(world, tmp_path):
         hidden.rename(folder)
 
 
+@pytest.mark.slow
 def test_lerobot_train_trains_each_export_and_its_checkpoint_loads_as_a_graft(world):
-    """One interpreter runs LeRobot's own lerobot-train entry point once per family."""
-    suite = world["ws"].suite("spatial")
-    runs = {}
+    assert world["train"].wait(timeout=300) == 0, \
+        (world["root"] / "lerobot-train.log").read_text()[-3000:]
     for family in FAMILIES:
-        _, folder, _ = world["cells"][(family, "float32")]
-        runs[family] = world["root"] / f"train-{family}"
-        runs[family + "-argv"] = [
-            "lerobot-train", f"--policy.path={folder}", f"--dataset.repo_id={suite.repo_id}",
-            f"--dataset.root={suite.root}", "--steps=2", f"--output_dir={runs[family]}",
-            "--batch_size=2", "--num_workers=0"]
-    script = ("import json, sys\nfrom lerobot.scripts.lerobot_train import main\n"
-              "for argv in json.loads(sys.argv[1]):\n    sys.argv = argv\n    main()\n")
-    argvs = json.dumps([runs[f + "-argv"] for f in FAMILIES])
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HF_HUB_OFFLINE": "1"}
-    done = subprocess.run([sys.executable, "-c", script, argvs], capture_output=True,
-                          text=True, env=env, timeout=300)
-    assert done.returncode == 0, done.stderr[-3000:]
-    for family in FAMILIES:
-        checkpoint = runs[family] / "checkpoints" / "000002" / "pretrained_model"
+        checkpoint = (world["root"] / f"train-{family}" / "checkpoints" / "000002"
+                      / "pretrained_model")
         policy, _, _ = load_policy(checkpoint)
         assert policy.config.type == f"graft_{family}"
         _, folder, _ = world["cells"][(family, "float32")]
@@ -182,6 +206,7 @@ def _export_fails(results, cell_id, out, match, out_existed=False):
     assert not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.partial")]
 
 
+@pytest.mark.slow
 def test_bad_input_is_one_line_and_writes_nothing(world, tmp_path):
     record, folder, results = world["cells"][("pi0", "float32")]
     out = tmp_path / "out"
@@ -194,7 +219,7 @@ def test_bad_input_is_one_line_and_writes_nothing(world, tmp_path):
     _export_fails(own, "smolvla-spatial-dinov2_s-seed0", out, "names no projector file")
     corrupt = tmp_path / "corrupt"
     shutil.copytree(results, corrupt)
-    projector = corrupt / record["projector_file"]
+    projector = corrupt / record.training.projector_file
     projector.write_bytes(projector.read_bytes()[:-1] + b"\0")
     _export_fails(corrupt, record.cell_id, out, "has sha256 .* the record .* says")
 

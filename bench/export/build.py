@@ -18,7 +18,7 @@ from pathlib import Path
 from bench.export.card import write_card
 from bench.export.locate import ExportError, exportable, find_record
 from bench.grid.protocol import Protocol, get_profile
-from bench.results.record import Record
+from bench.results.record import Record, checkpoint_revision
 from bench.results.store import ResultStore
 from bench.run.projectors import ProjectorFileError, load_projector
 
@@ -39,8 +39,8 @@ def export_cell(results_dir: str | Path, cell_id: str, out: str | Path, *,
         raise ExportError(f"cell {cell_id}'s encoder {record.encoder!r} is not a timm "
                           "architecture: only timm encoders export (the plugin rebuilds them)")
     try:
-        projector = load_projector(results_dir, cell_id, record.get("projector_file"),
-                                   record.get("projector_sha256"))
+        projector = load_projector(results_dir, cell_id, record.training.projector_file,
+                                   record.training.projector_sha256)
     except ProjectorFileError as err:
         raise ExportError(str(err)) from None
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
@@ -65,38 +65,36 @@ def rebuild_cell(results_dir: str | Path, record: Record, progress: bool = False
     against the record's checkpoint revision and normaliser fingerprint."""
     from bench.run.workspace import Workspace
 
+    measured = record.measured
     try:
-        profile = get_profile(record["profile"])
+        profile = get_profile(measured.profile)
     except ValueError as err:
         raise ExportError(f"cell {record.cell_id}: {err}") from None
-    if record.get("camera_map") or record.get("dataset"):
+    if measured.camera_map or measured.dataset:
         raise ExportError(f"cell {record.cell_id} was measured on a --policy/--dataset of your "
                           "own: exporting those is not supported yet; export a registry cell")
-    fields = dict(record["protocol"])
+    fields = dict(measured.protocol)
     fields["lora_targets"] = tuple(fields.get("lora_targets", ()))
     protocol = Protocol(**fields)
-    if protocol.hash != record["protocol_hash"]:
+    if protocol.hash != measured.protocol_hash:
         raise ExportError(f"cell {record.cell_id}: its protocol does not hash to its "
-                          f"protocol_hash ({protocol.hash} vs {record['protocol_hash']})")
+                          f"protocol_hash ({protocol.hash} vs {measured.protocol_hash})")
     profile = dataclasses.replace(profile, protocol=protocol)
     store = ResultStore(results_dir)
     same_world = (lend_from is not None and lend_from.profile.data_source == profile.data_source
                   and lend_from.profile.source == profile.source
                   and lend_from.profile.protocol.replace(steps=0) == protocol.replace(steps=0))
-    ws = (dataclasses.replace(lend_from, profile=profile, store=store, trained_projectors={},
-                              feature_transforms={}) if same_world
+    ws = (dataclasses.replace(lend_from, profile=profile, store=store) if same_world
           else Workspace(profile, store, progress=progress))
     backbone = ws.backbone(record.backbone, record.suite)
-    checkpoint = record["checkpoint"] or {}
-    now = ws.checkpoint(record.backbone, record.suite)
-    if checkpoint.get("revision") and now.get("revision") != checkpoint.get("revision"):
-        raise ExportError(f"cell {record.cell_id} was measured on {checkpoint.get('repo_id')} at "
-                          f"{checkpoint['revision']}, this machine has {now.get('revision')}: "
-                          "fetch that revision or run the cell again here")
+    now = checkpoint_revision(ws.checkpoint(record.backbone, record.suite))
+    if measured.revision and now != measured.revision:
+        raise ExportError(f"cell {record.cell_id} was measured on weights {measured.revision}, "
+                          f"this machine has {now}: fetch that revision or run the cell again")
     found = backbone.normalizer_fingerprint()
-    if checkpoint.get("normalizer_fingerprint") not in (None, found):
+    if measured.normalizer_fingerprint not in (None, found):
         raise ExportError(f"cell {record.cell_id}'s normaliser was "
-                          f"{checkpoint['normalizer_fingerprint']}, rebuilt it is {found}: "
+                          f"{measured.normalizer_fingerprint}, rebuilt it is {found}: "
                           "run the cell again here")
     return backbone, ws.encoder(record.encoder), ws.suite(record.suite)
 
@@ -123,7 +121,7 @@ def graft_config(record: Record, backbone, encoder, staging: Path):
         encoder_input_size=int(encoder.input_size), encoder_mean=list(spec.mean),
         encoder_std=list(spec.std), encoder_num_prefix_tokens=spec.num_prefix_tokens,
         encoder_layout=spec.layout, encoder_channels=int(encoder.channels),
-        graft_grid=[int(x) for x in record["grid"]], train_scope="projector",
+        graft_grid=[int(x) for x in record.measured.grid], train_scope="projector",
         graft_cell=record.cell_id,
         tiny_arch=json.dumps(tiny_arch.to_dict(), sort_keys=True) if tiny_arch else "")
     config_cls = PreTrainedConfig.get_choice_class(GRAFT_TYPES[base.type])

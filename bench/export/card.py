@@ -37,15 +37,15 @@ def rename_flags(rename_map: dict[str, str]) -> tuple[str, str]:
 def _lines(record: Record, results_dir: Path, note: str | None, flags: tuple[str, str],
            dataset: tuple[str, str], policy_type: str) -> list[str]:
     mse = {space: mse_interval(record, space) for space in (NORMALIZED, RAW)}
-    ck = record["checkpoint"] or {}
+    m, run = record.measured, record.run
     train_flag, eval_flag = flags
     repo_id, root = dataset
     lines = [
         f"# {record.encoder} grafted into {record.backbone} ({record.suite})", "",
         f"A graftbench graft exported as a LeRobot policy (type `{policy_type}`): the "
         "released backbone with its vision tower "
-        f"replaced by `{record.encoder}` -> pooling to the {record['grid'][0]}x"
-        f"{record['grid'][1]} token grid -> LayerNorm (no affine) -> the trained Linear "
+        f"replaced by `{record.encoder}` -> pooling to the {m.grid[0]}x"
+        f"{m.grid[1]} token grid -> LayerNorm (no affine) -> the trained Linear "
         "projector. Load it with the `lerobot_policy_graft` plugin installed "
         "(graftbench's scripts/install.sh).", "",
         "## Its graftbench record", "",
@@ -56,17 +56,16 @@ def _lines(record: Record, results_dir: Path, note: str | None, flags: tuple[str
         f"- raw units: {mse[RAW][0]:.6g} [{mse[RAW][1]:.6g}, {mse[RAW][2]:.6g}]",
         "- offline action MSE is a pre-commitment diagnostic on held-out demonstrations, not "
         "a closed-loop success rate",
-        f"- profile `{record['profile']}`, protocol {record['protocol_hash']}: "
-        f"`{json.dumps(record['protocol'], sort_keys=True)}`",
-        f"- backbone checkpoint: {ck.get('repo_id')} @ {ck.get('revision')}, normaliser "
-        f"{ck.get('normalizer')} ({ck.get('normalizer_fingerprint')})",
-        f"- features: {record.get('features_mode')} ({record.get('feature_dtype') or 'float32'}); "
-        f"encoder weights {record.get('encoder_weights')}",
-        f"- measured with graftbench {record.get('git_commit')} on {record.get('device')}, "
-        f"{record.get('created')}; versions {json.dumps(record.get('versions'), sort_keys=True)}",
+        f"- profile `{m.profile}`, protocol {m.protocol_hash}: "
+        f"`{json.dumps(m.protocol, sort_keys=True)}`",
+        f"- backbone checkpoint and normaliser: `{json.dumps(m.checkpoint, sort_keys=True)}`",
+        f"- features: {m.features_mode} ({m.stored_feature_dtype or 'encoder in the loop'}); "
+        f"encoder weights {record.training.encoder_weights}",
+        f"- measured with graftbench {run.git_commit} on {run.device}, {run.created}; "
+        f"versions {json.dumps(run.versions, sort_keys=True)}",
     ]
-    if record.get("grid_file"):
-        lines.append(f"- study file: `{json.dumps(record['grid_file'], sort_keys=True)}`")
+    if m.grid_file:
+        lines.append(f"- study file: `{json.dumps(m.grid_file, sort_keys=True)}`")
     if note:
         lines.append(f"- chosen as the best: {note}")
     lines += [
