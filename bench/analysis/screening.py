@@ -232,8 +232,9 @@ def ridge_heldout(folds: list[Moments], heldout: Moments) -> tuple[Measure, floa
     return squared_error(heldout, *fit) / (heldout.n * heldout.outputs), RIDGE_GRID[best]
 
 
-def _standardiser(features: np.ndarray, chunk: int = 4096):
-    """f(x) -> standardised kept columns, by `features`' own mean and std; or Undefined."""
+def _standardiser(features: np.ndarray, weights: np.ndarray | None = None, chunk: int = 4096):
+    """f(x) -> standardised kept columns (times `weights` (D,) when given), by `features`' own
+    mean and std; or Undefined."""
     m = Moments(features.shape[1], 1)
     for start in range(0, len(features), chunk):
         part = features[start:start + chunk]
@@ -241,7 +242,8 @@ def _standardiser(features: np.ndarray, chunk: int = 4096):
     s = standardise(m)
     if isinstance(s, Undefined):
         return s
-    return lambda x: (np.asarray(x, float)[:, s.keep] - s.mean[s.keep]) / s.scale[s.keep]
+    factor = (np.ones(m.dim) if weights is None else np.asarray(weights, float))[s.keep]
+    return lambda x: (np.asarray(x, float)[:, s.keep] - s.mean[s.keep]) / s.scale[s.keep] * factor
 
 
 def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarray,
@@ -263,19 +265,20 @@ def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarr
 
 
 def knn_heldout(train_features: np.ndarray, train_targets: np.ndarray, train_fold: np.ndarray,
-                heldout_features: np.ndarray, heldout_targets: np.ndarray, chunk: int = 512
-                ) -> tuple[Measure, int | None]:
+                heldout_features: np.ndarray, heldout_targets: np.ndarray, chunk: int = 512,
+                weights: np.ndarray | None = None) -> tuple[Measure, int | None]:
     """(held-out MSE per target element, chosen k) of k-NN regression.
 
     train_features (N, D), train_targets (N, C), train_fold (N,) int: the episode fold of each
-    training window (>= 2 folds; k chosen on them), heldout_* (M, D), (M, C)."""
+    training window (>= 2 folds; k chosen on them), heldout_* (M, D), (M, C); weights (D,): a
+    factor on each standardised column in the distance (default 1)."""
     folds = np.unique(train_fold)
     if len(folds) < 2:
         return Undefined(f"{len(folds)} training episode fold(s): k cannot be chosen on "
                          "training episodes"), None
     if len(heldout_features) == 0:
         return Undefined("no held-out windows"), None
-    scale = _standardiser(train_features)
+    scale = _standardiser(train_features, weights)
     if isinstance(scale, Undefined):
         return scale, None
     z, y = scale(train_features), np.asarray(train_targets, float)
@@ -288,7 +291,7 @@ def knn_heldout(train_features: np.ndarray, train_targets: np.ndarray, train_fol
     k = ks[int(np.argmin(sse))]  # ties: the smaller k (argmin's first)
     heldout_sse = _knn_sse(scale(heldout_features), np.asarray(heldout_targets, float), z, y,
                            (k,), chunk)[0]
-    return heldout_sse / heldout_targets.size, k
+    return float(heldout_sse / heldout_targets.size), k
 
 
 def token_norms(grid: np.ndarray) -> np.ndarray:
