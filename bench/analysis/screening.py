@@ -187,16 +187,28 @@ def logme_moments(m: Moments) -> Measure:
     return logme_gram(s.gram, s.zy, s.yy, s.n)
 
 
-def ridge_fit(m: Moments, ratio: float) -> tuple[np.ndarray, np.ndarray] | Undefined:
-    """(weights (D, C), bias (C,)) in raw feature units: ridge on `m`'s standardised windows,
-    penalty ratio * n, bias unpenalised (the centring)."""
+def ridge_path(m: Moments, ratios: tuple[float, ...]
+               ) -> list[tuple[np.ndarray, np.ndarray]] | Undefined:
+    """Per ratio (weights (D, C), bias (C,)) in raw feature units: ridge on `m`'s standardised
+    windows, penalty ratio * n, bias unpenalised (the centring); one eigh for all ratios."""
     s = standardise(m)
     if isinstance(s, Undefined):
         return s
-    wz = np.linalg.solve(s.gram + ratio * s.n * np.eye(len(s.gram)), s.zy)
-    weights = np.zeros((m.dim, m.outputs))
-    weights[s.keep] = wz / s.scale[s.keep, None]
-    return weights, s.ymean - s.mean @ weights
+    sigma, vecs = np.linalg.eigh(s.gram)
+    rotated = vecs.T @ s.zy
+    out = []
+    for ratio in ratios:
+        wz = vecs @ (rotated / (np.clip(sigma, 0.0, None) + ratio * s.n)[:, None])
+        weights = np.zeros((m.dim, m.outputs))
+        weights[s.keep] = wz / s.scale[s.keep, None]
+        out.append((weights, s.ymean - s.mean @ weights))
+    return out
+
+
+def ridge_fit(m: Moments, ratio: float) -> tuple[np.ndarray, np.ndarray] | Undefined:
+    """(weights (D, C), bias (C,)) of ridge at one penalty ratio (see ridge_path)."""
+    path = ridge_path(m, (ratio,))
+    return path if isinstance(path, Undefined) else path[0]
 
 
 def squared_error(m: Moments, weights: np.ndarray, bias: np.ndarray) -> float:
@@ -214,15 +226,12 @@ def ridge_heldout(folds: list[Moments], heldout: Moments) -> tuple[Measure, floa
     total = folds[0]
     for f in folds[1:]:
         total = total.plus(f)
-    errors = []
-    for ratio in RIDGE_GRID:
-        sse = 0.0
-        for f in folds:
-            fit = ridge_fit(total.plus(f, -1.0), ratio)
-            if isinstance(fit, Undefined):
-                return fit, None
-            sse += squared_error(f, *fit)
-        errors.append(sse)
+    errors = np.zeros(len(RIDGE_GRID))
+    for f in folds:
+        path = ridge_path(total.plus(f, -1.0), RIDGE_GRID)
+        if isinstance(path, Undefined):
+            return path, None
+        errors += [squared_error(f, *fit) for fit in path]
     best = max(i for i, e in enumerate(errors) if e <= min(errors))  # ties: the larger penalty
     fit = ridge_fit(total, RIDGE_GRID[best])
     if isinstance(fit, Undefined):
