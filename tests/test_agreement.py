@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from bench.analysis.agreement import (Undefined, agreement, as_float, is_defined,
-                                      kendall_p_value, kendall_tau_b, mmrv, top1_regret,
-                                      weighted_tau)
+from bench.analysis.agreement import (Undefined, agreement, as_float, bootstrap_agreement,
+                                      is_defined, kendall_p_value, kendall_tau_b, mmrv,
+                                      top1_regret, weighted_tau)
 
 
 def test_mmrv_perfect_order_is_zero():
@@ -95,3 +95,22 @@ def test_agreement_bundles_and_serialises_undefined():
     d = a.to_dict()
     assert d["n"] == 3 and d["top1_regret"] == 0.0
     assert set(d["tau_b"]) == {"undefined"} and "actual" in d["mmrv"]["undefined"]
+
+
+def test_bootstrap_interval_is_paired_over_windows():
+    rng = np.random.default_rng(0)
+    base = -np.array([[0.1], [0.2], [0.3], [0.4]]) - 0.001 * rng.random((4, 50))
+    out = bootstrap_agreement([4, 3, 2, 1], base, n_resamples=200)
+    assert out["tau_b"].low == pytest.approx(1.0) and out["tau_b"].high == pytest.approx(1.0)
+    assert out["mmrv"].high == 0.0 and out["tau_b"].undefined == 0
+    close = -np.array([[0.1], [0.1], [0.5], [0.6]]) - rng.normal(0, 0.05, (4, 50))
+    wide = bootstrap_agreement([4, 3, 2, 1], close, n_resamples=200)["tau_b"]
+    assert wide.low < 1.0 and wide.high == pytest.approx(1.0)
+
+
+def test_bootstrap_of_a_tied_prediction_is_undefined_with_reason():
+    out = bootstrap_agreement([1, 1, 1], np.zeros((3, 5)) + [[1], [2], [3]], n_resamples=20)
+    assert isinstance(out["tau_b"], Undefined) and "every predicted score ties" in out["tau_b"].reason
+    assert out["mmrv"].low == out["mmrv"].high == pytest.approx(1.0)  # (0 + 1 + 2) / 3
+    with pytest.raises(ValueError, match=r"\(n, W\)"):
+        bootstrap_agreement([1, 2], np.zeros(2))

@@ -163,3 +163,54 @@ def agreement(predicted: Sequence[float], actual: Sequence[float]) -> Agreement:
     return Agreement(n=len(predicted), tau_b=kendall_tau_b(predicted, actual),
                      weighted_tau=weighted_tau(predicted, actual), mmrv=mmrv(predicted, actual),
                      top1_regret=top1_regret(predicted, actual))
+
+
+STATISTICS = ("tau_b", "weighted_tau", "mmrv", "top1_regret")
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A percentile bootstrap interval of one statistic; `undefined` replicates are left out."""
+
+    low: float
+    high: float
+    replicates: int
+    undefined: int
+
+
+def bootstrap_agreement(predicted: np.ndarray, actual: np.ndarray, n_resamples: int = 1000,
+                        seed: int = 0, confidence: float = 0.95
+                        ) -> dict[str, Interval | Undefined]:
+    """Paired window bootstrap of the four statistics: each replicate draws the W windows with
+    replacement ONCE for all n items and re-averages both tiers over them.
+
+    predicted: (n,) fixed scores, or (n, W) per-window scores on the same windows as `actual`;
+    actual: (n, W) per-window scores (higher is better: -MSE). Percentile interval over the
+    replicates where the statistic is defined; Undefined when none is."""
+    actual = np.asarray(actual, dtype=float)
+    predicted = np.asarray(predicted, dtype=float)
+    if actual.ndim != 2 or predicted.shape not in ((len(actual),), actual.shape):
+        raise ValueError(f"actual must be (n, W) and predicted (n,) or (n, W); got "
+                         f"{actual.shape} and {predicted.shape}")
+    rng = np.random.default_rng(seed)
+    values: dict[str, list[float]] = {k: [] for k in STATISTICS}
+    reasons: dict[str, str] = {}
+    for _ in range(n_resamples):
+        w = rng.integers(0, actual.shape[1], actual.shape[1])
+        s = predicted[:, w].mean(axis=1) if predicted.ndim == 2 else predicted
+        a = agreement(s, actual[:, w].mean(axis=1))
+        for k in STATISTICS:
+            v = getattr(a, k)
+            if isinstance(v, Undefined):
+                reasons.setdefault(k, v.reason)
+            else:
+                values[k].append(v)
+    alpha = (1 - confidence) / 2
+    out: dict[str, Interval | Undefined] = {}
+    for k, v in values.items():
+        if not v:
+            out[k] = Undefined(f"every replicate undefined: {reasons.get(k)}")
+            continue
+        out[k] = Interval(float(np.quantile(v, alpha)), float(np.quantile(v, 1 - alpha)),
+                          len(v), n_resamples - len(v))
+    return out
