@@ -1,0 +1,88 @@
+"""A cheaper tier against the full graft, per backbone x suite: rank agreement with intervals.
+
+The items are the encoders that have both a defined score of the cheaper tier (a screen proxy:
+higher is better) and at least one graft record on the backbone x suite. The graft's score of an
+encoder is its normalised held-out MSE averaged over its seeds, per window, so the paired window
+bootstrap (bench.analysis.agreement.bootstrap_agreement) draws the same windows for every
+encoder. Fewer than MIN_ENCODERS such encoders: "not measured", with the reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from bench.analysis.agreement import (Agreement, Interval, Measure, Undefined, agreement,
+                                      bootstrap_agreement, is_defined)
+from bench.analysis.rankings import PRIMARY
+from bench.grid.kinds import GRAFT
+
+MIN_ENCODERS = 6
+
+
+@dataclass
+class TierAgreement:
+    """One cheaper tier (`tier`) against the graft on backbone x suite; `missing` says why not."""
+
+    backbone: str
+    suite: str
+    tier: str
+    encoders: list[str] = field(default_factory=list)
+    predicted: list[float] = field(default_factory=list)
+    graft_mse: list[float] = field(default_factory=list)
+    point: Agreement | None = None
+    intervals: dict[str, Interval | Undefined] = field(default_factory=dict)
+    left_out: dict[str, str] = field(default_factory=dict)  # encoder -> why it is not an item
+    missing: str | None = None
+
+
+def graft_per_window(records: Sequence, backbone: str, suite: str
+                     ) -> tuple[dict[str, np.ndarray], str | None]:
+    """({encoder: (W,) normalised MSE per window, mean over seeds}, problem or None)."""
+    grafts = [r for r in records
+              if r.kind == GRAFT and r.backbone == backbone and r.suite == suite]
+    if not grafts:
+        return {}, None
+    windows = grafts[0].scores.window_ids
+    for r in grafts:
+        if r.scores.window_ids != windows:
+            return {}, (f"{r.cell_id} was scored on other windows than {grafts[0].cell_id}: "
+                        "not paired, no agreement computed")
+    by_encoder: dict[str, list] = {}
+    for r in grafts:
+        by_encoder.setdefault(r.encoder, []).append(r.scores.per_window_in(PRIMARY))
+    return {e: np.mean(v, axis=0) for e, v in by_encoder.items()}, None
+
+
+def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: str, suite: str,
+                   tier: str, n_resamples: int = 1000, seed: int = 0) -> TierAgreement:
+    """Agreement of the cheaper tier's `scores` {encoder: score, higher is better} with the
+    graft records of backbone x suite, with paired window bootstrap intervals."""
+    out = TierAgreement(backbone, suite, tier)
+    per_window, problem = graft_per_window(records, backbone, suite)
+    if problem:
+        out.missing = problem
+        return out
+    for encoder in sorted(set(scores) | set(per_window)):
+        score = scores.get(encoder)
+        if encoder not in per_window:
+            out.left_out[encoder] = "no graft record"
+        elif score is None:
+            out.left_out[encoder] = f"no {tier} score"
+        elif not is_defined(score):
+            out.left_out[encoder] = f"{tier} {score}"
+        else:
+            out.encoders.append(encoder)
+    if len(out.encoders) < MIN_ENCODERS:
+        out.missing = (f"not measured: {len(out.encoders)} encoder(s) have both a {tier} score "
+                       f"and a graft on {backbone} x {suite} ({out.encoders}); needs "
+                       f"{MIN_ENCODERS}")
+        return out
+    out.predicted = [float(scores[e]) for e in out.encoders]
+    windows = np.array([per_window[e] for e in out.encoders])  # (n, W)
+    out.graft_mse = windows.mean(axis=1).tolist()
+    out.point = agreement(out.predicted, [-m for m in out.graft_mse])
+    out.intervals = bootstrap_agreement(np.array(out.predicted), -windows, n_resamples, seed)
+    return out

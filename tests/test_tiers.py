@@ -1,0 +1,54 @@
+"""bench.analysis.tiers: a cheaper tier against graft records, by hand, with what is left out."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.analysis.agreement import Undefined
+from bench.analysis.tiers import MIN_ENCODERS, tier_agreement
+from tests.factories import make_record
+
+ENCODERS = [f"timm:model_{i}" for i in range(7)]
+LEVELS = {e: 0.05 + 0.01 * i for i, e in enumerate(ENCODERS)}  # model_0 best
+
+
+def grafts(seeds=(0, 1)):
+    return [make_record(encoder=e, level=level, seed=s, noise=0.001)
+            for e, level in LEVELS.items() for s in seeds]
+
+
+def test_a_perfect_proxy_agrees_with_intervals():
+    out = tier_agreement({e: -level for e, level in LEVELS.items()}, grafts(), "smolvla",
+                         "spatial", "ridge", n_resamples=200)
+    assert out.missing is None and out.encoders == sorted(ENCODERS)
+    assert out.point.tau_b == pytest.approx(1.0) and out.point.mmrv == 0.0
+    assert out.point.top1_regret == 0.0
+    assert out.intervals["tau_b"].low == pytest.approx(1.0)
+    assert out.graft_mse[0] == pytest.approx(0.05)
+
+
+def test_a_wrong_pick_costs_its_regret_in_mse():
+    scores = {e: -level for e, level in LEVELS.items()}
+    scores["timm:model_3"] = 1.0  # the proxy's pick; its graft MSE is 0.08, the best 0.05
+    out = tier_agreement(scores, grafts(), "smolvla", "spatial", "logme", n_resamples=50)
+    assert out.point.top1_regret == pytest.approx(0.03)
+    assert out.point.tau_b < 1.0
+
+
+def test_too_few_encoders_is_not_measured_and_undefined_scores_are_left_out():
+    scores = {e: -level for e, level in LEVELS.items()}
+    scores["timm:model_0"] = Undefined("all 4 feature columns constant")
+    scores["timm:model_1"] = Undefined("too few windows")
+    scores["timm:extra"] = 1.0  # screened, never grafted
+    out = tier_agreement(scores, grafts(), "smolvla", "spatial", "knn")
+    assert out.missing.startswith("not measured: 5 encoder(s)") and str(MIN_ENCODERS) in out.missing
+    assert "constant" in out.left_out["timm:model_0"]
+    assert out.left_out["timm:extra"] == "no graft record"
+    assert out.point is None
+
+
+def test_unpaired_windows_are_refused():
+    records = grafts(seeds=(0,))
+    records[0] = make_record(encoder=ENCODERS[0], level=0.05, window_ids=list(range(24)))
+    out = tier_agreement({e: 0.0 for e in ENCODERS}, records, "smolvla", "spatial", "ridge")
+    assert "not paired" in out.missing
