@@ -15,9 +15,19 @@ def tiny_ws(tmp_path_factory):
     a private results store, shared by the tests that run real cells."""
     from bench.grid.protocol import TINY
     from bench.results.store import ResultStore
-    from bench.run.workspace import Workspace
+    from tests.worlds import lent_workspace
 
-    return Workspace(TINY, ResultStore(tmp_path_factory.mktemp("results")), progress=False)
+    return lent_workspace(TINY, ResultStore(tmp_path_factory.mktemp("results")))
+
+
+@pytest.fixture
+def tiny_workspace(tmp_path):
+    """`tiny_workspace(profile)`: a workspace of `profile` with a results store of this test's
+    own, lending the session's loaded tiny world (tests/worlds.py)."""
+    from bench.results.store import ResultStore
+    from tests.worlds import lent_workspace
+
+    return lambda profile: lent_workspace(profile, ResultStore(tmp_path / "results"))
 
 
 @pytest.fixture(scope="module")
@@ -30,3 +40,16 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture
+def bench_cli():
+    """`bench_cli(folder, *args)`: `pytest bench *args` run in this process (tests/bench_inprocess.py)
+    with its results in folder/results and its report at folder/REPORT.md."""
+    from tests.bench_inprocess import run_bench
+
+    def run(folder, *args: str, **kwargs):
+        return run_bench("--results-dir", str(folder / "results"),
+                         "--report", str(folder / "REPORT.md"), *args, **kwargs)
+
+    return run

@@ -1,28 +1,16 @@
-"""The user's interface, end to end in a subprocess: `pytest bench ...` with options."""
+"""The user's interface, end to end: `pytest bench ...` with options (in this process:
+tests/bench_inprocess.py)."""
 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
-from pathlib import Path
-
-from external.paths import REPO_ROOT
 
 SLICE = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels,blind",
          "--seeds", "0", "--controls", "native", "--steps", "5"]
 
 
-def run_bench(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "pytest", "bench", "-p", "no:cacheprovider",
-           "--results-dir", str(tmp_path / "results"), "--report", str(tmp_path / "REPORT.md"), *args]
-    env = {**os.environ, "GRAFTBENCH_QUIET": "1"}
-    return subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True, env=env, timeout=900)
-
-
-def test_slice_runs_resumes_and_reports(tmp_path):
-    first = run_bench(tmp_path, *SLICE, "-k", "pixels or native")
+def test_slice_runs_resumes_and_reports(bench_cli, tmp_path):
+    first = bench_cli(tmp_path, *SLICE, "-k", "pixels or native")
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     assert "2 passed, 1 deselected" in first.stdout
     assert "measured 2, resumed from store 0" in first.stdout  # -k kept pixels + native only
@@ -31,7 +19,7 @@ def test_slice_runs_resumes_and_reports(tmp_path):
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "results" / "cells").iterdir()}
     assert (tmp_path / "REPORT.md").exists()
 
-    again = run_bench(tmp_path, *SLICE, "-k", "pixels or native")
+    again = bench_cli(tmp_path, *SLICE, "-k", "pixels or native")
     assert again.returncode == 0, again.stdout[-3000:]
     assert "measured 0, resumed from store 2" in again.stdout  # a finished grid recomputes nothing
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
@@ -42,20 +30,20 @@ def test_slice_runs_resumes_and_reports(tmp_path):
     assert sorted(grid["expected"]) == ["pi05-spatial-native-seed0", "pi05-spatial-pixels-seed0"]
 
 
-def test_unknown_names_fail_before_any_work_listing_valid_ones(tmp_path):
-    bad_encoder = run_bench(tmp_path, "--encoders", "dinov3", "--controls", "none")
+def test_unknown_names_fail_before_any_work_listing_valid_ones(bench_cli, tmp_path):
+    bad_encoder = bench_cli(tmp_path, "--encoders", "dinov3", "--controls", "none")
     assert bad_encoder.returncode != 0
     assert "unknown encoder" in (bad_encoder.stdout + bad_encoder.stderr).lower()
     assert "dinov2_s" in bad_encoder.stdout + bad_encoder.stderr
-    bad_backbone = run_bench(tmp_path, "--backbones", "smolvlm")
+    bad_backbone = bench_cli(tmp_path, "--backbones", "smolvlm")
     assert "unknown backbone 'smolvlm' (did you mean 'smolvla'?)" in bad_backbone.stdout + bad_backbone.stderr
-    bad_suite = run_bench(tmp_path, "--suites", "spatail")
+    bad_suite = bench_cli(tmp_path, "--suites", "spatail")
     assert "unknown suite 'spatail'" in bad_suite.stdout + bad_suite.stderr
     assert not (tmp_path / "results" / "cells").exists() or not any((tmp_path / "results" / "cells").iterdir())
 
 
-def test_rollouts_on_synthetic_suites_fail_before_any_work(tmp_path):
-    out = run_bench(tmp_path, *SLICE, "--rollouts", "2")
+def test_rollouts_on_synthetic_suites_fail_before_any_work(bench_cli, tmp_path):
+    out = bench_cli(tmp_path, *SLICE, "--rollouts", "2")
     assert out.returncode != 0
     text = out.stdout + out.stderr
     assert "--rollouts: profile 'tiny' uses generated synthetic suites" in text
@@ -63,10 +51,10 @@ def test_rollouts_on_synthetic_suites_fail_before_any_work(tmp_path):
     assert not (tmp_path / "results" / "cells").exists()
 
 
-def test_a_record_from_another_normaliser_is_measured_again_not_resumed(tmp_path):
+def test_a_record_from_another_normaliser_is_measured_again_not_resumed(bench_cli, tmp_path):
     one = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "blind", "--seeds", "0",
            "--controls", "none", "--steps", "5"]
-    first = run_bench(tmp_path, *one)
+    first = bench_cli(tmp_path, *one)
     assert first.returncode == 0 and "measured 1, resumed from store 0" in first.stdout
     path = tmp_path / "results" / "cells" / "pi05-spatial-blind-seed0.json"
     record = json.loads(path.read_text())
@@ -74,25 +62,25 @@ def test_a_record_from_another_normaliser_is_measured_again_not_resumed(tmp_path
     assert len(record["checkpoint"]["normalizer_fingerprint"]) == 12
     record["checkpoint"]["normalizer_fingerprint"] = "000000000000"  # measured under other stats
     path.write_text(json.dumps(record))
-    again = run_bench(tmp_path, *one)
+    again = bench_cli(tmp_path, *one)
     assert again.returncode == 0 and "measured 1, resumed from store 0" in again.stdout
     assert json.loads(path.read_text())["checkpoint"]["normalizer_fingerprint"] != "000000000000"
-    third = run_bench(tmp_path, *one)
+    third = bench_cli(tmp_path, *one)
     assert "measured 0, resumed from store 1" in third.stdout
 
 
-def test_a_record_measured_on_other_weights_is_measured_again_not_resumed(tmp_path):
+def test_a_record_measured_on_other_weights_is_measured_again_not_resumed(bench_cli, tmp_path):
     """The tiny release's revision is its weights' hash: the same release key trained under
     another thread count (other bits) or another cache must not lend its records to this one."""
     one = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "blind", "--seeds", "0",
            "--controls", "none", "--steps", "5"]
-    assert run_bench(tmp_path, *one).returncode == 0
+    assert bench_cli(tmp_path, *one).returncode == 0
     path = tmp_path / "results" / "cells" / "pi05-spatial-blind-seed0.json"
     record = json.loads(path.read_text())
     assert record["checkpoint"]["repo_id"] == "tiny:pi05"
     assert record["checkpoint"]["revision"].startswith("sha256:")
     record["checkpoint"]["revision"] = "sha256:0000000000000000"  # another release's weights
     path.write_text(json.dumps(record))
-    again = run_bench(tmp_path, *one)
+    again = bench_cli(tmp_path, *one)
     assert again.returncode == 0 and "measured 1, resumed from store 0" in again.stdout
     assert json.loads(path.read_text())["checkpoint"]["revision"] != "sha256:0000000000000000"

@@ -14,7 +14,6 @@ from bench.grid.gridfile import GridFileError, read_grid_file
 from bench.options import build_profile
 from external.paths import REPO_ROOT
 from bench.grid.protocol import TINY, TINY_FULL, with_overrides
-from tests.test_grid_plugin import run_bench
 
 STUDY = """\
 profile = "tiny"
@@ -121,8 +120,8 @@ def test_a_missing_file_is_one_line(tmp_path):
         read_grid_file(tmp_path / "nope.toml")
 
 
-def test_pytest_bench_stops_on_a_bad_file_in_one_line(tmp_path):
-    out = run_bench(tmp_path, "--grid", str(_write(tmp_path, "seed = [0]\n")), "--co")
+def test_pytest_bench_stops_on_a_bad_file_in_one_line(bench_cli, tmp_path):
+    out = bench_cli(tmp_path, "--grid", str(_write(tmp_path, "seed = [0]\n")), "--co")
     text = out.stdout + out.stderr
     assert out.returncode == 4 and "study.toml: seed is not a key here" in text
     assert "INTERNALERROR" not in text and "Traceback" not in text
@@ -161,13 +160,13 @@ def _records(results) -> dict[str, dict]:
     return {p.stem: json.loads(p.read_text()) for p in (results / "cells").glob("*.json")}
 
 
-def test_a_study_file_runs_the_same_cells_and_records_its_hash(tmp_path):
+def test_a_study_file_runs_the_same_cells_and_records_its_hash(bench_cli, tmp_path):
     """End to end: `pytest bench --grid study.toml`, then the same options on the command line
     with no file: the same cells, the same MSE bits; only the first carries the file's hash."""
     study = _write(tmp_path, STUDY)
-    from_file = run_bench(tmp_path / "file", "--grid", str(study))
+    from_file = bench_cli(tmp_path / "file", "--grid", str(study))
     assert from_file.returncode == 0, from_file.stdout[-3000:] + from_file.stderr[-3000:]
-    by_hand = run_bench(tmp_path / "cli", "--backbones", "pi05", "--suites", "spatial",
+    by_hand = bench_cli(tmp_path / "cli", "--backbones", "pi05", "--suites", "spatial",
                         "--encoders", "pixels,blind", "--seeds", "0", "--controls", "none",
                         "--steps", "5")
     assert by_hand.returncode == 0, by_hand.stdout[-3000:] + by_hand.stderr[-3000:]

@@ -4,6 +4,10 @@ The tiny suites make the action depend on what the images show (target position 
 an encoder that keeps all pixels (`pixels`) must beat one that sees nothing (`blind`), the native
 policy must beat its own zero/shuffled-image controls, and so on. Comparisons are paired over the
 identical held-out windows, with a margin and a sign test, not just a lower mean.
+
+The paired answers train cells of the tiny protocol (`slow`); each cell is measured once per
+session and shared by the answers that read it. The checks that are not about a margin
+(parameter counts, determinism, cache vs loop, NaN) run a few projector steps.
 """
 
 from __future__ import annotations
@@ -14,10 +18,12 @@ import torch
 from scipy.stats import wilcoxon
 
 from bench.grid.cells import CellSpec
+from bench.grid.protocol import TINY, with_overrides
 from bench.run.runner import run_cell
 from bench.run.train import NonFiniteLoss
 
 BACKBONES = ("smolvla", "pi05", "pi0")
+FEW_STEPS = with_overrides(TINY, steps=12)  # for the checks that are not about a margin
 
 
 def paired(better: dict, worse: dict, margin: float = 0.05) -> tuple[float, float]:
@@ -39,10 +45,32 @@ def cell(ws, kind, backbone, encoder=None, variant=None, suite="spatial", seed=0
     return run_cell(CellSpec(kind, backbone, suite, seed, encoder, variant), ws, **kw)
 
 
+@pytest.fixture(scope="module")
+def measured(tiny_ws):
+    """`measured(kind, backbone, encoder, variant)`: the tiny protocol's record of that spatial
+    seed-0 cell, measured once per session (a graft before its controls: they reuse its
+    trained projector)."""
+    records: dict[str, dict] = {}
+
+    def measure(kind, backbone, encoder=None, variant=None):
+        spec = CellSpec(kind, backbone, "spatial", 0, encoder, variant)
+        if spec.id not in records:
+            records[spec.id] = run_cell(spec, tiny_ws)
+        return records[spec.id]
+
+    return measure
+
+
+@pytest.fixture
+def few_steps_ws(tiny_workspace):
+    return tiny_workspace(FEW_STEPS)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("backbone", BACKBONES)
-def test_pixels_beats_blind_and_training_reduces_the_loss(tiny_ws, backbone):
-    pixels = cell(tiny_ws, "graft", backbone, "pixels")
-    blind = cell(tiny_ws, "graft", backbone, "blind")
+def test_pixels_beats_blind_and_training_reduces_the_loss(measured, backbone):
+    pixels = measured("graft", backbone, "pixels")
+    blind = measured("graft", backbone, "blind")
     paired(pixels, blind)
     for record in (pixels, blind):
         assert record["probe_loss"]["after"] < record["probe_loss"]["before"]
@@ -50,27 +78,29 @@ def test_pixels_beats_blind_and_training_reduces_the_loss(tiny_ws, backbone):
 
 
 @pytest.mark.parametrize("backbone", BACKBONES)
-def test_native_policy_uses_vision(tiny_ws, backbone):
-    native = cell(tiny_ws, "native", backbone)
-    zero = cell(tiny_ws, "zero_image", backbone, variant="eval")
-    shuffled = cell(tiny_ws, "shuffled_image", backbone)
+def test_native_policy_uses_vision(measured, backbone):
+    native = measured("native", backbone)
+    zero = measured("zero_image", backbone, variant="eval")
+    shuffled = measured("shuffled_image", backbone)
     paired(native, zero)
     paired(native, shuffled)
     assert native["trainable_params"] == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backbone", BACKBONES)
-def test_image_controls_of_a_graft_are_worse_than_the_graft(tiny_ws, backbone):
-    graft = cell(tiny_ws, "graft", backbone, "pixels")
-    paired(graft, cell(tiny_ws, "shuffled_image", backbone, "pixels"))
-    paired(graft, cell(tiny_ws, "zero_image", backbone, "pixels", "eval"))
-    paired(graft, cell(tiny_ws, "zero_image", backbone, "pixels", "train"))
+def test_image_controls_of_a_graft_are_worse_than_the_graft(measured, backbone):
+    graft = measured("graft", backbone, "pixels")
+    paired(graft, measured("shuffled_image", backbone, "pixels"))
+    paired(graft, measured("zero_image", backbone, "pixels", "eval"))
+    paired(graft, measured("zero_image", backbone, "pixels", "train"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backbone", BACKBONES)
-def test_one_token_pooling_is_worse_than_the_native_grid(tiny_ws, backbone):
-    graft = cell(tiny_ws, "graft", backbone, "pixels")
-    pooled = cell(tiny_ws, "pooling", backbone, "pixels", "global")
+def test_one_token_pooling_is_worse_than_the_native_grid(measured, backbone):
+    graft = measured("graft", backbone, "pixels")
+    pooled = measured("pooling", backbone, "pixels", "global")
     assert pooled["grid"] == [1, 1]
     paired(graft, pooled, margin=0.03)
 
@@ -95,10 +125,10 @@ def test_released_tiny_policy_beats_an_untrained_one(tiny_ws):
                {**b.to_json(), "cell_id": f"untrained {name}"}, 0.3)
 
 
-def test_lora_trainable_count_is_projector_plus_adapters_exactly(tiny_ws):
-    record = cell(tiny_ws, "lora", "smolvla", "pixels")
-    lm = tiny_ws.backbone("smolvla").language_model()
-    p = tiny_ws.profile.protocol
+def test_lora_trainable_count_is_projector_plus_adapters_exactly(few_steps_ws):
+    record = cell(few_steps_ws, "lora", "smolvla", "pixels")
+    lm = few_steps_ws.backbone("smolvla").language_model()
+    p = few_steps_ws.profile.protocol
     expected = sum(
         p.lora_rank * (m.in_features + m.out_features)
         for n, m in lm.named_modules()
@@ -111,29 +141,28 @@ def test_lora_trainable_count_is_projector_plus_adapters_exactly(tiny_ws):
     assert not any("lora_" in n for n, _ in lm.named_parameters())
 
 
-def test_cached_and_in_loop_features_give_the_same_mse(tiny_ws):
-    cached = cell(tiny_ws, "graft", "pi05", "dinov2_s", features_mode="cache")
-    loop = cell(tiny_ws, "graft", "pi05", "dinov2_s", features_mode="loop")
+def test_cached_and_in_loop_features_give_the_same_mse(few_steps_ws):
+    cached = cell(few_steps_ws, "graft", "pi05", "dinov2_s", features_mode="cache")
+    loop = cell(few_steps_ws, "graft", "pi05", "dinov2_s", features_mode="loop")
     assert loop["features_mode"] == "loop"
     np.testing.assert_allclose(loop["mse"]["normalized"], cached["mse"]["normalized"], rtol=1e-4)
     np.testing.assert_allclose(loop["per_window"]["raw"], cached["per_window"]["raw"], rtol=1e-3, atol=1e-6)
 
 
-def test_same_cell_twice_gives_the_same_mse(tiny_ws):
-    first = cell(tiny_ws, "graft", "smolvla", "siglip", seed=1)
-    again = cell(tiny_ws, "graft", "smolvla", "siglip", seed=1)
+def test_same_cell_twice_gives_the_same_mse(few_steps_ws):
+    first = cell(few_steps_ws, "graft", "smolvla", "siglip", seed=1)
+    again = cell(few_steps_ws, "graft", "smolvla", "siglip", seed=1)
     assert first["mse"] == again["mse"]
     assert first["per_window"] == again["per_window"]
-    other_seed = cell(tiny_ws, "graft", "smolvla", "siglip", seed=2)
+    other_seed = cell(few_steps_ws, "graft", "smolvla", "siglip", seed=2)
     assert other_seed["mse"] != first["mse"]
 
 
-def test_nan_features_fail_the_cell_naming_the_step(tiny_ws):
-    tiny_ws.feature_transforms["blind"] = lambda f, _rows: {k: v * float("nan")
-                                                            for k, v in f.items()}
-    try:
-        with pytest.raises(NonFiniteLoss, match=r"loss is nan at step 0 of"):
-            cell(tiny_ws, "graft", "pi05", "blind", seed=7)
-    finally:
-        tiny_ws.feature_transforms.clear()
-    assert tiny_ws.store.current("pi05-spatial-blind-seed7", tiny_ws.profile.protocol.hash) is None
+def test_nan_features_fail_the_cell_naming_the_step(few_steps_ws):
+    ws = few_steps_ws
+    def nan_features(features, _rows):
+        return {k: v * float("nan") for k, v in features.items()}
+
+    with pytest.raises(NonFiniteLoss, match=r"loss is nan at step 0 of"):
+        cell(ws, "graft", "pi05", "blind", seed=7, feature_transform=nan_features)
+    assert ws.store.load("pi05-spatial-blind-seed7") is None

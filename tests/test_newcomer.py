@@ -1,13 +1,10 @@
-"""A newcomer's first run, in a subprocess: progress without -s, a report that belongs to its
-results, nothing written when nothing finished, bad options in one line."""
+"""A newcomer's first run, `pytest bench` as typed (in this process: tests/bench_inprocess.py):
+progress without -s, a report that belongs to its results, nothing written when nothing
+finished, bad options in one line."""
 
 from __future__ import annotations
 
-import os
 import re
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
@@ -17,15 +14,19 @@ ONE_CELL = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "blind",
             "--controls", "none", "--steps", "5"]
 
 
-def run_bench(*args: str, quiet: bool = False) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "GRAFTBENCH_QUIET"}
-    if quiet:
-        env["GRAFTBENCH_QUIET"] = "1"
-    cmd = [sys.executable, "-m", "pytest", "bench", "-p", "no:cacheprovider", *args]
-    return subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True, env=env, timeout=900)
+@pytest.fixture
+def run_bench():
+    """`run_bench(*args, quiet=False)`: GRAFTBENCH_QUIET unset unless quiet, a workspace built as
+    a user's run builds it (torch threads chosen and printed)."""
+    from tests.bench_inprocess import run_bench as run
+
+    def bench(*args: str, quiet: bool = False):
+        return run(*args, shared=False, env={"GRAFTBENCH_QUIET": "1" if quiet else None})
+
+    return bench
 
 
-def test_first_run_shows_progress_and_leaves_the_repo_report_alone(tmp_path):
+def test_first_run_shows_progress_and_leaves_the_repo_report_alone(run_bench, tmp_path):
     committed = REPO_ROOT / "REPORT.md"
     before = committed.read_bytes() if committed.exists() else None
     out = run_bench(*ONE_CELL, "--results-dir", str(tmp_path / "results"))  # no -s, no --report
@@ -51,7 +52,7 @@ def test_first_run_shows_progress_and_leaves_the_repo_report_alone(tmp_path):
     assert f"report: {report} left as it was" in quiet.stdout
 
 
-def test_runs_that_finish_no_cell_write_no_report(tmp_path):
+def test_runs_that_finish_no_cell_write_no_report(run_bench, tmp_path):
     results = tmp_path / "results"
     results.mkdir()
     (results / "REPORT.md").write_text("an earlier report\n")
@@ -69,14 +70,14 @@ def test_runs_that_finish_no_cell_write_no_report(tmp_path):
     (["--steps", "0"], "--steps 0: give a positive number of projector steps"),
     (["--seeds", "0,abc"], "--seeds 0,abc: ['abc'] not a non-negative integer"),
 ])
-def test_bad_options_are_one_line_usage_errors(args, message):
+def test_bad_options_are_one_line_usage_errors(run_bench, args, message):
     out = run_bench(*args, "--co", quiet=True)
     text = out.stdout + out.stderr
     assert out.returncode == 4 and message in text
     assert "INTERNALERROR" not in text and "Traceback" not in text
 
 
-def test_unwritable_results_dir_is_a_usage_error_not_an_internal_error(tmp_path):
+def test_unwritable_results_dir_is_a_usage_error_not_an_internal_error(run_bench, tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     out = run_bench(*ONE_CELL, "--results-dir", str(blocker / "results"), "--co", quiet=True)

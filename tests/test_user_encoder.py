@@ -5,8 +5,6 @@ record, and every broken contract one line before any cell trains."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 import textwrap
 from pathlib import Path
@@ -19,7 +17,6 @@ import torch.nn.functional as F
 from bench.grid.cells import CellSpec
 from bench.run.features import feature_key
 from bench.options import validate_names
-from external.paths import REPO_ROOT
 from bench.grid.protocol import TINY, with_overrides
 from encoders import UnknownEncoder, build_encoder, get_spec, user_encoders
 from encoders.timm_encoders import weight_artifacts
@@ -163,19 +160,15 @@ def test_names_pass_validation_and_give_readable_cell_ids(user_module):
     assert cell.id == "smolvla-spatial-mypkg.enc_make-seed0"
 
 
-def test_bench_records_the_user_encoders_weights_id(user_module, tmp_path):
-    """End to end: `pytest bench --encoders ...,MODULE:make` in a subprocess, the module's folder
-    on PYTHONPATH; its record carries the encoder's weights id."""
-    results = tmp_path / "R"
-    cmd = [sys.executable, "-m", "pytest", "bench", "-p", "no:cacheprovider",
-           "--encoders", f"pixels,blind,{MODULE}:make", "--backbones", "pi05",
-           "--suites", "spatial", "--seeds", "0", "--controls", "none", "--steps", "5",
-           "--results-dir", str(results), "--report", str(results / "REPORT.md")]
-    path = os.pathsep.join(p for p in (str(user_module), os.environ.get("PYTHONPATH")) if p)
-    env = {**os.environ, "GRAFTBENCH_QUIET": "1", "PYTHONPATH": path}
-    run = subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True, env=env, timeout=900)
+def test_bench_records_the_user_encoders_weights_id(user_module, bench_cli, tmp_path):
+    """End to end: `pytest bench --encoders ...,MODULE:make`, the module's folder on sys.path;
+    its record carries the encoder's weights id."""
+    run = bench_cli(tmp_path / "R", "--encoders", f"pixels,blind,{MODULE}:make", "--backbones",
+                    "pi05", "--suites", "spatial", "--seeds", "0", "--controls", "none",
+                    "--steps", "5")
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    results = tmp_path / "R" / "results"
     record = json.loads((results / "cells" / f"pi05-spatial-{MODULE}_make-seed0.json").read_text())
     assert record["encoder"] == f"{MODULE}:make"
     assert record["encoder_weights"] == "patches-a"
-    assert Path(results / "REPORT.md").exists()
+    assert (tmp_path / "R" / "REPORT.md").exists()

@@ -1,0 +1,69 @@
+"""`pytest bench ...` inside the test process: the user's command without a fresh interpreter (no
+second torch import), and the tiny world (suites, released policies, encoders) loaded once per
+test session and lent to every run (tests/worlds.py). `shared=False` runs build their workspace
+as a user's run does (torch threads chosen and printed).
+
+A run is `pytest.main` with its terminal in a string: a nested session of its own (its own
+config, plugins and GraftSession), importing into this process as a user's run would. No
+snapshot of sys.modules is taken and restored, as pytester's is: a module first imported inside
+a run stays (re-importing pandas or `datasets` after they were dropped fails).
+
+Tests that need a fresh interpreter (a killed process, xdist workers, submitit tasks, the hub
+world that huggingface_hub reads at import) keep their subprocess.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from dataclasses import dataclass
+
+import pytest
+import torch
+
+from bench.plugin import SESSION_KEY
+from external.paths import REPO_ROOT
+from tests.worlds import lent_workspace
+
+
+@dataclass(frozen=True)
+class BenchRun:
+    """What a `pytest bench` run gave: its exit code and its terminal output."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def lent(session):
+    """The session's workspace, lending the loaded parts of its world (tests/worlds.py)."""
+    return lent_workspace(session.profile, session.store, progress=session.progress_sink(),
+                          rollouts=session.rollouts, feature_dtype=session.feature_dtype)
+
+
+class _LendWorkspace:
+    @pytest.hookimpl(trylast=True)  # after bench.plugin built the session
+    def pytest_configure(self, config):
+        config.stash[SESSION_KEY].workspace_factory = lent
+
+
+def run_bench(*args: str, shared: bool = True, env: dict[str, str | None] | None = None) -> BenchRun:
+    """`pytest bench -p no:cacheprovider *args` in this process; `env` sets (None: unsets)
+    variables for the run. Torch's thread count is restored afterwards."""
+    threads = torch.get_num_threads()
+    plugins = [_LendWorkspace()] if shared else []
+    out, err = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as patch:
+        for name, value in (env or {}).items():
+            if value is None:
+                patch.delenv(name, raising=False)
+            else:
+                patch.setenv(name, value)
+        patch.chdir(REPO_ROOT)
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                code = pytest.main([str(REPO_ROOT / "bench"), "-p", "no:cacheprovider",
+                                    "--capture=sys", *args], plugins=plugins)
+        finally:
+            torch.set_num_threads(threads)
+    return BenchRun(int(code), out.getvalue(), err.getvalue())
