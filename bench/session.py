@@ -2,7 +2,8 @@
 workspace, the baseline work (save / compare / fail, bench.regression.run) and what ran.
 
 bench.plugin's hooks only hand work on to it. Its seams are public attributes, set before the
-first cell runs: `cell_runner(cell, workspace, features_mode) -> record` (bench.run.runner.run_cell),
+first cell runs: `cell_runner(cell, workspace, context) -> CellResult` (bench.run.runner.measure, with the context
+the cell's plan gave: bench.run.plan),
 `workspace_factory(session) -> workspace`, `report_builder(results_dir, path, extra_sections=)`
 (bench.report.build_report). Tests replace those, never private state.
 """
@@ -17,7 +18,7 @@ from typing import Callable
 
 import pytest
 
-from bench.grid.cells import GRAFT, CellSpec
+from bench.grid.cells import CellSpec
 from bench.options import (
     build_profile, check_executor_options, check_rollouts_possible, check_startup,
     collects_grid, fold_duplicates, offline_env, option_labels, report_path,
@@ -36,10 +37,10 @@ def _unavailable_errors() -> tuple[type, ...]:
     return (BackboneUnavailable, SuiteUnavailable, EncoderUnavailable)
 
 
-def _run_cell(cell, ws, features_mode):
-    from bench.run.runner import run_cell
+def _run_cell(cell, ws, context):
+    from bench.run.runner import measure
 
-    return run_cell(cell, ws, features_mode=features_mode)
+    return measure(cell, ws, context)
 
 
 def _build_report(results_dir, path, extra_sections=()):
@@ -114,28 +115,59 @@ class GraftSession:
         quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
         return False if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
 
-    # --- one cell ---------------------------------------------------------------------------
-    def run(self, cell: CellSpec) -> dict:
-        """The stored record when current (resume), else measure the cell now; then the
-        baseline's cell checks (a regression fails this case in one line)."""
-        self.baseline.before_cell(cell, self.store, self.workspace)
-        record = self._resume_or_measure(cell)
+    # --- one cell: plan, then run ------------------------------------------------------------
+    def run(self, cell: CellSpec):
+        """Plan the cell (resume the stored record, or measure, and with what: bench.run.plan),
+        carry the plan out, then the baseline's cell checks (a regression fails this case in
+        one line)."""
+        cell_plan = self.plan(cell)
+        if cell_plan.resume is not None:
+            record = cell_plan.resume
+            self.outcomes[cell.id] = "resumed"
+        else:
+            record = self._measure(cell_plan)
+            self.outcomes[cell.id] = "measured"
         self.baseline.check_cell(cell, record)
         return record
 
-    def _resume_or_measure(self, cell: CellSpec) -> dict:
-        if not self.rerun:
-            record = self._current(cell)
-            if record is not None:
-                self.outcomes[cell.id] = "resumed"
-                return record
-        self._say_start(cell)
+    @property
+    def projectors(self) -> dict:
+        """Projectors measured cells handed back, by `CellContext.keep_as`: later cells' plans
+        take them (a graft's shuffled / zero-at-eval controls)."""
+        if "_projectors" not in self.__dict__:
+            self._projectors = {}
+        return self._projectors
+
+    def plan(self, cell: CellSpec):
+        """Resume or measure `cell` (bench.run.plan.plan: reads the store, writes nothing)."""
+        from bench.results.current import RunConditions
+        from bench.run.plan import plan
+
+        run = RunConditions(protocol_hash=self.profile.protocol.hash,
+                            feature_dtype=self.feature_dtype, rollouts=self.rollouts)
+        return plan(cell, self.store, run, weights=lambda wanted: self._weights(cell, wanted),
+                    rerun=self.rerun, features_mode=self.features_mode,
+                    projectors=self.projectors,
+                    feature_transform=self.baseline.feature_transform(cell, self.workspace))
+
+    def _weights(self, cell: CellSpec, run):
+        """`run` with the weights and normaliser this cell is measured on (loads the policy)."""
+        from bench.results.record import checkpoint_revision
+
+        ws = self.workspace()
+        return replace(run, revision=checkpoint_revision(ws.checkpoint(cell.backbone, cell.suite)),
+                       normalizer_fingerprint=ws.normalizer(cell.backbone, cell.suite).fingerprint)
+
+    def _measure(self, cell_plan):
+        """Measure a planned cell here (or through the job array); keep what it trained."""
+        cell = cell_plan.cell
+        if cell_plan.discard:  # a degraded record never outlives its run
+            self.store.forget(cell.id)
+        self._say_start(cell_plan)
         if self.config.getoption("--executor") != "local":
-            record = self._run_submitted(cell)
-            self.outcomes[cell.id] = "measured"
-            return record
+            return self._run_submitted(cell)
         try:
-            record = self.cell_runner(cell, self.workspace(), self.features_mode)
+            result = self.cell_runner(cell, self.workspace(), cell_plan.context)
         except Exception as e:
             from bench.results.record import Failure
 
@@ -143,7 +175,9 @@ class GraftSession:
             if isinstance(e, _unavailable_errors()):  # a missing artifact: its line, no traceback
                 pytest.fail(f"{cell.id}: {type(e).__name__}: {e}", pytrace=False)
             raise
-        self.outcomes[cell.id] = "measured"
+        if result.trained is not None:
+            self.projectors[cell_plan.context.keep_as] = result.trained
+        record = result.record
         say(self.workspace().progress, f"{cell.id}: MSE {record.mse_in():.4f} "
                                        f"normalised ({record.run.total_s:.1f} s)")
         return record
@@ -161,34 +195,12 @@ class GraftSession:
         elif report.failed:
             self.outcomes[cell] = failure_line(self.results_dir, cell, report.longreprtext)
 
-    def _say_start(self, cell: CellSpec) -> None:
-        from bench.run.runner import shared_projector_key
-
-        ws = self.workspace()
+    def _say_start(self, cell_plan) -> None:
+        cell, ws = cell_plan.cell, self.workspace()
         position = self.selected.index(cell.id) + 1 if cell.id in self.selected else "?"
-        if not cell.trains_projector:
-            work = "no training,"
-        elif cell.kind != GRAFT and shared_projector_key(cell, self.features_mode) in ws.trained_projectors:
-            work = "its graft's trained projector, then"
-        else:
-            work = f"{self.profile.protocol.steps} projector steps, then"
-        say(ws.progress, f"cell {position}/{len(self.selected)} {cell.id}: {work} "
+        say(ws.progress, f"cell {position}/{len(self.selected)} {cell.id}: "
+                         f"{cell_plan.work(self.profile.protocol.steps)} "
                          "offline MSE on the held-out windows")
-
-    def _current(self, cell: CellSpec):
-        """The stored record of `cell` if it may stand for this run (bench.results.current):
-        same protocol, feature precision, closed-loop size, weights and normaliser."""
-        from bench.results.current import RunConditions
-        from bench.results.record import checkpoint_revision
-
-        run = RunConditions(protocol_hash=self.profile.protocol.hash,
-                            feature_dtype=self.feature_dtype, rollouts=self.rollouts)
-        if self.store.current(cell.id, run) is None:
-            return None  # the weights are only looked up (loaded) for a record that may stand
-        ws = self.workspace()
-        run = replace(run, revision=checkpoint_revision(ws.checkpoint(cell.backbone, cell.suite)),
-                      normalizer_fingerprint=ws.normalizer(cell.backbone, cell.suite).fingerprint)
-        return self.store.current(cell.id, run)
 
     def _run_submitted(self, cell: CellSpec) -> dict:
         """--executor slurm|submitit-local: the first case submits every selected cell that has
@@ -208,8 +220,7 @@ class GraftSession:
             items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
             params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
             cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
-            todo = [c for c in cells if isinstance(c, CellSpec) and (
-                self.rerun or not self._current(c))]
+            todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None]
             paths = (str(self.results_dir), str(cache_dir()))
             self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
                                              self.rollouts, self.feature_dtype) for c in todo])

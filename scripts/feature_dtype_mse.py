@@ -50,7 +50,6 @@ def main() -> None:
     mse: dict[str, dict[str, dict]] = {}
     for dtype in dtypes:
         ws.store = ResultStore(tmp / f"results-{dtype}")
-        ws.trained_projectors.clear()
         ws.feature_dtype = dtype
         ws._features = FeatureStore(tmp / f"features-{dtype}", dtype=dtype, progress=False)
         for cell in cells:

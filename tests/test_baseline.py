@@ -231,6 +231,7 @@ from pathlib import Path
 import pytest
 
 from bench.plugin import SESSION_KEY
+from bench.run.plan import CellResult
 from tests.factories import make_record
 
 pytest_plugins = ["bench.plugin"]
@@ -243,23 +244,22 @@ def pytest_configure(config):
     builder that keeps the sections it is handed (REPORT.md itself: bench.report.build's tests)."""
     gs = config.stash[SESSION_KEY]
     levels = json.loads(Path("levels.json").read_text())
-    gs.workspace_factory = lambda session: types.SimpleNamespace(feature_transforms={},
-                                                                 progress=False)
+    gs.workspace_factory = lambda session: types.SimpleNamespace(progress=False)
+    transforms = set()
 
-    def fake_runner(cell, ws, features_mode):
+    def fake_runner(cell, ws, context):
         record = make_record(kind=cell.kind, backbone=cell.backbone, suite=cell.suite,
                              encoder=cell.encoder, seed=cell.seed, variant=cell.variant,
                              level=levels.get(cell.id, 0.05))
-        if cell.encoder in ws.feature_transforms:
-            record = record.replace(
-                feature_transform=ws.feature_transforms[cell.encoder].description)
+        if context.feature_transform is not None:
+            transforms.add(cell.encoder)
+            record = record.replace(feature_transform=context.feature_transform.description)
         gs.store.write(record)
-        return record
+        return CellResult(record)
 
     def keep_sections(results_dir, path, extra_sections=()):
         Path("out.json").write_text(json.dumps({
-            "sections": list(extra_sections),
-            "transforms": sorted(gs.workspace().feature_transforms)}))
+            "sections": list(extra_sections), "transforms": sorted(transforms)}))
 
     gs.cell_runner = fake_runner
     gs.report_builder = keep_sections

@@ -78,15 +78,16 @@ def test_a_new_control_kind_runs_records_and_reports(twin_kind, tmp_path):
     from bench.report.build import build_report
     from bench.run.runner import run_cell
     from bench.results.store import ResultStore
-    from bench.run.workspace import Workspace
+    from tests.worlds import lent_workspace
 
     profile = with_overrides(TINY_FULL, steps=20, backbones=("pi05",), suites=("spatial",),
                              encoders=("pixels",), seeds=(0,), controls=("native", "twin"))
     cells = graft_cells(profile) + control_cells(profile)
     assert [c.id for c in cells] == ["pi05-spatial-pixels-seed0", "pi05-spatial-native-seed0",
                                      "pi05-spatial-pixels-twin-seed0"]
-    ws = Workspace(profile, ResultStore(tmp_path / "results"), progress=False)
-    graft, _, twin = (run_cell(c, ws) for c in cells)
+    ws = lent_workspace(profile, ResultStore(tmp_path / "results"))
+    projectors = {}  # kept across cells, as a session keeps them
+    graft, _, twin = (run_cell(c, ws, projectors=projectors) for c in cells)
     assert twin["kind"] == "twin" and twin["reference"] == graft["cell_id"]
     assert twin["projector_from"] == graft["cell_id"]
     assert twin["per_window"] == graft["per_window"]  # same projector, same windows, same noise

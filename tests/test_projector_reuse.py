@@ -9,13 +9,13 @@ from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.run.runner import run_cell, shared_projector_key
 from bench.results.store import ResultStore
-from bench.run.workspace import Workspace
+from tests.worlds import lent_workspace
 
 PROFILE = with_overrides(TINY, steps=12)
 
 
 def workspace(tmp_path, name):
-    return Workspace(PROFILE, ResultStore(tmp_path / name), progress=False)
+    return lent_workspace(PROFILE, ResultStore(tmp_path / name))
 
 
 def test_which_cells_share_the_graft_projector():
@@ -41,9 +41,9 @@ def test_controls_reuse_the_graft_projector_and_score_as_if_retrained(tmp_path, 
     shuffled = CellSpec("shuffled_image", backbone, "spatial", 0, "pixels")
     zero_eval = CellSpec("zero_image", backbone, "spatial", 0, "pixels", "eval")
 
-    shared = workspace(tmp_path, "shared")
-    g = run_cell(graft, shared)
-    reused = [run_cell(c, shared) for c in (shuffled, zero_eval)]
+    shared, projectors = workspace(tmp_path, "shared"), {}  # what a session keeps
+    g = run_cell(graft, shared, projectors=projectors)
+    reused = [run_cell(c, shared, projectors=projectors) for c in (shuffled, zero_eval)]
     assert g["projector_from"] is None
     for record in reused:
         assert record["projector_from"] == graft.id

@@ -123,21 +123,19 @@ class BaselineRun:
     def degrades(self, cell) -> bool:
         return self.degrade is not None and cell.encoder == self.degrade[0]
 
-    def before_cell(self, cell, store, workspace: Callable) -> None:
-        """Never resume a degraded record; with --degrade-encoder, measure its cells again with
-        the degradation installed as the workspace's feature transform (bench.run.workspace)."""
-        record = store.load(cell.id)
-        if record is not None and (self.degrades(cell) or record.measured.feature_transform):
-            store.forget(cell.id)
-        if self.degrades(cell):
-            name, factor = self.degrade
-            ws = workspace()
+    def feature_transform(self, cell, workspace: Callable):
+        """With --degrade-encoder, the degradation a cell of that encoder is measured under
+        (its plan's CellContext: bench.run.plan; such a record is never resumed), else None."""
+        if not self.degrades(cell):
+            return None
+        name, factor = self.degrade
+        ws = workspace()
 
-            def degrade(feats, rows=None):
-                return degrade_features(feats, factor, ws.split(cell.suite).windows, rows=rows)
+        def degrade(feats, rows=None):
+            return degrade_features(feats, factor, ws.split(cell.suite).windows, rows=rows)
 
-            degrade.description = f"degraded {name}:{factor}"  # recorded by the runner
-            ws.feature_transforms[name] = degrade
+        degrade.description = f"degraded {name}:{factor}"  # recorded by the runner
+        return degrade
 
     def check_cell(self, cell, record) -> None:
         """Fail the case (one line) on a cell-scope regression against the baseline."""

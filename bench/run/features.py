@@ -43,7 +43,7 @@ FEATURES_VERSION = "2"
 CHUNK_FRAMES = 64  # frames encoded (and committed to disk) at a time
 
 # transform(features {camera: (B, T, C) float32}, frames (B,) global indices) -> same shapes;
-# applied to each batch read, one camera at a time (Workspace.feature_transforms)
+# applied to each batch read, one camera at a time (bench.run.plan.CellContext.feature_transform)
 FeatureTransform = Callable[[dict, Tensor], dict]
 
 

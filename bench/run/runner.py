@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from safetensors.torch import load_file, save_file
@@ -18,7 +17,9 @@ from bench.run.graft import assert_only_trainable, trainable_parameters
 from bench.run.projectors import save_projector
 from external.graft import GraftFeed, Projector
 from bench.run.inputs import CellInputs
-from bench.grid.kinds import GRAFT
+from bench.run.plan import (  # noqa: F401  (shared_projector_key: read here by tests)
+    CellContext, CellResult, TrainedProjector, cell_context, shared_projector_key,
+)
 from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
@@ -74,26 +75,6 @@ def probe_loss(backbone, feed, next_batch, frames: torch.Tensor, seed: int) -> f
     return float(loss)
 
 
-@dataclass(frozen=True)
-class TrainedProjector:
-    """A trained projector kept for the session (its weights on disk: a paper grid trains hundreds
-    of projectors of up to ~10 MB each), with what its training recorded."""
-
-    path: Path
-    curve: list
-    probe_losses: dict
-    cell_id: str
-
-
-def shared_projector_key(cell: CellSpec, features_mode: str) -> tuple | None:
-    """Key of the projector a cell trains when its graft trains exactly the same one (the kind
-    table says which: bench.grid.kinds `shares_graft_training`). None for every other cell."""
-    if features_mode != "cache" or not cell.spec.shares_graft_training(cell.encoder, cell.variant):
-        return None
-    graft = cell if cell.kind == GRAFT else cell.reference
-    return (graft.id, features_mode)
-
-
 @dataclass
 class Graft:
     """What a training cell splices in: the projector, its feed, and what it trains with."""
@@ -111,11 +92,23 @@ class Training:
     projector_from: str | None = None  # the graft cell whose trained projector this cell took
 
 
-def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> Record:
-    """Measure one cell and write its record. features_mode: "cache" (pooled features computed
-    once per frame) or "loop" (the encoder runs inside every step: the naive reference)."""
-    if features_mode not in ("cache", "loop"):
-        raise ValueError(f"features_mode {features_mode!r} not in ('cache', 'loop')")
+def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache", *,
+             feature_transform=None, projectors: dict | None = None) -> Record:
+    """Measure one cell and write its record, outside a session. features_mode: "cache" (pooled
+    features computed once per frame) or "loop" (the encoder runs inside every step: the naive
+    reference). `projectors`: a dict the caller keeps across calls, so a control takes its
+    graft's trained projector (bench.run.plan); `feature_transform`: CellContext's."""
+    context = cell_context(cell, features_mode, projectors=projectors,
+                           feature_transform=feature_transform)
+    result = measure(cell, ws, context)
+    if projectors is not None and result.trained is not None:
+        projectors[context.keep_as] = result.trained
+    return result.record
+
+
+def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
+    """One cell, top to bottom, with the context its plan gave: build the graft -> train its
+    projector (or take its graft's) -> score -> write the record."""
     p, kind = ws.profile.protocol, cell.spec
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
@@ -129,13 +122,13 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> Rec
                         kind.grid(backbone.info.native_grid, cell.variant), tower=kind.tower)
     timings["build"] = time.perf_counter() - t_start
 
-    graft, training = None, Training(curve=[])
+    graft, training, trained = None, Training(curve=[]), None
     if cell.trains_projector:
         t0 = time.perf_counter()
-        graft = build_graft(cell, ws, backbone, inputs, features_mode)
+        graft = build_graft(cell, ws, backbone, inputs, context)
         timings["features"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        training = train_graft(cell, ws, backbone, graft, features_mode)
+        training, trained = train_graft(cell, ws, backbone, graft, context)
         timings["train"] = time.perf_counter() - t0
     else:
         timings["features"] = timings["train"] = 0.0
@@ -157,7 +150,7 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> Rec
 
     record = new_record(
         cell,
-        measured=measured_under(cell, ws, backbone, inputs, features_mode),
+        measured=measured_under(cell, ws, backbone, inputs, context),
         scores=scores,
         training=training_fields(backbone, graft, training, inputs.encoder,
                                  save_projector(ws.store.root, cell.id, graft.projector)
@@ -167,11 +160,11 @@ def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache") -> Rec
                     hardware=hardware(), versions=versions(), git_commit=git_commit(),
                     rollouts=rollouts))
     ws.store.write(record)
-    return record
+    return CellResult(record, trained)
 
 
 def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
-                features_mode: str) -> Graft:
+                context: CellContext) -> Graft:
     """The projector (seeded init), LoRA when the kind asks for it, the feed; frozen by
     construction and checked: only the projector (+ LoRA) trains."""
     p, info = ws.profile.protocol, backbone.info
@@ -179,8 +172,9 @@ def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
         channels = native_tower_channels(backbone, inputs.suite, ws.split(cell.suite).train_frames)
     else:
         inputs.encoder = ws.encoder(cell.encoder)
-        if features_mode == "cache":
-            inputs.features = ws.features(cell.encoder, cell.suite, inputs.grid)
+        if context.features_mode == "cache":
+            inputs.features = ws.features(cell.encoder, cell.suite, inputs.grid,
+                                          transform=context.feature_transform)
         channels = (int(next(iter(inputs.features.values())).shape[-1]) if inputs.features
                     else inputs.encoder.channels)
     with torch.random.fork_rng():
@@ -200,19 +194,17 @@ def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
 
 
 def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
-                features_mode: str) -> Training:
-    """Fit the projector, or take the identical one its graft trained this session."""
+                context: CellContext) -> tuple[Training, TrainedProjector | None]:
+    """Fit the projector, or take the identical one its graft trained this session (the plan's
+    `context.reuse`); the trained projector is handed back when `context.keep_as` asks."""
     p, split = ws.profile.protocol, ws.split(cell.suite)
     device = graft.inputs.device
     next_batch = graft.inputs.train_batches(cell.spec.train_rule(cell.variant))
-    # A test or --degrade-encoder transform changes the features: never share across it.
-    share = (shared_projector_key(cell, features_mode)
-             if cell.encoder not in ws.feature_transforms else None)
-    trained = ws.trained_projectors.get(share) if cell.kind != GRAFT else None
-    if trained is not None:
-        graft.projector.load_state_dict(load_file(trained.path, device=str(device)))
+    reused = context.reuse
+    if reused is not None:
+        graft.projector.load_state_dict(load_file(reused.path, device=str(device)))
         graft.projector.eval()
-        return Training(trained.curve, trained.probe_losses, trained.cell_id)
+        return Training(reused.curve, reused.probe_losses, reused.cell_id), None
     probe = probe_frames(split.train_frames)
     before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
     params = list(graft.projector.parameters()) + [
@@ -223,19 +215,20 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
                 feed=graft.feed, label=cell.id, progress=ws.progress)
     probe_losses = {"before": before,
                     "after": probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)}
-    if share is not None:
+    kept = None
+    if context.keep_as is not None:
         path = ws.session_dir() / f"projector-{cell.id}.safetensors"
         save_file({k: v.detach().cpu().contiguous()
                    for k, v in graft.projector.state_dict().items()}, path)
-        ws.trained_projectors[share] = TrainedProjector(path, curve, probe_losses, cell.id)
+        kept = TrainedProjector(path, curve, probe_losses, cell.id)
     graft.projector.eval()
-    return Training(curve, probe_losses)
+    return Training(curve, probe_losses), kept
 
 
 def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
-                   features_mode: str) -> MeasuredUnder:
-    p = ws.profile.protocol
-    transform = ws.feature_transforms.get(cell.encoder) if inputs.encoder is not None else None
+                   context: CellContext) -> MeasuredUnder:
+    p, features_mode = ws.profile.protocol, context.features_mode
+    transform = context.feature_transform if inputs.encoder is not None else None
     grid_file = ws.profile.grid_file  # absent without --grid: those records stay as they were
     camera_map, dataset = user_world_fields(cell, ws, backbone)
     return MeasuredUnder(

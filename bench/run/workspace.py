@@ -57,12 +57,9 @@ class Workspace:
     # so), or "float32" (the encoder's numbers bit for bit, 2x the disk).
     feature_dtype: str = "fp16"
     _features: FeatureStore | None = None  # opened lazily; keeps each stored file open
-    # graft cell id -> runner.TrainedProjector: its shuffled/zero-at-eval controls reuse it.
-    trained_projectors: dict = field(default_factory=dict)
+    # What one cell is measured with (a graft's trained projector to take, a planted feature
+    # transform) is not kept here: bench.run.plan's CellContext carries it.
     _session_dir: tempfile.TemporaryDirectory | None = None
-    # Test-only hook (planted regressions): encoder name -> function(features, frames) applied
-    # to every batch read, features {camera: (B, T, C) float32}, frames (B,) global indices.
-    feature_transforms: dict = field(default_factory=dict)
 
     def session_dir(self) -> Path:
         """A private folder that lives as long as this workspace (removed at exit)."""
@@ -187,13 +184,15 @@ class Workspace:
             self._encoders[name] = encoder
         return self._encoders[name]
 
-    def features(self, encoder_name: str, suite_name: str, grid: tuple[int, int]) -> dict:
+    def features(self, encoder_name: str, suite_name: str, grid: tuple[int, int],
+                 transform=None) -> dict:
         """{camera: view} of the stored features: `view[frames]` -> (B, rows*cols, C) float32 on
         the CPU, read from disk and pooled to `grid` per batch; `view.shape` is (N, rows*cols, C).
-        The file is built on first use (resumable) and opened once per session."""
+        The file is built on first use (resumable) and opened once per session. `transform`:
+        a planted degradation applied to every batch read (bench.run.plan.CellContext)."""
         if self._features is None or self._features.dtype != self.feature_dtype:
             self._features = FeatureStore(self.cache / "features", dtype=self.feature_dtype,
                                           progress=self.progress)
         return self._features.pooled_features(
             self.encoder(encoder_name), self.suite(suite_name), grid,
-            transform=self.feature_transforms.get(encoder_name))
+            transform=transform)

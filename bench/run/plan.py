@@ -1,0 +1,117 @@
+"""Plan, then run: what one cell needs, decided before anything runs.
+
+`plan(cell, store, run, ...)` is pure (it reads the store, writes nothing): it says whether the
+stored record stands for this run (resume) or the cell is measured, and with what `CellContext`:
+the features mode, a planted feature transform (--degrade-encoder), and the trained projector of
+its graft the cell takes instead of training the same one again. The runner measures with that
+context and hands back what it trained (`CellResult`); the session keeps it for later plans. No
+cell state lives on the workspace (its resources only: policies, suites, encoders, features).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Mapping
+
+from bench.grid.cells import CellSpec
+from bench.grid.kinds import GRAFT
+from bench.results.current import RunConditions
+from bench.results.record import Record
+
+FEATURES_MODES = ("cache", "loop")
+
+
+@dataclass(frozen=True)
+class TrainedProjector:
+    """A trained projector kept for the session (its weights on disk: a paper grid trains hundreds
+    of projectors of up to ~10 MB each), with what its training recorded."""
+
+    path: Path
+    curve: list
+    probe_losses: dict
+    cell_id: str
+
+
+def shared_projector_key(cell: CellSpec, features_mode: str) -> tuple | None:
+    """Key of the projector a cell trains when its graft trains exactly the same one (the kind
+    table says which: bench.grid.kinds `shares_graft_training`). None for every other cell."""
+    if features_mode != "cache" or not cell.spec.shares_graft_training(cell.encoder, cell.variant):
+        return None
+    graft = cell if cell.kind == GRAFT else cell.reference
+    return (graft.id, features_mode)
+
+
+@dataclass(frozen=True)
+class CellContext:
+    """What one cell is measured with, beyond the workspace's shared resources."""
+
+    features_mode: str = "cache"  # "cache" (pooled features stored once) or "loop"
+    # features {camera: (B, T, C)}, rows -> same: a planted degradation (--degrade-encoder,
+    # tests); recorded as the record's feature_transform, never shared, never resumed.
+    feature_transform: Callable | None = None
+    reuse: TrainedProjector | None = None  # the graft's trained projector this cell takes
+    keep_as: tuple | None = None  # key the cell's trained projector is handed back under
+
+    def __post_init__(self) -> None:
+        if self.features_mode not in FEATURES_MODES:
+            raise ValueError(f"features_mode {self.features_mode!r} not in {FEATURES_MODES}")
+
+
+@dataclass(frozen=True)
+class CellResult:
+    """What measuring a cell gave: its record, and the projector it trained when a later cell
+    of the session may take it (under `CellContext.keep_as`)."""
+
+    record: Record
+    trained: TrainedProjector | None = None
+
+
+def cell_context(cell: CellSpec, features_mode: str = "cache", *,
+                 projectors: Mapping[tuple, TrainedProjector] | None = None,
+                 feature_transform: Callable | None = None) -> CellContext:
+    """The context to measure `cell` with: the graft's projector when one was kept."""
+    share = shared_projector_key(cell, features_mode) if feature_transform is None else None
+    reuse = (projectors or {}).get(share) if share is not None and cell.kind != GRAFT else None
+    return CellContext(features_mode, feature_transform, reuse,
+                       keep_as=share if reuse is None else None)
+
+
+@dataclass(frozen=True)
+class CellPlan:
+    """Resume `cell` from `resume`, or measure it with `context` (after discarding the stored
+    record when `discard`: a planted degradation must never outlive its run)."""
+
+    cell: CellSpec
+    context: CellContext
+    resume: Record | None = None
+    discard: bool = False
+
+    def work(self, steps: int) -> str:
+        """What measuring does, for the start line."""
+        if not self.cell.trains_projector:
+            return "no training,"
+        if self.context.reuse is not None:
+            return "its graft's trained projector, then"
+        return f"{steps} projector steps, then"
+
+
+def plan(cell: CellSpec, store, run: RunConditions, *,
+         weights: Callable[[RunConditions], RunConditions] | None = None,
+         rerun: bool = False, features_mode: str = "cache",
+         projectors: Mapping[tuple, TrainedProjector] | None = None,
+         feature_transform: Callable | None = None) -> CellPlan:
+    """Resume or measure `cell`. `run`: the conditions a stored record must match
+    (bench.results.current); `weights(run)`: `run` with the conditions that need the policy
+    looked up (revision, normalizer_fingerprint), asked only when a stored record passes `run`."""
+    context = cell_context(cell, features_mode, projectors=projectors,
+                           feature_transform=feature_transform)
+    stored = store.load(cell.id)
+    degraded = stored is not None and (feature_transform is not None
+                                       or stored.measured.feature_transform is not None)
+    if rerun or stored is None or degraded:
+        return CellPlan(cell, context, discard=degraded)
+    if store.current(cell.id, run) is None:
+        return CellPlan(cell, context)
+    full = weights(run) if weights is not None else run
+    return CellPlan(cell, context, resume=store.current(cell.id, full))
