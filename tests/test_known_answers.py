@@ -51,11 +51,12 @@ def measured(tiny_ws):
     seed-0 cell, measured once per session (a graft before its controls: they reuse its
     trained projector)."""
     records: dict[str, dict] = {}
+    projectors: dict = {}  # what a session keeps: a graft's trained projector for its controls
 
     def measure(kind, backbone, encoder=None, variant=None):
         spec = CellSpec(kind, backbone, "spatial", 0, encoder, variant)
         if spec.id not in records:
-            records[spec.id] = run_cell(spec, tiny_ws)
+            records[spec.id] = run_cell(spec, tiny_ws, projectors=projectors)
         return records[spec.id]
 
     return measure

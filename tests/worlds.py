@@ -7,8 +7,7 @@ first workspace of the same world, so each is loaded once per process (once per 
 the disk caches below them are shared and locked across processes).
 
 Lent parts are read-only by contract (bench.run.workspace: the LoRA control copies its
-backbone); each workspace keeps its own profile, store, progress, trained projectors and
-feature transforms.
+backbone); each workspace keeps its own profile, store and progress.
 """
 
 from __future__ import annotations
