@@ -258,14 +258,20 @@ def _standardiser(features: np.ndarray, weights: np.ndarray | None = None, chunk
 def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarray,
              reference_targets: np.ndarray, ks: tuple[int, ...], chunk: int) -> np.ndarray:
     """(len(ks),) summed squared error of the k-NN mean prediction for each k, distances from
-    chunks of `queries` (q, d) to `reference` (r, d); distance ties broken by reference order."""
+    chunks of `queries` (q, d) to `reference` (r, d); which of several windows tied at the
+    k-th distance is taken is numpy's argpartition's (deterministic) choice."""
     kmax = max(ks)
     ref_sq = (reference ** 2).sum(axis=1)
     sse = np.zeros(len(ks))
     for start in range(0, len(queries), chunk):
         q = queries[start:start + chunk]
         dist = (q ** 2).sum(axis=1)[:, None] - 2 * q @ reference.T + ref_sq[None, :]
-        nearest = np.argsort(dist, axis=1, kind="stable")[:, :kmax]
+        if kmax < dist.shape[1]:  # the kmax nearest, then in order (a full sort is N log N)
+            near = np.argpartition(dist, kmax - 1, axis=1)[:, :kmax]
+            order = np.argsort(np.take_along_axis(dist, near, axis=1), axis=1, kind="stable")
+            nearest = np.take_along_axis(near, order, axis=1)
+        else:
+            nearest = np.argsort(dist, axis=1, kind="stable")
         running = np.cumsum(reference_targets[nearest], axis=1)  # (b, kmax, C)
         truth = query_targets[start:start + chunk]
         for i, k in enumerate(ks):
