@@ -11,7 +11,7 @@ import torch
 
 from bench.grid.cells import CellSpec
 from bench.run.closed_loop import (
-    NO_CLOSED_LOOP, cell_act, has_rollouts, make_act, observation_noise,
+    NO_CLOSED_LOOP, cell_act, make_act, observation_noise,
 )
 from bench.run.features import encode_pooled
 from bench.run.graft import GraftFeed, Projector
@@ -93,7 +93,11 @@ def test_missing_observation_keys_are_named(tiny_ws):
 
 
 def test_resume_rule_for_rollouts():
-    assert not has_rollouts({}, 5)
-    assert has_rollouts({"rollouts": {"spec": {"episodes_per_task": 5}}}, 5)
-    assert not has_rollouts({"rollouts": {"spec": {"episodes_per_task": 2}}}, 5)
-    assert has_rollouts({"rollouts": {"skipped": NO_CLOSED_LOOP["shuffled"]}}, 5)
+    """bench.results.current resumes a record with --rollouts N only when it holds N episodes per
+    task (or its kind's skip line)."""
+    from bench.results.record import RunInfo
+
+    assert not RunInfo().has_rollouts(5)
+    assert RunInfo(rollouts={"spec": {"episodes_per_task": 5}}).has_rollouts(5)
+    assert not RunInfo(rollouts={"spec": {"episodes_per_task": 2}}).has_rollouts(5)
+    assert RunInfo(rollouts={"skipped": NO_CLOSED_LOOP["shuffled"]}).has_rollouts(5)

@@ -109,13 +109,6 @@ def rollout_spec(suite, episodes_per_task: int, n_action_steps: int):
                        n_action_steps=n_action_steps)
 
 
-def has_rollouts(record: dict, episodes_per_task: int) -> bool:
-    """Whether a stored record already carries rollouts of the requested size (or a skip)."""
-    from bench.results.record import RunInfo
-
-    return RunInfo(rollouts=record.get("rollouts")).has_rollouts(episodes_per_task)
-
-
 def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, encoder=None,
                   grid=None, progress: bool = True) -> dict:
     """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts"."""
