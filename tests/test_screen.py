@@ -9,8 +9,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from bench.analysis.agreement import is_defined, kendall_tau_b
-from bench.run.screen import SUPERVISED, screen_cell, screen_features
+from bench.analysis.agreement import Undefined, is_defined, kendall_tau_b
+from bench.run.screen import (SUPERVISED, ScreenScores, parse_screen_keep, screen_cell,
+                              screen_features, select_for_graft)
 
 SUITE = "spatial"
 # (resolution of the camera image, noise sigma on its pixels); then blind. Information falls by
@@ -18,15 +19,23 @@ SUITE = "spatial"
 LADDER = ((8, 0.0), (4, 0.0), (4, 0.02), (4, 0.03))
 
 
-def coarse_pixels(suite, resolution: int, sigma: float) -> dict:
-    """{camera: (N, 1, 3*r*r)}: each image average-pooled to r x r, flattened, plus fixed noise."""
+def coarse_pixels(suite) -> dict[int, dict]:
+    """{r: {camera: (N, 1, 3*r*r)}} for every resolution of LADDER: each image average-pooled to
+    r x r and flattened; the suite's images are read once."""
     n = len(suite.state)
-    parts = {k: [] for k in suite.camera_keys}
+    sizes = sorted({r for r, _ in LADDER})
+    parts = {r: {k: [] for k in suite.camera_keys} for r in sizes}
     for start in range(0, n, 512):
         images = suite.images(torch.arange(start, min(n, start + 512)))
         for k in suite.camera_keys:
-            parts[k].append(F.adaptive_avg_pool2d(images[k].float(), resolution).flatten(1))
-    views = {k: torch.cat(v)[:, None, :] for k, v in parts.items()}
+            for r in sizes:
+                parts[r][k].append(F.adaptive_avg_pool2d(images[k].float(), r).flatten(1))
+    return {r: {k: torch.cat(v)[:, None, :] for k, v in views.items()}
+            for r, views in parts.items()}
+
+
+def with_noise(views: dict, sigma: float) -> dict:
+    """`views` plus sigma x a fixed standard normal draw (seed 0: nested across sigmas)."""
     gen = torch.Generator().manual_seed(0)
     return {k: v + sigma * torch.randn(v.shape, generator=gen) for k, v in views.items()}
 
@@ -34,7 +43,8 @@ def coarse_pixels(suite, resolution: int, sigma: float) -> dict:
 @pytest.fixture(scope="module")
 def ladder(tiny_ws):
     suite = tiny_ws.suite(SUITE)
-    rungs = [coarse_pixels(suite, r, s) for r, s in LADDER]
+    pooled = coarse_pixels(suite)
+    rungs = [with_noise(pooled[r], s) if s else pooled[r] for r, s in LADDER]
     rungs.append({k: torch.ones((len(suite.state), 1, 4)) for k in suite.camera_keys})
     return rungs
 
@@ -69,3 +79,33 @@ def test_screen_cell_reads_the_store_and_scores_the_grafts_windows(tiny_ws):
     blind = screen_cell(tiny_ws, "blind", "smolvla", SUITE)
     assert blind.entropy == 1.0  # every token of the constant grid has the same norm
     assert blind.proxies["logme"]["gain"] == 0.0  # constant features are dropped: no gain
+
+
+@pytest.mark.parametrize("value, expected", [("3", 3), ("all", None), ("ALL", None), ("12", 12)])
+def test_screen_keep_accepts_counts_and_all(value, expected):
+    assert parse_screen_keep(value) == expected
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "2.5", "three", ""])
+def test_screen_keep_refuses_in_one_line(value):
+    with pytest.raises(ValueError, match=r"^--screen-keep .*: give a whole number >= 1, or all$"):
+        parse_screen_keep(value)
+
+
+def fake_screen(encoder: str, gain) -> ScreenScores:
+    out = ScreenScores(encoder, "smolvla", SUITE)
+    out.proxies = {p: {"gain": gain} for p in SUPERVISED}
+    return out
+
+
+def test_select_for_graft_keeps_the_top_and_says_what_it_dropped():
+    screens = [fake_screen("a", 0.1), fake_screen("b", 0.3), fake_screen("c", 0.2),
+               fake_screen("d", Undefined("all 4 feature columns constant"))]
+    kept, dropped, note = select_for_graft(screens, 2, "ridge")
+    assert kept == ["b", "c"] and note is None
+    assert dropped["a"] == "ridge 0.1, below the top 2" and "constant" in dropped["d"]
+    kept, _, note = select_for_graft(screens, 5, "logme")
+    assert kept == ["b", "c", "a"] and "more than the 3" in note
+    assert select_for_graft(screens, None, "knn")[0] == ["b", "c", "a"]
+    with pytest.raises(ValueError, match="--screen-by short"):
+        select_for_graft(screens, 1, "short")

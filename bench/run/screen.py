@@ -168,3 +168,38 @@ def screen_cell(ws, encoder: str, backbone: str, suite: str) -> ScreenScores:
     views = ws.features(encoder, suite, tuple(bb.info.native_grid))
     return screen_features(views, ws.suite(suite), ws.split(suite), bb.normalize_actions,
                            bb.info.chunk_size, (encoder, backbone, suite))
+
+
+SCREEN_BY = SUPERVISED + ("entropy",)
+
+
+def parse_screen_keep(value: str) -> int | None:
+    """`--screen-keep` as a count (None: "all"); ValueError with one line for anything else."""
+    text = str(value).strip().lower()
+    if text == "all":
+        return None
+    try:
+        keep = int(text)
+    except ValueError:
+        keep = 0
+    if keep < 1 or str(keep) != text.lstrip("+"):
+        raise ValueError(f"--screen-keep {value}: give a whole number >= 1, or all")
+    return keep
+
+
+def select_for_graft(screens: list[ScreenScores], keep: int | None, by: str
+                     ) -> tuple[list[str], dict[str, str], str | None]:
+    """(encoders to graft, {dropped encoder: why}, note) from the screens of one backbone x
+    suite: the `keep` best by `by` (higher is better; ties: the encoder name), all if None.
+    Undefined scores are dropped with their reason; keep > screened is allowed and noted."""
+    if by not in SCREEN_BY:
+        raise ValueError(f"--screen-by {by}: choose one of {', '.join(SCREEN_BY)}")
+    defined = [(s.encoder, s.score(by)) for s in screens if is_defined(s.score(by))]
+    dropped = {s.encoder: f"{by} {s.score(by)}" for s in screens if not is_defined(s.score(by))}
+    ranked = sorted(defined, key=lambda item: (-item[1], item[0]))
+    count = len(ranked) if keep is None else keep
+    note = (f"--screen-keep {keep} is more than the {len(ranked)} encoder(s) with a defined "
+            f"{by} score: all are grafted" if keep is not None and keep > len(ranked) else None)
+    for encoder, score in ranked[count:]:
+        dropped[encoder] = f"{by} {score:.6g}, below the top {count}"
+    return [e for e, _ in ranked[:count]], dropped, note
