@@ -20,11 +20,18 @@ FAMILIES = tuple(sorted({entry.module for entry in BACKBONES.values()}))
 
 
 def family_name(module_path: str) -> str:
-    """"backbones.pi05" -> "pi05": the LeRobot policy type the module adapts."""
+    """"backbones.pi05" -> "pi05": the adapter module's own name (test ids)."""
     return module_path.rsplit(".", 1)[-1]
 
 
+def policy_type(module_path: str) -> str:
+    """The LeRobot policy type the registry says this adapter module loads."""
+    (kind,) = {e.policy_type for e in BACKBONES.values() if e.module == module_path}
+    return kind
+
+
 def adapter(module_path: str):
+    """The adapter module (backbones.seam.AdapterModule) of a registry entry."""
     return importlib.import_module(module_path)
 
 

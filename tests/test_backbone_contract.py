@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from backbones.base import BackboneUnavailable
 from tests.backbone_data import (
     ACTION_DIM, CAMERAS, CHUNK, FAMILIES, adapter, build_tiny, family_name, fixed_noise_time,
-    make_raw, make_stats,
+    make_raw, make_stats, policy_type,
 )
 
 
@@ -48,9 +48,9 @@ def pooled_projector(tiny, calls: list):
 
 # -- the tiny build ------------------------------------------------------------------------------
 def test_tiny_build_is_a_small_real_lerobot_policy(module, tiny):
-    family = family_name(module.__name__)
-    assert tiny.policy.config.type == family
-    assert type(tiny.policy).__module__ == f"lerobot.policies.{family}.modeling_{family}"
+    kind = policy_type(module.__name__)  # the registry's LeRobot type of this adapter
+    assert isinstance(tiny, module.BACKBONE_CLASS) and tiny.policy.config.type == kind
+    assert type(tiny.policy).__module__ == f"lerobot.policies.{kind}.modeling_{kind}"
     assert sum(p.numel() for p in tiny.policy.parameters()) < 5_000_000
     assert (tiny.info.chunk_size, tiny.info.max_action_dim, tiny.info.num_denoise_steps) == (10, 32, 10)
     assert tiny.camera_keys == CAMERAS
