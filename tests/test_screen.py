@@ -4,6 +4,8 @@ supervised proxy must recover exactly (Kendall tau = 1); the label-free entropy 
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -76,6 +78,8 @@ def test_screen_cell_reads_the_store_and_scores_the_grafts_windows(tiny_ws):
         assert set(out.proxies[proxy]) == {"state", "state+features", "gain"}
         assert all(np.isfinite(v) for v in out.proxies[proxy].values())
     assert out.proxies["ridge"]["state"] > 0 and out.chosen["state"]["knn_k"] >= 1
+    again = ScreenScores.from_json(json.loads(json.dumps(out.to_json())))
+    assert again.to_json() == out.to_json() and again.score("knn") == out.score("knn")
     blind = screen_cell(tiny_ws, "blind", "smolvla", SUITE)
     assert blind.entropy == 1.0  # every token of the constant grid has the same norm
     assert blind.proxies["logme"]["gain"] == 0.0  # constant features are dropped: no gain
@@ -101,6 +105,8 @@ def fake_screen(encoder: str, gain) -> ScreenScores:
 def test_select_for_graft_keeps_the_top_and_says_what_it_dropped():
     screens = [fake_screen("a", 0.1), fake_screen("b", 0.3), fake_screen("c", 0.2),
                fake_screen("d", Undefined("all 4 feature columns constant"))]
+    stored = ScreenScores.from_json(json.loads(json.dumps(screens[3].to_json())))
+    assert stored.score("ridge") == Undefined("all 4 feature columns constant")
     kept, dropped, note = select_for_graft(screens, 2, "ridge")
     assert kept == ["b", "c"] and note is None
     assert dropped["a"] == "ridge 0.1, below the top 2" and "constant" in dropped["d"]

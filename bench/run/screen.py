@@ -49,9 +49,35 @@ class ScreenScores:
     dims: dict[str, int] = field(default_factory=dict)
     seconds: float = 0.0
 
+    def to_json(self) -> dict:
+        """JSON-ready; an undefined value is {"undefined": reason}."""
+        return {"encoder": self.encoder, "backbone": self.backbone, "suite": self.suite,
+                "proxies": {p: {k: _out(v) for k, v in vals.items()}
+                            for p, vals in self.proxies.items()},
+                "chosen": self.chosen, "entropy": _out(self.entropy), "n_train": self.n_train,
+                "n_heldout": self.n_heldout, "dims": self.dims, "seconds": self.seconds}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "ScreenScores":
+        out = cls(data["encoder"], data["backbone"], data["suite"])
+        out.proxies = {p: {k: _in(v) for k, v in vals.items()}
+                       for p, vals in data["proxies"].items()}
+        out.chosen, out.entropy = data["chosen"], _in(data["entropy"])
+        out.n_train, out.n_heldout = data["n_train"], data["n_heldout"]
+        out.dims, out.seconds = data["dims"], data["seconds"]
+        return out
+
     def score(self, proxy: str) -> Measure:
         """The ranking score of `proxy` (higher is better): a supervised proxy's gain, or entropy."""
         return self.entropy if proxy == "entropy" else self.proxies[proxy]["gain"]
+
+
+def _out(value: Measure):
+    return {"undefined": value.reason} if isinstance(value, Undefined) else float(value)
+
+
+def _in(value) -> Measure:
+    return Undefined(value["undefined"]) if isinstance(value, dict) else float(value)
 
 
 @dataclass
