@@ -9,7 +9,7 @@ from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.run.runner import run_cell
 from bench.results.store import ResultStore
-from bench.run.workspace import Workspace
+from tests.worlds import lent_workspace
 
 PROFILE = with_overrides(TINY, steps=12)
 
@@ -17,7 +17,7 @@ PROFILE = with_overrides(TINY, steps=12)
 @pytest.mark.parametrize("backbone", ["smolvla", "pi05"])
 def test_lora_cell_does_not_depend_on_the_global_random_state(tmp_path, backbone):
     spec = CellSpec("lora", backbone, "spatial", 0, "pixels")
-    ws = Workspace(PROFILE, ResultStore(tmp_path / "results"), progress=False)
+    ws = lent_workspace(PROFILE, ResultStore(tmp_path / "results"))
     torch.manual_seed(1)
     first = run_cell(spec, ws)
     torch.manual_seed(2)  # what earlier cells or tests drew from the global generator

@@ -22,7 +22,6 @@ import pytest
 
 from bench.analysis.rankings import paired_window_bootstrap
 from external.paths import cache_dir
-from tests.test_grid_plugin import run_bench
 from tests.test_gridfile import Config
 
 WORLD = dict(tasks=4, episodes_per_task=10)
@@ -107,8 +106,9 @@ def _check_known_answer(out, results: Path, policy: Path) -> dict[str, dict]:
     return records
 
 
-def test_your_policy_on_your_data_pixels_beat_blind(world, tmp_path):
-    out = run_bench(tmp_path, "--policy", f"mine={world / 'policy'}",
+@pytest.mark.slow  # trains grafts on the world's natively trained policy
+def test_your_policy_on_your_data_pixels_beat_blind(world, bench_cli, tmp_path):
+    out = bench_cli(tmp_path, "--policy", f"mine={world / 'policy'}",
                     "--dataset", f"mydata={world / 'data'}", *GRID)
     records = _check_known_answer(out, tmp_path / "results", world / "policy")
     assert records["pixels"]["camera_map"] == {
@@ -117,23 +117,25 @@ def test_your_policy_on_your_data_pixels_beat_blind(world, tmp_path):
     assert "cameras of mine x mydata by identical names" in out.stdout
 
 
-def test_the_same_through_a_grid_file(world, tmp_path):
+@pytest.mark.slow  # trains grafts on the world's natively trained policy
+def test_the_same_through_a_grid_file(world, bench_cli, tmp_path):
     study = tmp_path / "study.toml"
     study.write_text(f'encoders = ["pixels", "blind"]\nseeds = [0]\ncontrols = ["native"]\n'
                      f'steps = {STEPS}\n[policies]\nmine = "{world / "policy"}"\n'
                      f'[datasets]\nmydata = "{world / "data"}"\n'
                      '[camera_map]\nfront = "front"\nwrist = "wrist"\n')
-    out = run_bench(tmp_path, "--grid", str(study))
+    out = bench_cli(tmp_path, "--grid", str(study))
     records = _check_known_answer(out, tmp_path / "results", world / "policy")
     sha = hashlib.sha256(study.read_bytes()).hexdigest()
     assert {r["grid_file"]["sha256"] for r in records.values()} == {sha}
     assert "by the camera map" in out.stdout
 
 
-def test_swapped_cameras_break_the_known_answer(world, tmp_path):
+@pytest.mark.slow  # trains grafts on the world's natively trained policy
+def test_swapped_cameras_break_the_known_answer(world, bench_cli, tmp_path):
     """What the known answer guards: the wrist view fed into the front slot and back. The
     policy's own tower no longer beats a pixels graft (whose projector learns either order)."""
-    out = run_bench(tmp_path, "--policy", f"mine={world / 'policy'}",
+    out = bench_cli(tmp_path, "--policy", f"mine={world / 'policy'}",
                     "--dataset", f"mydata={world / 'data'}", "--camera-map",
                     "front=wrist,wrist=front", *GRID)
     with pytest.raises(AssertionError, match="native not better than pixels"):
@@ -188,8 +190,8 @@ def test_mismatches_are_one_line_errors_naming_both_sides(world, tmp_path):
     assert "NAME=REPO_ID_OR_PATH" in _usage_error(policy=["mine"], dataset=[data])
 
 
-def test_a_mismatch_stops_pytest_bench_with_exit_4(world, tmp_path):
-    out = run_bench(tmp_path, "--policy", f"mine={world / 'policy'}", "--dataset",
+def test_a_mismatch_stops_pytest_bench_with_exit_4(world, bench_cli, tmp_path):
+    out = bench_cli(tmp_path, "--policy", f"mine={world / 'policy'}", "--dataset",
                     f"mydata={world / 'data'}", "--camera-map", "front=top", "--co")
     assert out.returncode == 4, out.stdout[-2000:] + out.stderr[-2000:]
     assert "unmapped" in out.stderr and "--dataset mydata (cameras" in out.stderr
