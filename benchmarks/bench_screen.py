@@ -1,0 +1,57 @@
+"""The screen tier beside the graft it screens for, in one run (issue 26's 5% goal):
+
+    .venv/bin/pytest benchmarks/bench_screen.py --benchmark-only -p no:randomly
+
+Per encoder on the tiny profile (SmolVLA, spatial, seed 0): one graft cell through
+bench.run.runner.run_cell (1 round: a cell takes ~10-30 s on 2 cores), then its screen through
+bench.run.screen.screen_cell (3 rounds). The feature store is built before either is timed
+(both read the same stored features; extraction is the graft's cost too). The goal: the screen's
+minimum at most 5% of the graft cell's.
+"""
+
+from __future__ import annotations
+
+import tempfile
+
+import pytest
+
+ENCODERS = ("dinov2_s", "pixels")
+BACKBONE, SUITE = "smolvla", "spatial"
+GRAFT_SECONDS: dict[str, float] = {}
+
+
+@pytest.fixture(scope="module")
+def workspace():
+    from bench.grid.protocol import TINY
+    from bench.results.store import ResultStore
+    from bench.run.workspace import Workspace
+
+    ws = Workspace(TINY, ResultStore(tempfile.mkdtemp(prefix="bench-screen-")), progress=False)
+    for encoder in ENCODERS:  # build the stores and load the policy outside the timings
+        bb = ws.backbone(BACKBONE, SUITE)
+        ws.features(encoder, SUITE, tuple(bb.info.native_grid))
+    return ws
+
+
+@pytest.mark.parametrize("encoder", ENCODERS)
+def test_graft_cell(benchmark, workspace, encoder):
+    from bench.grid.cells import CellSpec
+    from bench.run.runner import run_cell
+
+    cell = CellSpec("graft", BACKBONE, SUITE, 0, encoder)
+    benchmark.pedantic(run_cell, args=(cell, workspace), rounds=1, iterations=1)
+    GRAFT_SECONDS[encoder] = benchmark.stats.stats.min
+
+
+@pytest.mark.parametrize("encoder", ENCODERS)
+def test_screen(benchmark, workspace, encoder):
+    from bench.run.screen import screen_cell
+
+    benchmark.pedantic(screen_cell, args=(workspace, encoder, BACKBONE, SUITE), rounds=3,
+                       iterations=1)
+    screen = benchmark.stats.stats.min
+    graft = GRAFT_SECONDS.get(encoder)
+    if graft:
+        benchmark.extra_info.update(graft_s=graft, ratio=screen / graft)
+        print(f"\n{encoder}: screen {screen:.2f} s, graft cell {graft:.1f} s, "
+              f"ratio {100 * screen / graft:.1f}% (goal <= 5%)")
