@@ -23,7 +23,8 @@ from bench.grid.protocol import TINY, with_overrides
 from bench.results.store import ResultStore
 from bench.run.evaluate import score
 from bench.run.runner import run_cell
-from external.paths import REPO_ROOT
+from bench.sim.env import libero_available
+from external.paths import REPO_ROOT, cache_dir
 from tests.factories import make_failed, make_record, save_record
 from tests.worlds import lent_workspace
 
@@ -41,7 +42,8 @@ def world(tmp_path_factory, one_torch_thread):
     lerobot-train interpreter starts first (its imports take longest) and is handed the
     exports when they exist; the tests below run while it trains."""
     root = tmp_path_factory.mktemp("export")
-    train = start_lerobot_train(root)
+    train = start_lerobot(root, "train", TRAIN_SCRIPT)
+    evaluate = start_lerobot(root, "eval", EVAL_SCRIPT) if libero_available() else None
     try:
         out = {}
         for dtype, families in (("float32", FAMILIES), ("fp16", ("smolvla",))):
@@ -52,25 +54,46 @@ def world(tmp_path_factory, one_torch_thread):
                 folder = export_cell(results, record.cell_id, root / f"{family}-{dtype}",
                                      lend_from=ws)
                 out[(family, dtype)] = (record, folder, results)
-        world = {"root": root, "cells": out, "ws": ws, "train": train}
+        world = {"root": root, "cells": out, "ws": ws, "train": train, "eval": evaluate}
         train.stdin.write(json.dumps(lerobot_train_argvs(world)))
         train.stdin.close()
+        if evaluate is not None:
+            evaluate.stdin.write(json.dumps([lerobot_eval_argv(world)]))
+            evaluate.stdin.close()
         yield world
     finally:
-        if train.poll() is None:
-            train.kill()
-            train.wait()
+        for process in (train, evaluate):
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.wait()
 
 
-def start_lerobot_train(root: Path) -> subprocess.Popen:
-    """One interpreter that runs LeRobot's own lerobot-train entry point (the console script's
-    `main`, which registers the plugins) once per argv list it reads from stdin."""
-    script = ("import json, sys\nfrom lerobot.scripts.lerobot_train import main\n"
-              "for argv in json.loads(sys.stdin.read()):\n    sys.argv = argv\n    main()\n")
+# One interpreter per LeRobot CLI, started before the cells run (its imports take longest),
+# that runs the CLI's own entry point (`main`, which registers the plugins) once per argv list
+# read from stdin. LIBERO's config (no prompt) and assets are set up first for lerobot-eval.
+TRAIN_SCRIPT = "from lerobot.scripts.lerobot_train import main\n"
+EVAL_SCRIPT = ("from bench.sim.env import configure\nconfigure()\n"
+               "from lerobot.scripts.lerobot_eval import main\n")
+RUN_ARGVS = ("import json, sys\nfor argv in json.loads(sys.stdin.read()):\n"
+             "    sys.argv = argv\n    main()\n")
+
+
+def start_lerobot(root: Path, name: str, script: str) -> subprocess.Popen:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HF_HUB_OFFLINE": "1"}
-    log = open(root / "lerobot-train.log", "w")
-    return subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=log,
-                            stderr=subprocess.STDOUT, text=True, env=env)
+    log = open(root / f"lerobot-{name}.log", "w")
+    return subprocess.Popen([sys.executable, "-c", script + RUN_ARGVS], stdin=subprocess.PIPE,
+                            stdout=log, stderr=subprocess.STDOUT, text=True, env=env,
+                            cwd=REPO_ROOT)
+
+
+def lerobot_eval_argv(world) -> list[str]:
+    """One short LIBERO episode of the SmolVLA export (the env's wrist camera is image2)."""
+    return ["lerobot-eval", f"--policy.path={world['cells'][('smolvla', 'float32')][1]}",
+            "--env.type=libero", "--env.task=libero_spatial", "--env.task_ids=[0]",
+            "--env.episode_length=2", "--env.observation_height=64",
+            "--env.observation_width=64", "--eval.n_episodes=1", "--eval.batch_size=1",
+            "--eval.use_async_envs=false", f"--output_dir={world['root'] / 'eval'}",
+            '--rename_map={"observation.images.image2": "observation.images.wrist_image"}']
 
 
 def lerobot_train_argvs(world) -> list[list[str]]:
@@ -168,13 +191,13 @@ def test_loading_refuses_a_missing_or_unexpected_key(world, tmp_path):
 @pytest.mark.slow
 def test_a_copied_folder_loads_without_the_original(world, tmp_path):
     record, folder, _ = world["cells"][("smolvla", "float32")]
-    copy = shutil.copytree(folder, tmp_path / "elsewhere" / "policy")
-    hidden = folder.with_name(folder.name + ".hidden")
-    folder.rename(hidden)  # an absolute reference into the original would now fail
-    try:
-        assert heldout_mse(world, "smolvla", copy) == record.scores.mse
-    finally:
-        hidden.rename(folder)
+    original = shutil.copytree(folder, tmp_path / "here")  # lerobot-train reads `folder` now
+    copy = shutil.copytree(original, tmp_path / "elsewhere" / "policy")
+    shutil.rmtree(original)  # an absolute reference into the original would now fail
+    for path in copy.rglob("*.json"):
+        text = path.read_text()
+        assert str(world["root"]) not in text and str(cache_dir()) not in text, path
+    assert heldout_mse(world, "smolvla", copy) == record.scores.mse
 
 
 @pytest.mark.slow
@@ -239,3 +262,27 @@ def test_plugin_is_light_and_below_the_harness():
                    for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))
                    for a in getattr(n, "names", [])}
             assert not [m for m in top if m.startswith(heavy)], (path.name, top)
+
+
+@pytest.mark.slow
+def test_best_picks_the_report_winner_and_the_cli_lists_and_refuses(world, capsys, tmp_path):
+    from bench.export import best_cell
+    from bench.export.__main__ import main
+
+    record, folder, results = world["cells"][("pi05", "float32")]
+    best, note = best_cell(results, "pi05", "spatial")
+    assert best.cell_id == record.cell_id and "rank 1 of 1" in note
+    assert main(["--list", "--results-dir", str(results)]) == 0
+    assert record.cell_id in capsys.readouterr().out
+    assert main(["--best", "pi05", "spatial", "--results-dir", str(results),
+                 "--out", str(folder)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not libero_available(), reason="needs the libero extra")
+def test_lerobot_eval_runs_one_short_libero_episode_of_the_export(world):
+    assert world["eval"].wait(timeout=400) == 0, \
+        (world["root"] / "lerobot-eval.log").read_text()[-3000:]
+    log = (world["root"] / "lerobot-eval.log").read_text()
+    assert "'n_episodes': 1" in log and "End of eval" in log
