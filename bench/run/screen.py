@@ -18,7 +18,7 @@ Memory: LogME and ridge read chunked `Moments`; k-NN keeps the (N_train, D) trai
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
@@ -50,22 +50,17 @@ class ScreenScores:
     seconds: float = 0.0
 
     def to_json(self) -> dict:
-        """JSON-ready; an undefined value is {"undefined": reason}."""
-        return {"encoder": self.encoder, "backbone": self.backbone, "suite": self.suite,
-                "proxies": {p: {k: _out(v) for k, v in vals.items()}
-                            for p, vals in self.proxies.items()},
-                "chosen": self.chosen, "entropy": _out(self.entropy), "n_train": self.n_train,
-                "n_heldout": self.n_heldout, "dims": self.dims, "seconds": self.seconds}
+        """JSON-ready, one key per field; an undefined value is {"undefined": reason}."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["proxies"] = {p: {k: _out(v) for k, v in vals.items()}
+                          for p, vals in self.proxies.items()}
+        out["entropy"] = _out(self.entropy)
+        return out
 
     @classmethod
     def from_json(cls, data: dict) -> "ScreenScores":
-        out = cls(data["encoder"], data["backbone"], data["suite"])
-        out.proxies = {p: {k: _in(v) for k, v in vals.items()}
-                       for p, vals in data["proxies"].items()}
-        out.chosen, out.entropy = data["chosen"], _in(data["entropy"])
-        out.n_train, out.n_heldout = data["n_train"], data["n_heldout"]
-        out.dims, out.seconds = data["dims"], data["seconds"]
-        return out
+        proxies = {p: {k: _in(v) for k, v in vals.items()} for p, vals in data["proxies"].items()}
+        return cls(**{**data, "proxies": proxies, "entropy": _in(data["entropy"])})
 
     def score(self, proxy: str) -> Measure:
         """The ranking score of `proxy` (higher is better): a supervised proxy's gain, or entropy."""
