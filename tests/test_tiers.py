@@ -52,3 +52,21 @@ def test_unpaired_windows_are_refused():
     records[0] = make_record(encoder=ENCODERS[0], level=0.05, window_ids=list(range(24)))
     out = tier_agreement({e: 0.0 for e in ENCODERS}, records, "smolvla", "spatial", "ridge")
     assert "not paired" in out.missing
+
+
+def test_report_tables_print_numbers_intervals_and_reasons():
+    from bench.report.screen import agreement_table, screen_table
+    from bench.run.screen import ScreenScores
+
+    ok = tier_agreement({e: -level for e, level in LEVELS.items()}, grafts(), "smolvla",
+                        "spatial", "ridge", n_resamples=50)
+    short = tier_agreement({ENCODERS[0]: 1.0}, grafts(), "pi05", "spatial", "knn")
+    text = agreement_table([ok, short])
+    row = next(line for line in text.splitlines() if "smolvla" in line)
+    assert [c.strip() for c in row.strip("|").split("|")][:5] == [
+        "smolvla", "spatial", "ridge", "7", "1 [1, 1]"]
+    assert "not measured: 0 encoder(s)" in text and "Ties: Scores tie when exactly equal" in text
+    screen = ScreenScores("blind", "smolvla", "spatial", seconds=0.4,
+                          entropy=Undefined("every token norm is 0"))
+    screen.proxies = {p: {"gain": 0.0, "state+features": 0.3} for p in ("logme", "ridge", "knn")}
+    assert "undefined: every token norm is 0" in screen_table([screen])
