@@ -71,7 +71,8 @@ def _lines(record: Record, results_dir: Path, note: str | None, flags: tuple[str
     lines += [
         "", "## Take it further", "",
         "Fine-tune (what trains: `--policy.train_scope` = projector | projector+encoder | "
-        "projector+policy; LoRA through LeRobot's own `--peft.*`):", "", "```",
+        "projector+policy; LeRobot's own `--peft.*` options are not yet tested with graft "
+        "types):", "", "```",
         f"lerobot-train --policy.path=THIS_FOLDER --dataset.repo_id={repo_id} "
         f"--dataset.root={root} --policy.train_scope=projector{train_flag} "
         "--output_dir=outputs/graft --steps=2000", "```", "",

@@ -56,7 +56,7 @@ def load_projector(results_dir: str | os.PathLike, cell_id: str, relative: str |
                    sha256: str | None) -> dict[str, torch.Tensor]:
     """The state dict a record names, checked against its sha256; ProjectorFileError else."""
     rerun = (f"run the cell again to keep its projector (pytest bench -k {cell_id} "
-             f"--results-dir {results_dir})")
+             f"--results-dir {results_dir} --rerun)")
     if not relative or not sha256:
         raise ProjectorFileError(f"cell {cell_id} names no projector file (recorded before "
                                  f"projectors were kept): {rerun}")
@@ -66,5 +66,6 @@ def load_projector(results_dir: str | os.PathLike, cell_id: str, relative: str |
     found = file_sha256(path)
     if found != sha256:
         raise ProjectorFileError(f"projector file {path} has sha256 {found[:12]}..., the record "
-                                 f"of {cell_id} says {sha256[:12]}...: the file was changed; {rerun}")
+                                 f"of {cell_id} says {sha256[:12]}...: the file was changed; "
+                                 f"{rerun}")
     return load_file(str(path))

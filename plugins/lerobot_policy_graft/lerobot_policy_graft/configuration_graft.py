@@ -15,7 +15,8 @@ from lerobot.policies.pi05.configuration_pi05 import PI05Config
 from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
 
 # What `lerobot-train` optimises (the policy's get_optim_params); everything else is frozen.
-# "projector+policy": what LeRobot itself trains of the base policy (its freeze flags) + the projector.
+# "projector+policy": what LeRobot itself trains of the base policy (its freeze flags) and the
+# projector.
 TRAIN_SCOPES = {
     "projector": ("graft.projector.",),
     "projector+encoder": ("graft.projector.", "graft.encoder."),

@@ -30,7 +30,8 @@ from lerobot_policy_graft.configuration_graft import (
 )
 
 # The checkpoint folder being loaded: relative asset names in its config resolve against it.
-_ASSET_ROOT: contextvars.ContextVar[Path | None] = contextvars.ContextVar("graft_assets", default=None)
+_ASSET_ROOT: contextvars.ContextVar[Path | None] = contextvars.ContextVar("graft_assets",
+                                                                          default=None)
 
 
 @contextlib.contextmanager
@@ -192,7 +193,8 @@ class GraftSmolVLAPolicy(_Grafted, SmolVLAPolicy):
         return self.graft.feed(image).to(text.get_input_embeddings().weight.dtype)
 
     def _bundled_assets(self) -> list[str]:
-        return [] if Path(self.config.vlm_model_name).is_absolute() else [self.config.vlm_model_name]
+        name = self.config.vlm_model_name
+        return [] if Path(name).is_absolute() else [name]
 
     def prepare_images(self, batch):
         self.graft.bind(batch)

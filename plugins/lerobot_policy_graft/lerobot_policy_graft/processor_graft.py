@@ -32,7 +32,8 @@ def _files_to_tensor(files: dict[str, str]) -> torch.Tensor:
 def _tensor_to_folder(blob: torch.Tensor) -> Path:
     """The tokenizer files unpacked into a content-addressed folder under the temp dir."""
     data = bytes(blob.to(torch.uint8).cpu().numpy().tobytes())
-    folder = Path(tempfile.gettempdir()) / "graft_tokenizers" / hashlib.sha256(data).hexdigest()[:16]
+    digest = hashlib.sha256(data).hexdigest()[:16]
+    folder = Path(tempfile.gettempdir()) / "graft_tokenizers" / digest
     if not (folder / ".complete").is_file():
         folder.mkdir(parents=True, exist_ok=True)
         for name, text in json.loads(data).items():
