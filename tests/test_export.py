@@ -173,10 +173,11 @@ def test_loaded_export_of_an_fp16_cell_is_within_the_fp16_tolerance(world):
 
 
 @pytest.mark.slow
-def test_loading_refuses_a_missing_or_unexpected_key(world, tmp_path):
+@pytest.mark.parametrize("family", ["smolvla", "pi05"])  # LeRobot: strict=False / prints
+def test_loading_refuses_a_missing_or_unexpected_key(world, tmp_path, family):
     from safetensors.torch import load_file, save_file
 
-    _, folder, _ = world["cells"][("pi05", "float32")]
+    _, folder, _ = world["cells"][(family, "float32")]
     state = load_file(folder / "model.safetensors")
     for name, changed in (("missing", {k: v for k, v in state.items()
                                        if k != "graft.projector.linear.bias"}),
