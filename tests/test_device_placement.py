@@ -16,8 +16,7 @@ import pytest
 import torch
 
 from backbones import pi0, pi05, smolvla
-from tests import test_backbone_pi05 as tp
-from tests import test_backbone_smolvla as ts
+from tests.backbone_data import CAMERAS, make_raw, make_stats
 
 CHUNK = 10
 
@@ -72,15 +71,10 @@ def meta_backbone(request):
 
 
 def _meta_backbone(name: str):
-    if name == "smolvla":
-        backbone = smolvla.build_tiny_policy(ts.make_stats(), ts.CAMERAS, chunk_size=CHUNK, seed=0)
-        raw = ts.make_raw()
-    else:  # pi0 and pi0.5 share the tiny PaliGemma test data
-        module = {"pi05": pi05, "pi0": pi0}[name]
-        backbone = module.build_tiny_policy(tp.make_stats(), tp.CAMERAS, chunk_size=CHUNK, seed=0)
-        raw = tp.make_raw()
+    module = {"smolvla": smolvla, "pi05": pi05, "pi0": pi0}[name]
+    backbone = module.build_tiny_policy(make_stats(), CAMERAS, chunk_size=CHUNK, seed=0)
     backbone.freeze()
-    return on_meta(backbone), raw
+    return on_meta(backbone), make_raw()
 
 
 def harness_noise_time(backbone, batch_size: int = 2):
