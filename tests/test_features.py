@@ -310,6 +310,7 @@ print("finished", flush=True)
 """
 
 
+@pytest.mark.slow  # a build in a fresh interpreter, killed midway
 def test_a_killed_build_is_never_read_and_the_rerun_completes_it(tmp_path):
     root = tmp_path / "killed"
     child = subprocess.Popen([sys.executable, "-c", KILLED_BUILD.format(repo=str(REPO_ROOT),

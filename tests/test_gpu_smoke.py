@@ -64,6 +64,7 @@ def test_dry_run_prints_one_human_line_per_backbone(dry_run):
     assert all(": ok;" in line and "s/step" in line for line in human), human
 
 
+@pytest.mark.slow  # two fresh interpreters importing torch
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the refusal is for machines without CUDA")
 def test_refuses_in_one_line_without_cuda():
     for command in (["bash", str(SMOKE_SH)], [sys.executable, str(SMOKE_PY)]):

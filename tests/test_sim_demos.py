@@ -17,6 +17,8 @@ from bench.sim import demos  # noqa: E402
 from bench.suites import libero, suite_from_dataset  # noqa: E402
 from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY  # noqa: E402
 
+pytestmark = pytest.mark.slow  # demonstrations generated in the LIBERO simulator
+
 # One task where the expert is known to succeed (LIBERO-Spatial task 0: 10/10 measured), small
 # images so the test stays around a minute on 2 cores.
 SPEC = demos.DemoSpec("spatial", tasks=(0,), episodes_per_task=1, max_attempts=2, seed=0,

@@ -39,6 +39,7 @@ needs_libero = pytest.mark.skipif(not sim_env.libero_available(),
 SMALL = sim_env.RenderSettings(image_size=64)
 
 
+@pytest.mark.slow  # LIBERO scenes rendered in the simulator
 @needs_libero
 def test_scripted_expert_as_policy_succeeds():
     from bench.sim.expert import ExpertPolicy
@@ -54,6 +55,7 @@ def test_scripted_expert_as_policy_succeeds():
     assert result["settings"]["render"]["image_size"] == 64
 
 
+@pytest.mark.slow  # LIBERO scenes rendered in the simulator
 @needs_libero
 def test_zero_action_policy_never_succeeds_and_sees_dataset_conventions():
     from bench.sim.rollout import run_rollouts
