@@ -1,4 +1,4 @@
-"""Compare the records of two results dirs (a change that must not move a number): measurements
+"""Compare the records of two results dirs: their measurements must be the same bits.
 
 usage: python compare_records.py BEFORE_DIR AFTER_DIR
 Measurement fields (must be identical, float by float): mse, per_window, per_task, per_horizon,
