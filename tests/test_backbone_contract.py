@@ -200,6 +200,7 @@ def test_missing_hub_repo_offline_fails_fast_in_one_line(module, monkeypatch):
     assert time.perf_counter() - start < 2.0
     message = str(excinfo.value)
     assert repo_id in message and str(constants.HF_HUB_CACHE) in message and "\n" not in message
+    assert f"hf download {repo_id}" in message  # the fix, spelled out
 
 
 def test_missing_local_folder_is_not_mistaken_for_a_repo(module, tmp_path):
