@@ -189,8 +189,8 @@ def test_caller_stats_replace_the_saved_ones(module, tiny, tmp_path):
     assert not torch.allclose(restated.normalize_actions(actions), tiny.normalize_actions(actions))
 
 
-def test_missing_hub_repo_offline_fails_fast_in_one_line(module, monkeypatch):
-    from huggingface_hub import constants
+def test_missing_hub_repo_offline_fails_fast_in_one_line(module, tiny, monkeypatch):
+    from huggingface_hub import constants  # `tiny`: LeRobot's modules imported before the clock
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     repo_id = f"graftbench-absent/{family_name(module.__name__)}_never_downloaded"
