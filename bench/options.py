@@ -185,13 +185,13 @@ def collects_grid(config: pytest.Config) -> bool:
     return False
 
 
-def check_startup(profile, report: Path, labels: dict[str, str] | None = None) -> list[str]:
-    """Every name, user path and output folder of the grid, before collection: each bad one a
-    one-line UsageError (exit 4, no cell run). Returns the camera pairing lines to print."""
+def check_startup(profile, labels: dict[str, str] | None = None) -> list[str]:
+    """Every name and user path of the grid, before collection: each bad one a one-line
+    UsageError (exit 4, no cell run). Returns the camera pairing lines to print. The output
+    folders come after (the session opens --results-dir, then probes --report: the report
+    defaults to a folder inside the results dir, whose own error names the right option)."""
     validate_names(profile, labels)
-    lines = check_user_world(profile)
-    check_writable("--report", report.parent)
-    return lines
+    return check_user_world(profile)
 
 
 def check_executor_options(config: pytest.Config) -> None:

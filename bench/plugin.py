@@ -124,7 +124,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if not session.names_checked and not hasattr(metafunc.config, "workerinput"):
         # A grid module outside bench/ (tests' own): checked here, at its collection.
         session.names_checked = True
-        _write_lines(metafunc.config, check_startup(session.profile, session.report_path))
+        _write_lines(metafunc.config, check_startup(session.profile))
     cells = graft_cells(session.profile) if "graft_cell" in names else control_cells(session.profile)
     argname = "graft_cell" if "graft_cell" in names else "control_cell"
     metafunc.parametrize(

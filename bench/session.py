@@ -20,7 +20,7 @@ import pytest
 
 from bench.grid.cells import CellSpec
 from bench.options import (
-    build_profile, check_executor_options, check_rollouts_possible, check_startup,
+    build_profile, check_executor_options, check_rollouts_possible, check_startup, check_writable,
     collects_grid, fold_duplicates, offline_env, option_labels, report_path,
 )
 from external.paths import REPO_ROOT
@@ -88,8 +88,9 @@ class GraftSession:
         # xdist worker's controller checked them); else at collection (bench.plugin).
         self.names_checked = collects_grid(config) and not hasattr(config, "workerinput")
         if self.names_checked:
-            self.startup_lines += check_startup(self.profile, self.report_path, labels)
+            self.startup_lines += check_startup(self.profile, labels)
             self.store  # opens (creates, probes) the results dir
+            check_writable("--report", self.report_path.parent)
 
     @property
     def store(self):

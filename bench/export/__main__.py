@@ -35,9 +35,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.list:
             from bench.export.locate import exportable, results_of
+            from bench.grid.kinds import GRAFT
 
             for record in results_of(args.results_dir).records:
-                if record.kind == "graft" and exportable(record):
+                if record.kind == GRAFT and exportable(record):
                     print(f"{record.cell_id}  mse {record.mse_in('normalized'):.6g}")
             return 0
         from bench.export.build import export_cell
