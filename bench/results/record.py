@@ -52,8 +52,20 @@ def _known_keys() -> set[str]:
     return {f.name for cls in _PARTS.values() for f in fields(cls)} | {_SCHEMA, _STATUS}
 
 
+class _IdentityFields:
+    """A record's or a failure's identity fields, for short (both hold `identity`)."""
+
+    cell_id = property(lambda self: self.identity.cell_id)
+    kind = property(lambda self: self.identity.kind)
+    backbone = property(lambda self: self.identity.backbone)
+    suite = property(lambda self: self.identity.suite)
+    encoder = property(lambda self: self.identity.encoder)
+    seed = property(lambda self: self.identity.seed)
+    variant = property(lambda self: self.identity.variant)
+
+
 @dataclass(frozen=True)
-class Record:
+class Record(_IdentityFields):
     """A finished cell's record. `extra`: keys this code does not know (kept, written back)."""
 
     identity: Identity
@@ -66,14 +78,6 @@ class Record:
     def __post_init__(self) -> None:
         validate_record(self.to_json())
 
-    # -- identity, for short ------------------------------------------------------------------
-    cell_id = property(lambda self: self.identity.cell_id)
-    kind = property(lambda self: self.identity.kind)
-    backbone = property(lambda self: self.identity.backbone)
-    suite = property(lambda self: self.identity.suite)
-    encoder = property(lambda self: self.identity.encoder)
-    seed = property(lambda self: self.identity.seed)
-    variant = property(lambda self: self.identity.variant)
     reference = property(lambda self: self.identity.reference)
 
     def mse_in(self, space: str = NORMALIZED) -> float:
@@ -152,20 +156,12 @@ def new_record(cell, *, measured: MeasuredUnder, scores: Scores, training: Train
 
 
 @dataclass(frozen=True)
-class Failure:
+class Failure(_IdentityFields):
     """What a failed cell leaves in failed/<cell_id>.json: never used to skip work."""
 
     identity: Identity
     error: str
     protocol_hash: str | None = None
-
-    cell_id = property(lambda self: self.identity.cell_id)
-    kind = property(lambda self: self.identity.kind)
-    backbone = property(lambda self: self.identity.backbone)
-    suite = property(lambda self: self.identity.suite)
-    encoder = property(lambda self: self.identity.encoder)
-    seed = property(lambda self: self.identity.seed)
-    variant = property(lambda self: self.identity.variant)
 
     @classmethod
     def of(cls, cell, protocol_hash: str, error: BaseException) -> Failure:
