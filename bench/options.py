@@ -1,10 +1,13 @@
-"""The grid's command-line options: declared, parsed into a Profile, and checked at start-up,
-each bad value a one-line `pytest.UsageError` naming the option (never an INTERNALERROR)."""
+"""The grid's command-line options: declared, parsed ONCE into a frozen `RunOptions` (the
+profile, where results and the report go, how cells run, the regression options) and checked at
+start-up, each bad value a one-line `pytest.UsageError` naming the option (never an
+INTERNALERROR). The session passes `RunOptions` down; nothing reads the config's options after."""
 
 from __future__ import annotations
 
 import os
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -12,7 +15,7 @@ import pytest
 from bench.grid.gridfile import read_grid_file
 from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
-from bench.grid.protocol import get_profile, with_overrides
+from bench.grid.protocol import Profile, get_profile, with_overrides
 
 DEFAULT_PROFILE = "tiny"
 
@@ -291,3 +294,51 @@ def check_writable(option: str, folder: Path) -> None:
     except OSError as e:
         raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
                                 "pass a writable folder") from None
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """One grid run's command line, parsed and checked (`parse_options`)."""
+
+    profile: Profile  # duplicates folded (startup_lines say so)
+    labels: dict  # {profile field: where its values came from} (option_labels)
+    startup_lines: tuple[str, ...]
+    results_dir: Path
+    report_path: Path
+    rerun: bool = False
+    features_mode: str = "cache"
+    feature_dtype: str = "fp16"
+    rollouts: int = 0
+    executor: str = "local"
+    slurm: object = None  # bench.run.executors.SlurmOptions
+    baseline: object = None  # bench.regression.run.BaselineOptions
+
+
+def parse_options(config: pytest.Config) -> RunOptions:
+    """Every option of the grid, parsed and checked: a bad one is a UsageError (exit 4). Names
+    and user paths are checked after (check_startup: only when the grid is collected)."""
+    from bench.regression.run import BaselineOptions
+    from bench.run.executors import SlurmOptions
+
+    opt = config.getoption
+    profile = build_profile(config)
+    labels = option_labels(profile, config)
+    profile, lines = fold_duplicates(profile, labels)
+    results = opt("--results-dir")
+    results_dir = (Path(results) if results
+                   else REPO_ROOT / ".graftbench" / "results" / profile.name)
+    rollouts = int(opt("--rollouts") or 0)
+    if rollouts < 0:
+        raise pytest.UsageError(f"--rollouts {rollouts}: give episodes per task >= 0")
+    if rollouts:
+        check_rollouts_possible(profile)
+    check_executor_options(config)
+    slurm = SlurmOptions(partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
+                         gpus_per_task=opt("--slurm-gpus-per-task"),
+                         array_parallelism=opt("--slurm-array-parallelism"))
+    return RunOptions(
+        profile, labels, tuple(lines), results_dir,
+        report_path(opt("--report"), results, profile.name, results_dir),
+        rerun=bool(opt("--rerun")), features_mode=opt("--features"),
+        feature_dtype=opt("--feature-dtype"), rollouts=rollouts, executor=opt("--executor"),
+        slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")))

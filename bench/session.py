@@ -19,11 +19,7 @@ from typing import Callable
 import pytest
 
 from bench.grid.cells import CellSpec
-from bench.options import (
-    build_profile, check_executor_options, check_rollouts_possible, check_startup, check_writable,
-    collects_grid, fold_duplicates, offline_env, option_labels, report_path,
-)
-from external.paths import REPO_ROOT
+from bench.options import check_startup, check_writable, collects_grid, offline_env, parse_options
 from bench.progress import say
 from bench.regression.run import BaselineRun
 
@@ -54,30 +50,16 @@ class GraftSession:
 
     def __init__(self, config: pytest.Config) -> None:
         self.config = config
-        # Start-up: every option here, before collection (bench.options): a bad one is ONE
-        # UsageError screen, exit 4, no cell run. Lines to print at the session's start.
-        profile = build_profile(config)
-        labels = option_labels(profile, config)
-        self.profile, self.startup_lines = fold_duplicates(profile, labels)
+        # Start-up: every option, parsed once into a frozen value before collection
+        # (bench.options): a bad one is ONE UsageError screen, exit 4, no cell run.
+        self.options = options = parse_options(config)
+        self.startup_lines = list(options.startup_lines)  # printed at the session's start
         offline_env(self.profile.offline)
-        results = config.getoption("--results-dir")
-        self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name
-        self.report_path = report_path(config.getoption("--report"), results, self.profile.name,
-                                       self.results_dir)
-        self.rerun = bool(config.getoption("--rerun"))
-        self.features_mode = config.getoption("--features")
-        self.feature_dtype = config.getoption("--feature-dtype")
-        self.rollouts = int(config.getoption("--rollouts") or 0)
-        if self.rollouts < 0:
-            raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
-        if self.rollouts:
-            check_rollouts_possible(self.profile)
-        check_executor_options(config)
         # Seams (module docstring).
         self.cell_runner: Callable = _run_cell
         self.workspace_factory: Callable = _default_workspace
         self.report_builder: Callable = _build_report
-        self.baseline = BaselineRun(config, self.profile.protocol.hash)
+        self.baseline = BaselineRun(options.baseline, self.profile.protocol.hash)
         self._workspace = None
         self._store = None
         self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
@@ -88,9 +70,18 @@ class GraftSession:
         # xdist worker's controller checked them); else at collection (bench.plugin).
         self.names_checked = collects_grid(config) and not hasattr(config, "workerinput")
         if self.names_checked:
-            self.startup_lines += check_startup(self.profile, labels)
+            self.startup_lines += check_startup(self.profile, options.labels)
             self.store  # opens (creates, probes) the results dir
             check_writable("--report", self.report_path.parent)
+
+    # What the options say, by the names the cells' code reads (one value: self.options).
+    profile = property(lambda self: self.options.profile)
+    results_dir = property(lambda self: self.options.results_dir)
+    report_path = property(lambda self: self.options.report_path)
+    rerun = property(lambda self: self.options.rerun)
+    rollouts = property(lambda self: self.options.rollouts)
+    features_mode = property(lambda self: self.options.features_mode)
+    feature_dtype = property(lambda self: self.options.feature_dtype)
 
     @property
     def store(self):
@@ -165,7 +156,7 @@ class GraftSession:
         if cell_plan.discard:  # a degraded record never outlives its run
             self.store.forget(cell.id)
         self._say_start(cell_plan)
-        if self.config.getoption("--executor") != "local":
+        if self.options.executor != "local":
             return self._run_submitted(cell)
         try:
             result = self.cell_runner(cell, self.workspace(), cell_plan.context)
@@ -206,18 +197,13 @@ class GraftSession:
     def _run_submitted(self, cell: CellSpec) -> dict:
         """--executor slurm|submitit-local: the first case submits every selected cell that has
         no current record as ONE job array; each case then waits for its own task."""
-        from bench.run.executors import CellArray, CellJob, SlurmOptions
+        from bench.run.executors import CellArray, CellJob
         from external.paths import cache_dir
         from bench.results.record import Failure
 
         if self._cell_array is None:
-            opt = self.config.getoption
-            slurm = SlurmOptions(
-                partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
-                gpus_per_task=opt("--slurm-gpus-per-task"),
-                array_parallelism=opt("--slurm-array-parallelism"),
-            )
-            self._cell_array = CellArray(opt("--executor"), self.results_dir / "submitit", slurm)
+            self._cell_array = CellArray(self.options.executor, self.results_dir / "submitit",
+                                         self.options.slurm)
             items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
             params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
             cells = [p.get("graft_cell", p.get("control_cell")) for p in params]

@@ -69,7 +69,7 @@ BAD_INPUTS = [
     (["--policy", "mine=nobody/no_such_policy"], "--policy mine=nobody/no_such_policy",
      "no LeRobot checkpoint there"),
     (["--policy", "smolvla=/tmp"], "--policy smolvla", "the name of a built-in one"),
-    (["--dataset", "mine=/nonexistent/data"], "--dataset /nonexistent/data",
+    (["--dataset", "mine=/nonexistent/data"], "--dataset mine=/nonexistent/data",
      "no LeRobotDataset there"),
     (["--grid", "/nonexistent/study.toml"], "--grid /nonexistent/study.toml", "no such file"),
     (["--camera-map", "front=top"], "--camera-map front=top", "add --policy NAME=FOLDER"),

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, CellKind, get_kind
+from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, CellKind, cell_id, get_kind
 from bench.grid.protocol import Profile
-from bench.results.record import cell_id
 
 
 @dataclass(frozen=True)
