@@ -106,13 +106,18 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
     """xdist controller: it collects nothing itself, so the cells its workers collected (after
-    -k/-m) are the selection that grid.json and the report expect."""
+    -k/-m) are the selection that the paper preflight checks and grid.json and the report
+    expect."""
     gs: GraftSession = node.config.stash[SESSION_KEY]
     if gs.selected:
         return  # every worker collects the same items
-    known = {c.id for c in graft_cells(gs.profile) + control_cells(gs.profile)}
+    known = {c.id: c for c in graft_cells(gs.profile) + control_cells(gs.profile)}
     gs.selected = [c for c in map(cell_id_of, ids) if c in known]
     if gs.selected:
+        try:  # the paper preflight of the selection, here where -k has been applied
+            gs.preflight([known[c] for c in gs.selected])
+        except pytest.UsageError as e:  # raised inside xdist's loop: an exit, not an INTERNALERROR
+            pytest.exit(f"ERROR: {e}", returncode=pytest.ExitCode.USAGE_ERROR)
         gs.store.write_grid(gs.selected, gs.profile.name)
 
 
