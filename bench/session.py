@@ -21,7 +21,7 @@ import pytest
 from bench.grid.cells import CellSpec
 from bench.options import (
     build_profile, check_executor_options, check_rollouts_possible, check_startup, check_writable,
-    collects_grid, fold_duplicates, offline_env, option_labels, report_path,
+    collects_grid, fold_duplicates, offline_env, option_labels, report_path, screen_options,
 )
 from external.paths import REPO_ROOT
 from bench.progress import say
@@ -59,6 +59,8 @@ class GraftSession:
         profile = build_profile(config)
         labels = option_labels(profile, config)
         self.profile, self.startup_lines = fold_duplicates(profile, labels)
+        self.profile, self.screen_options, lines = screen_options(config, self.profile)
+        self.startup_lines += lines
         offline_env(self.profile.offline)
         results = config.getoption("--results-dir")
         self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name
@@ -82,6 +84,8 @@ class GraftSession:
         self._store = None
         self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
         self.selected: list[str] = []
+        self.screens_selected: list[str] = []  # test_screen cases collected (screen ids)
+        self._screening = None
         self.report_written: Path | None = None
         self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
         # Names, user paths, output folders: checked here when this run collects the grid (an
@@ -116,11 +120,25 @@ class GraftSession:
         quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
         return False if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
 
+    @property
+    def screening(self):
+        """The run's screens and graft selections (bench.run.screen_run); None without --screen."""
+        if self._screening is None and self.screen_options is not None:
+            from bench.run.screen_run import ScreenRun
+
+            self._screening = ScreenRun(self.screen_options, self.profile, self.store,
+                                        self.workspace, feature_dtype=self.feature_dtype,
+                                        rerun=self.rerun)
+        return self._screening
+
     # --- one cell: plan, then run ------------------------------------------------------------
     def run(self, cell: CellSpec):
         """Plan the cell (resume the stored record, or measure, and with what: bench.run.plan),
         carry the plan out, then the baseline's cell checks (a regression fails this case in
-        one line)."""
+        one line). Under --screen, a cell of an encoder the screen dropped is skipped, saying
+        why, before anything trains."""
+        if self.screening is not None and (why := self.screening.dropped_reason(cell)):
+            pytest.skip(f"dropped by the screen: {why}")
         cell_plan = self.plan(cell)
         if cell_plan.resume is not None:
             record = cell_plan.resume
@@ -249,17 +267,29 @@ class GraftSession:
         if any(not a.present for a in artifacts) and not self.config.option.collectonly:
             raise pytest.UsageError(missing_summary(artifacts))
 
+    @property
+    def ran_cells(self) -> list[str]:
+        """The selected cells the screen did not drop: what grid.json and the baseline expect."""
+        dropped = self.screening.dropped if self.screening is not None else {}
+        return [c for c in self.selected if c not in dropped]
+
     def finish_baseline(self) -> list[tuple[str, str]]:
         """The baseline's save / compare over the stored records; the report sections it adds."""
-        records = {cid: r for cid in self.selected if (r := self.store.load(cid)) is not None}
-        return self.baseline.finish(self.selected, records)
+        records = {cid: r for cid in self.ran_cells if (r := self.store.load(cid)) is not None}
+        return self.baseline.finish(self.ran_cells, records)
 
     def finish(self, sections: list[tuple[str, str]] = ()) -> Path | None:
         """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
         nothing new finished (an existing report is left as it is)."""
-        measured = any(o == "measured" for o in self.outcomes.values())
-        resumed = any(o == "resumed" for o in self.outcomes.values())
-        if not self.selected or not (measured or (resumed and not self.report_path.exists())):
+        outcomes = list(self.outcomes.values())
+        if self.screening is not None:
+            outcomes += list(self.screening.outcomes.values())
+            if self.selected and self.screening.dropped:  # grid.json: what was meant to run
+                self.store.write_grid(self.ran_cells, self.profile.name)
+        measured = any(o == "measured" for o in outcomes)
+        resumed = any(o == "resumed" for o in outcomes)
+        if not (self.selected or self.screens_selected) or not (
+                measured or (resumed and not self.report_path.exists())):
             return None
         self.report_written = self.report_builder(self.results_dir, self.report_path,
                                                   extra_sections=sections)
