@@ -107,7 +107,7 @@ def screen_options(config: pytest.Config, profile):
     screened = [e for e in profile.encoders if e not in REFERENCES]
     lines = [f"[graftbench] --screen: {len(screened)} encoder(s) screened per backbone x suite; "
              f"grafted: the best {options.keep or 'all'} by {options.by}, and the references "
-             f"{', '.join(REFERENCES)}" + (f" (added to --encoders)" if added else "")]
+             f"{', '.join(REFERENCES)}" + (" (added to --encoders)" if added else "")]
     if options.keep is not None and options.keep > len(screened):
         lines.append(f"[graftbench] --screen-keep {options.keep} is more than the "
                      f"{len(screened)} listed encoder(s) (references aside): all are grafted")
