@@ -76,3 +76,36 @@ register(EncoderSpec(
     name="blind", timm_name=None, input_size=64, layout="map",
     description="known answer: constant ones, 16 ch, 2x2 grid; no visual information"),
     BlindEncoder)
+
+
+# The known-answer ladder (issue 26): the pixels encoder on the image averaged over f x f blocks
+# (repeated back to full size, so grid and channels stay the pixels encoder's). Each rung is a
+# function of the rung above, so it cannot hold more about the scene; blind is the last rung.
+# `pytest bench --screen --encoders <LADDER> --screen-keep all` checks a screen against it.
+LADDER_FACTORS = (2, 4, 8, 16)
+LADDER = ("pixels", *(f"pixels_avg{f}" for f in LADDER_FACTORS), "blind")
+
+
+class CoarsePixelsEncoder(PixelsEncoder):
+    """The pixels encoder on `factor` x `factor` block means of the image."""
+
+    factor = 1
+
+    def forward(self, images: Tensor) -> Tensor:
+        h, w = images.shape[-2:]
+        if h % self.factor or w % self.factor:
+            raise ValueError(f"{self.spec.name} needs H, W multiples of {self.factor}; got "
+                             f"{tuple(images.shape)}")
+        coarse = F.avg_pool2d(images.float(), self.factor)
+        full = coarse.repeat_interleave(self.factor, dim=2).repeat_interleave(self.factor, dim=3)
+        return super().forward(full)
+
+
+for _factor in LADDER_FACTORS:
+    register(EncoderSpec(
+        name=f"pixels_avg{_factor}", timm_name=None, input_size=64, layout="map",
+        description=f"known-answer ladder: pixels of the image averaged over {_factor}x{_factor} "
+                    "blocks; less visual information than the rung above"),
+        type(f"CoarsePixels{_factor}", (CoarsePixelsEncoder,),
+             # weights_id names the definition: the feature store keys on it
+             {"factor": _factor, "weights_id": f"none:centred:avg{_factor}"}))

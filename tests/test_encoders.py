@@ -20,6 +20,7 @@ EXPECTED = {
     "repvit": (384, 64, 2),
     "pixels": (192, 192, 8),
     "blind": (16, 16, 2),
+    **{f"pixels_avg{f}": (192, 192, 8) for f in (2, 4, 8, 16)},  # the known-answer ladder
 }
 # The paper's parameter counts (without head), in millions.
 PAPER_PARAMS_M = {"siglip": 92.9, "dinov2_s": 22.1, "fastvit": 10.6, "repvit": 4.7}
@@ -230,3 +231,19 @@ def test_blind_is_identical_for_different_images():
     enc = build_encoder("blind", "hub")
     a, b = enc(torch.zeros(3, 3, 64, 64)), enc(torch.rand(3, 3, 96, 96))
     assert torch.equal(a, b) and a.shape == (3, 16, 2, 2) and (a != 0).all()
+
+
+def test_the_ladder_rungs_are_pixels_of_block_averaged_images():
+    """A rung sees only block means: an image constant on 16x16 blocks reads the same on every
+    rung as on pixels, and a rung's features are pixels' of the block-averaged image."""
+    from encoders.known import LADDER
+
+    gen = torch.Generator().manual_seed(0)
+    blocks = torch.rand((2, 3, 4, 4), generator=gen).repeat_interleave(16, 2).repeat_interleave(16, 3)
+    pixels = build_encoder("pixels", "tiny")
+    for name in LADDER[1:-1]:
+        assert torch.equal(build_encoder(name, "tiny")(blocks), pixels(blocks)), name
+    image = torch.rand((2, 3, 64, 64), generator=gen)
+    averaged = torch.nn.functional.avg_pool2d(image, 4).repeat_interleave(4, 2).repeat_interleave(4, 3)
+    assert torch.allclose(build_encoder("pixels_avg4", "tiny")(image), pixels(averaged))
+    assert not torch.allclose(build_encoder("pixels_avg4", "tiny")(image), pixels(image))
