@@ -114,6 +114,8 @@ def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
         return  # every worker collects the same items
     known = {c.id for c in graft_cells(gs.profile) + control_cells(gs.profile)}
     gs.selected = [c for c in map(cell_id_of, ids) if c in known]
+    screens = {c.id for c in screen_cases(gs.profile)} if gs.screen_options else set()
+    gs.screens_selected = [c for c in map(cell_id_of, ids) if c in screens]
     if gs.selected:
         gs.store.write_grid(gs.selected, gs.profile.name)
 

@@ -239,7 +239,8 @@ class GraftSession:
             items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
             params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
             cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
-            todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None]
+            todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None
+                    and not (self.screening and self.screening.dropped_reason(c))]
             paths = (str(self.results_dir), str(cache_dir()))
             self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
                                              self.rollouts, self.feature_dtype) for c in todo])

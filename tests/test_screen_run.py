@@ -104,3 +104,20 @@ def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, 
                               "smolvla-spatial-blind": "resumed"}
     other_dtype = dataclasses.replace(later.conditions("smolvla", "spatial"), feature_dtype="bf16")
     assert store.current_screen("smolvla-spatial-blind", other_dtype) is None
+
+
+def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path):
+    """pixels, pixels_avg2..16, blind (encoders.known.LADDER): information falls by construction,
+    and every supervised proxy recovers that order exactly; the entropy is only measured."""
+    from bench.analysis.agreement import kendall_tau_b
+    from bench.run.screen import SUPERVISED
+    from encoders.known import LADDER
+
+    profile = dataclasses.replace(TINY, encoders=LADDER)
+    run = ScreenRun(ScreenOptions(None), profile, ResultStore(tmp_path), lambda: tiny_ws,
+                    feature_dtype="fp16")
+    screens = [run.screen("smolvla", "spatial", e).scores for e in LADDER]
+    planted = list(range(len(LADDER), 0, -1))  # higher is better: pixels first
+    for proxy in SUPERVISED:
+        scores = [s.score(proxy) for s in screens]
+        assert kendall_tau_b(scores, planted) == pytest.approx(1.0), (proxy, scores)
