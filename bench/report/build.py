@@ -164,6 +164,7 @@ def summary(ctx: ReportContext) -> dict:
         "rankings": ctx.rankings, "transfers": ctx.transfers, "support": ctx.support,
         "wrapper_neutrality": ctx.wrapper, "controls": ctx.controls,
         "closed_loop": ctx.closed_loop, "vision_use": ctx.vision,
+        "screen_agreement": ctx.screen_agreements,
         "cells": {"finished": len(ctx.records), "failed": [f.cell_id for f in res.failed],
                   "missing": res.missing, "skipped": res.skipped},
         "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},

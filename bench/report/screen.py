@@ -112,7 +112,7 @@ def cost_table(stored: Sequence, records: Sequence) -> str:
                      num(sum(grafts) / len(grafts), 3) if grafts else "no graft record",
                      f"{100 * solve / (sum(grafts) / len(grafts)):.2g}%" if grafts else "n/a"])
     return table(rows, ["backbone", "suite", "screens", "screen s / encoder",
-                        "features s / encoder (this run's extraction)", "graft s / cell",
+                        "features s / encoder (extraction, when the screen ran it)", "graft s / cell",
                         "screen / graft"])
 
 
