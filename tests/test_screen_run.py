@@ -107,7 +107,7 @@ def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, 
 
 
 def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path):
-    """pixels, pixels_avg2..16, blind (encoders.known.LADDER): information falls by construction,
+    """pixels_res8..1, blind (encoders.known.LADDER): information falls by construction,
     and every supervised proxy recovers that order exactly; the entropy is only measured."""
     from bench.analysis.agreement import kendall_tau_b
     from bench.run.screen import SUPERVISED
