@@ -61,10 +61,60 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                 help="how the feature store keeps features on disk: fp16 (default; moves a "
                      "cell's MSE < 2e-4 relative, docs/PERFORMANCE.md), bf16, or float32 (the "
                      "encoder's numbers bit for bit, twice the disk)")
+    _add_screen_options(g)
     _add_executor_options(g)
     from bench.regression.run import add_baseline_options
 
     add_baseline_options(parser)
+
+
+def _add_screen_options(g) -> None:
+    """The screen tier (bench.run.screen): screen every encoder, graft the best few."""
+    g.addoption("--screen", action="store_true",
+                help="screen every --encoders name first (no training: LogME, ridge, k-NN, "
+                     "entropy on stored features; cases test_screen[BACKBONE-SUITE-ENCODER]), "
+                     "then graft only the best --screen-keep plus the pixels/blind references")
+    g.addoption("--screen-keep", metavar="K|all",
+                help=f"with --screen: encoders grafted per backbone x suite (default "
+                     f"{DEFAULT_SCREEN_KEEP}); all: every screened one (the calibration study)")
+    g.addoption("--screen-by", metavar="PROXY",
+                help="with --screen: the proxy that ranks them, logme (default), ridge, knn or "
+                     "entropy")
+
+
+DEFAULT_SCREEN_KEEP = 3
+
+
+def screen_options(config: pytest.Config, profile):
+    """(the profile with the references added to its encoders, the run's ScreenOptions or None,
+    lines to print): --screen, --screen-keep, --screen-by checked, each bad one a UsageError."""
+    keep, by = config.getoption("--screen-keep"), config.getoption("--screen-by")
+    if not config.getoption("--screen"):
+        given = [(o, v) for o, v in (("--screen-keep", keep), ("--screen-by", by)) if v is not None]
+        if given:
+            option, value = given[0]
+            raise pytest.UsageError(f"{option} {value}: it chooses what a screen keeps, and "
+                                    f"--screen is not given; fix: add --screen or drop {option}")
+        return profile, None, []
+    import dataclasses
+
+    from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, ScreenOptions,
+                                  parse_screen_by, parse_screen_keep)
+
+    try:
+        options = ScreenOptions(parse_screen_keep(keep) if keep is not None else DEFAULT_SCREEN_KEEP,
+                                parse_screen_by(by) if by is not None else DEFAULT_SCREEN_BY)
+    except ValueError as e:
+        raise pytest.UsageError(str(e)) from None
+    added = tuple(r for r in REFERENCES if r not in profile.encoders)
+    screened = [e for e in profile.encoders if e not in REFERENCES]
+    lines = [f"[graftbench] --screen: {len(screened)} encoder(s) screened per backbone x suite; "
+             f"grafted: the best {options.keep or 'all'} by {options.by}, and the references "
+             f"{', '.join(REFERENCES)}" + (" (added to --encoders)" if added else "")]
+    if options.keep is not None and options.keep > len(screened):
+        lines.append(f"[graftbench] --screen-keep {options.keep} is more than the "
+                     f"{len(screened)} listed encoder(s) (references aside): all are grafted")
+    return (dataclasses.replace(profile, encoders=profile.encoders + added), options, lines)
 
 
 def _add_executor_options(g) -> None:
@@ -312,6 +362,7 @@ class RunOptions:
     executor: str = "local"
     slurm: object = None  # bench.run.executors.SlurmOptions
     baseline: object = None  # bench.regression.run.BaselineOptions
+    screen: object = None  # bench.run.screen.ScreenOptions; None without --screen
 
 
 def parse_options(config: pytest.Config) -> RunOptions:
@@ -324,6 +375,7 @@ def parse_options(config: pytest.Config) -> RunOptions:
     profile = build_profile(config)
     labels = option_labels(profile, config)
     profile, lines = fold_duplicates(profile, labels)
+    profile, screen, screen_lines = screen_options(config, profile)
     results = opt("--results-dir")
     results_dir = (Path(results) if results
                    else REPO_ROOT / ".graftbench" / "results" / profile.name)
@@ -337,8 +389,8 @@ def parse_options(config: pytest.Config) -> RunOptions:
                          gpus_per_task=opt("--slurm-gpus-per-task"),
                          array_parallelism=opt("--slurm-array-parallelism"))
     return RunOptions(
-        profile, labels, tuple(lines), results_dir,
+        profile, labels, tuple(lines + screen_lines), results_dir,
         report_path(opt("--report"), results, profile.name, results_dir),
         rerun=bool(opt("--rerun")), features_mode=opt("--features"),
         feature_dtype=opt("--feature-dtype"), rollouts=rollouts, executor=opt("--executor"),
-        slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")))
+        slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen)

@@ -64,6 +64,8 @@ class GraftSession:
         self._store = None
         self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
         self.selected: list[str] = []
+        self.screens_selected: list[str] = []  # test_screen cases collected (screen ids)
+        self._screening = None
         self.report_written: Path | None = None
         self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
         # Names, user paths, output folders: checked here when this run collects the grid (an
@@ -82,6 +84,7 @@ class GraftSession:
     rollouts = property(lambda self: self.options.rollouts)
     features_mode = property(lambda self: self.options.features_mode)
     feature_dtype = property(lambda self: self.options.feature_dtype)
+    screen_options = property(lambda self: self.options.screen)  # None without --screen
 
     @property
     def store(self):
@@ -107,11 +110,25 @@ class GraftSession:
         quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
         return False if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
 
+    @property
+    def screening(self):
+        """The run's screens and graft selections (bench.run.screen_run); None without --screen."""
+        if self._screening is None and self.screen_options is not None:
+            from bench.run.screen_run import ScreenRun
+
+            self._screening = ScreenRun(self.screen_options, self.profile, self.store,
+                                        self.workspace, feature_dtype=self.feature_dtype,
+                                        rerun=self.rerun)
+        return self._screening
+
     # --- one cell: plan, then run ------------------------------------------------------------
     def run(self, cell: CellSpec):
         """Plan the cell (resume the stored record, or measure, and with what: bench.run.plan),
         carry the plan out, then the baseline's cell checks (a regression fails this case in
-        one line)."""
+        one line). Under --screen, a cell of an encoder the screen dropped is skipped, saying
+        why, before anything trains."""
+        if self.screening is not None and (why := self.screening.dropped_reason(cell)):
+            pytest.skip(f"dropped by the screen: {why}")
         cell_plan = self.plan(cell)
         if cell_plan.resume is not None:
             record = cell_plan.resume
@@ -207,7 +224,8 @@ class GraftSession:
             items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
             params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
             cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
-            todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None]
+            todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None
+                    and not (self.screening and self.screening.dropped_reason(c))]
             paths = (str(self.results_dir), str(cache_dir()))
             self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
                                              self.rollouts, self.feature_dtype) for c in todo])
@@ -235,17 +253,29 @@ class GraftSession:
         if any(not a.present for a in artifacts) and not self.config.option.collectonly:
             raise pytest.UsageError(missing_summary(artifacts))
 
+    @property
+    def ran_cells(self) -> list[str]:
+        """The selected cells the screen did not drop: what grid.json and the baseline expect."""
+        dropped = self.screening.dropped if self.screening is not None else {}
+        return [c for c in self.selected if c not in dropped]
+
     def finish_baseline(self) -> list[tuple[str, str]]:
         """The baseline's save / compare over the stored records; the report sections it adds."""
-        records = {cid: r for cid in self.selected if (r := self.store.load(cid)) is not None}
-        return self.baseline.finish(self.selected, records)
+        records = {cid: r for cid in self.ran_cells if (r := self.store.load(cid)) is not None}
+        return self.baseline.finish(self.ran_cells, records)
 
     def finish(self, sections: list[tuple[str, str]] = ()) -> Path | None:
         """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
         nothing new finished (an existing report is left as it is)."""
-        measured = any(o == "measured" for o in self.outcomes.values())
-        resumed = any(o == "resumed" for o in self.outcomes.values())
-        if not self.selected or not (measured or (resumed and not self.report_path.exists())):
+        outcomes = list(self.outcomes.values())
+        if self.screening is not None:
+            outcomes += list(self.screening.outcomes.values())
+            if self.selected and self.screening.dropped:  # grid.json: what was meant to run
+                self.store.write_grid(self.ran_cells, self.profile.name)
+        measured = any(o == "measured" for o in outcomes)
+        resumed = any(o == "resumed" for o in outcomes)
+        if not (self.selected or self.screens_selected) or not (
+                measured or (resumed and not self.report_path.exists())):
             return None
         self.report_written = self.report_builder(self.results_dir, self.report_path,
                                                   extra_sections=sections)

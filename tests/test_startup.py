@@ -74,6 +74,13 @@ BAD_INPUTS = [
     (["--grid", "/nonexistent/study.toml"], "--grid /nonexistent/study.toml", "no such file"),
     (["--camera-map", "front=top"], "--camera-map front=top", "add --policy NAME=FOLDER"),
     (["--camera-map", "front"], "--camera-map 'front'", "POLICY_CAMERA=DATASET_CAMERA"),
+    (["--screen", "--screen-keep", "0"], "--screen-keep 0", "give a whole number >= 1, or all"),
+    (["--screen", "--screen-keep", "-2"], "--screen-keep -2", "give a whole number >= 1, or all"),
+    (["--screen", "--screen-keep", "2.5"], "--screen-keep 2.5", "give a whole number >= 1, or all"),
+    (["--screen", "--screen-by", "short"], "--screen-by short",
+     "choose one of logme, ridge, knn, entropy"),
+    (["--screen-keep", "2"], "--screen-keep 2", "--screen is not given; fix: add --screen"),
+    (["--screen-by", "ridge"], "--screen-by ridge", "--screen is not given; fix: add --screen"),
 ]
 
 
