@@ -52,6 +52,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--rollouts", type=int, default=0, metavar="N",
                 help="also roll every cell out in the LIBERO simulator, N episodes per task "
                      "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
+    g.addoption("--sim-tasks", metavar="IDS",
+                help="sim suites: the LIBERO task ids to demonstrate and roll out, e.g. 0,1,2 "
+                     "(default: bench.sim.demos.DEFAULT_SPECS); a task the scripted expert "
+                     "cannot solve is refused")
+    g.addoption("--sim-demos", type=int, metavar="N",
+                help="sim suites: successful scripted demonstrations per task (default 3)")
     g.addoption("--features", default="cache", choices=("cache", "loop"),
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
     g.addoption("--feature-dtype", default="fp16", choices=("fp16", "bf16", "float32"),
@@ -120,9 +126,36 @@ def build_profile(config: pytest.Config):
             seeds=_seeds(seeds),
             controls=controls,
             steps=_positive("--steps", opt("--steps"), "projector steps"),
+            **_sim_demos(profile, opt),
         )
     except ValueError as e:
         raise pytest.UsageError(str(e)) from None
+
+
+def _sim_demos(profile, opt) -> dict:
+    """--sim-tasks / --sim-demos as Profile fields, refused unless the suites are simulated and
+    the scripted expert solves every task (its measured success named, bench.sim.expert)."""
+    tasks, demos = opt("--sim-tasks"), opt("--sim-demos")
+    if tasks is None and demos is None:
+        return {}
+    shown = f"--sim-tasks {tasks}" if tasks is not None else f"--sim-demos {demos}"
+    if profile.data_source != "sim":
+        raise ValueError(f"{shown}: profile {profile.name!r} has no simulated suites; use "
+                         "--profile sim")
+    _positive("--sim-demos", demos, "demonstrations per task")
+    ids = _csv(tasks) or ()
+    if not all(t.isdigit() for t in ids):
+        raise ValueError(f"--sim-tasks {tasks}: not a comma list of LIBERO task ids; give e.g. "
+                         "--sim-tasks 0,1,2")
+    ids = tuple(int(t) for t in ids)
+    from bench.sim.expert import check_solvable
+
+    for suite in _csv(opt("--suites")) or profile.suites:
+        try:
+            check_solvable(suite, ids)
+        except ValueError as e:
+            raise ValueError(f"--sim-tasks {tasks}: {e}") from None
+    return {"sim_tasks": ids or None, "sim_demos": demos}
 
 
 def _user_world(profile, opt):
@@ -258,8 +291,9 @@ def offline_env(offline: bool) -> None:
         sys.modules["huggingface_hub.constants"].HF_HUB_OFFLINE = True
 
 
-def check_rollouts_possible(profile) -> None:
-    """--rollouts needs LIBERO scenes behind the suites and the simulator installed."""
+def check_rollouts_possible(profile, rollouts: int) -> None:
+    """--rollouts needs LIBERO scenes behind the suites, the simulator installed, and rollout
+    init states that no demonstration used."""
     if profile.data_source == "tiny":
         raise pytest.UsageError(
             f"--rollouts: profile {profile.name!r} uses generated synthetic suites, which have no "
@@ -267,7 +301,19 @@ def check_rollouts_possible(profile) -> None:
     from bench.sim.env import INSTALL_HINT, libero_available
 
     if not libero_available():
-        raise pytest.UsageError(f"--rollouts needs the LIBERO simulator; {INSTALL_HINT}")
+        raise pytest.UsageError(f"--rollouts {rollouts}: the LIBERO simulator (the libero "
+                                f"extra) is not installed; fix: {INSTALL_HINT}")
+    if profile.data_source == "sim":
+        from bench.sim.demos import demo_spec
+
+        for suite in profile.suites:
+            spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos)
+            # demos use init states 0.. (at most max_attempts), rollouts 49, 48, ...: disjoint
+            if spec.max_attempts + rollouts > 50:
+                raise pytest.UsageError(
+                    f"--rollouts {rollouts}: with {spec.episodes_per_task} demonstrations per "
+                    f"task (init states 0..{spec.max_attempts - 1}) rollouts would reuse a "
+                    f"demonstration's init state; give --rollouts <= {50 - spec.max_attempts}")
 
 
 def report_path(report: str | None, results: str | None, profile: str, results_dir: Path) -> Path:

@@ -71,7 +71,7 @@ class GraftSession:
         if self.rollouts < 0:
             raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
         if self.rollouts:
-            check_rollouts_possible(self.profile)
+            check_rollouts_possible(self.profile, self.rollouts)
         check_executor_options(config)
         # Seams (module docstring).
         self.cell_runner: Callable = _run_cell
