@@ -39,6 +39,18 @@ def test_demo_specs_refuse_a_task_the_expert_cannot_solve():
         demo_spec("spatial", (10,))
 
 
+def test_a_sim_spec_picks_its_own_cached_suite(monkeypatch):
+    """load_suite(..., sim_spec=) (the workspace's --sim-tasks / --sim-demos) looks for the
+    dataset of that spec, not the default one."""
+    from bench.sim.demos import demo_spec
+    from bench.suites import SuiteUnavailable, load_suite
+
+    monkeypatch.setattr(sim_env, "libero_available", lambda: False)
+    spec = demo_spec("spatial", (2, 3), 7)  # never generated: the message names its folder
+    with pytest.raises(SuiteUnavailable, match=f"spatial-{spec.key()}"):
+        load_suite("spatial", "sim", sim_spec=spec)
+
+
 def test_sim_suite_without_the_extra_fails_in_one_line(monkeypatch, tmp_path):
     from bench.suites import SuiteUnavailable, load_suite
 

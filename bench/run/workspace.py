@@ -74,7 +74,8 @@ class Workspace:
             start = time.monotonic()
             datasets = dict(self.profile.datasets)
             suite = (load_user_suite(name, datasets[name]) if name in datasets
-                     else load_suite(name, self.profile.data_source, demos=self._demos(name)))
+                     else load_suite(name, self.profile.data_source,
+                                     sim_spec=self._demos(name)))
             say(self.progress, f"suite {name}: {len(suite.state)} frames, "
                                f"{len(set(suite.episode_index.tolist()))} episodes "
                                f"({time.monotonic() - start:.0f} s)")

@@ -37,9 +37,10 @@ SUITES: dict[str, SuiteSpec] = {
 }
 
 
-def load_suite(name: str, source: str, root: str | Path | None = None, demos=None) -> Suite:
+def load_suite(name: str, source: str, root: str | Path | None = None,
+               sim_spec=None) -> Suite:
     """Load suite `name` from `source` ("tiny" | "hub" | "sim"); `root`: optional local folder;
-    `demos`: the sim source's bench.sim.demos.DemoSpec (default: its DEFAULT_SPECS entry)."""
+    `sim_spec`: the sim source's bench.sim.demos.DemoSpec (default: its DEFAULT_SPECS entry)."""
     if name not in SUITES:
         raise ValueError(f"unknown suite {name!r}; valid names: {sorted(SUITES)}")
     if source == "tiny":
@@ -60,7 +61,7 @@ def load_suite(name: str, source: str, root: str | Path | None = None, demos=Non
 
         from bench.sim import demos
 
-        path = _sim_suite_path(name, root, demos)
+        path = _sim_suite_path(name, root, sim_spec)
         ds = LeRobotDataset(demos.repo_id(name), root=path)
         libero.validate_features(ds.features, demos.repo_id(name))
         return suite_from_dataset(name, ds, images_in_memory=True)
