@@ -1,12 +1,11 @@
 """The grid's command-line options: declared, parsed ONCE into a frozen `RunOptions` (the
-profile, where results and the report go, how cells run, the regression options) and checked at
-start-up, each bad value a one-line `pytest.UsageError` naming the option (never an
-INTERNALERROR). The session passes `RunOptions` down; nothing reads the config's options after."""
+profile, where results and the report go, how cells run, the regression and screen options),
+each bad value a one-line `pytest.UsageError` naming the option (never an INTERNALERROR). The
+session passes `RunOptions` down; nothing reads the config's options after. The names and paths
+the options give are checked next: bench.startup."""
 
 from __future__ import annotations
 
-import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from bench.grid.gridfile import read_grid_file
 from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import Profile, get_profile, with_overrides
+from bench.startup import check_rollouts_possible
 
 DEFAULT_PROFILE = "tiny"
 
@@ -55,6 +55,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--rollouts", type=int, default=0, metavar="N",
                 help="also roll every cell out in the LIBERO simulator, N episodes per task "
                      "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
+    g.addoption("--sim-tasks", metavar="IDS",
+                help="sim suites: the LIBERO task ids to demonstrate and roll out, e.g. 0,1,2 "
+                     "(default: bench.sim.demos.DEFAULT_SPECS); a task the scripted expert "
+                     "cannot solve is refused")
+    g.addoption("--sim-demos", type=int, metavar="N",
+                help="sim suites: successful scripted demonstrations per task (default 3)")
     g.addoption("--features", default="cache", choices=("cache", "loop"),
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
     g.addoption("--feature-dtype", default="fp16", choices=("fp16", "bf16", "float32"),
@@ -173,9 +179,36 @@ def build_profile(config: pytest.Config):
             seeds=_seeds(seeds),
             controls=controls,
             steps=_positive("--steps", opt("--steps"), "projector steps"),
+            **_sim_demos(profile, opt),
         )
     except ValueError as e:
         raise pytest.UsageError(str(e)) from None
+
+
+def _sim_demos(profile, opt) -> dict:
+    """--sim-tasks / --sim-demos as Profile fields, refused unless the suites are simulated and
+    the scripted expert solves every task (its measured success named, bench.sim.expert)."""
+    tasks, demos = opt("--sim-tasks"), opt("--sim-demos")
+    if tasks is None and demos is None:
+        return {}
+    shown = f"--sim-tasks {tasks}" if tasks is not None else f"--sim-demos {demos}"
+    if profile.data_source != "sim":
+        raise ValueError(f"{shown}: profile {profile.name!r} has no simulated suites; use "
+                         "--profile sim")
+    _positive("--sim-demos", demos, "demonstrations per task")
+    ids = _csv(tasks) or ()
+    if not all(t.isdigit() for t in ids):
+        raise ValueError(f"--sim-tasks {tasks}: not a comma list of LIBERO task ids; give e.g. "
+                         "--sim-tasks 0,1,2")
+    ids = tuple(int(t) for t in ids)
+    from bench.sim.expert import check_solvable
+
+    for suite in _csv(opt("--suites")) or profile.suites:
+        try:
+            check_solvable(suite, ids)
+        except ValueError as e:
+            raise ValueError(f"--sim-tasks {tasks}: {e}") from None
+    return {"sim_tasks": ids or None, "sim_demos": demos}
 
 
 def _user_world(profile, opt):
@@ -224,29 +257,6 @@ def fold_duplicates(profile, labels: dict[str, str]):
     return dataclasses.replace(profile, **changes), lines
 
 
-def collects_grid(config: pytest.Config) -> bool:
-    """Whether this run collects the grid (bench/test_grid.py, or a folder above it), so its
-    names and paths are checked at start-up: `pytest tests` does not pay for them."""
-    grid = Path(__file__).with_name("test_grid.py").resolve()
-    here = Path(config.invocation_params.dir)
-    if getattr(config.option, "help", False):
-        return False
-    for arg in config.args:
-        path = (here / str(arg).split("::", 1)[0]).resolve()
-        if path == grid or path in grid.parents:
-            return True
-    return False
-
-
-def check_startup(profile, labels: dict[str, str] | None = None) -> list[str]:
-    """Every name and user path of the grid, before collection: each bad one a one-line
-    UsageError (exit 4, no cell run). Returns the camera pairing lines to print. The output
-    folders come after (the session opens --results-dir, then probes --report: the report
-    defaults to a folder inside the results dir, whose own error names the right option)."""
-    validate_names(profile, labels)
-    return check_user_world(profile)
-
-
 def check_executor_options(config: pytest.Config) -> None:
     """The Slurm numbers: one-line UsageErrors naming the option."""
     for option, least in (("--slurm-time", 1), ("--slurm-gpus-per-task", 0),
@@ -254,73 +264,6 @@ def check_executor_options(config: pytest.Config) -> None:
         value = config.getoption(option)
         if value < least:
             raise pytest.UsageError(f"{option} {value}: give a whole number >= {least}")
-
-
-def validate_names(profile, labels: dict[str, str] | None = None) -> None:
-    """Unknown backbone/suite/encoder names: a UsageError naming where the name came from
-    (`labels`, option_labels) and listing the valid ones. Timm names are checked on timm's
-    registry and a meta-device build (< 0.5 s); a user's MODULE:FACTORY is built and probed."""
-    from backbones import get_entry
-    from bench.suites import SUITES
-    from encoders import get_spec
-
-    labels = labels or {}
-    policies, datasets = dict(profile.policies), dict(profile.datasets)
-    checks = [("backbones", b, get_entry) for b in profile.backbones if b not in policies]
-    checks += [("encoders", e, lambda e: get_spec(e, profile.source)) for e in profile.encoders]
-    checks += [("control_encoders", e, lambda e: get_spec(e, profile.source))
-               for e in profile.control_encoders if e not in profile.encoders]
-    for field, name, check in checks:
-        try:
-            check(name)
-        except ValueError as e:
-            raise pytest.UsageError(f"{labels.get(field, '--' + field)}: {e}") from None
-    for s in profile.suites:
-        if s not in SUITES and s not in datasets:
-            raise pytest.UsageError(f"{labels.get('suites', '--suites')}: unknown suite {s!r}; "
-                                    f"valid suites: {', '.join(SUITES)}")
-
-
-def check_user_world(profile) -> list[str]:
-    """Every --policy x --dataset pair (cameras, dims, saved stats, tasks), checked at start-up
-    before any cell runs: a mismatch is a one-line UsageError (exit 4). Returns the camera
-    pairing of each pair, one line each, for the terminal."""
-    from bench.run.userworld import check_world
-    from bench.suites.base import SuiteUnavailable
-
-    if profile.camera_map and not profile.policies:
-        given = ",".join(f"{p}={d}".replace("observation.images.", "")
-                         for p, d in profile.camera_map)
-        raise pytest.UsageError(f"--camera-map {given}: it maps the cameras of a --policy, and "
-                                "none is given; fix: add --policy NAME=FOLDER or drop --camera-map")
-    if not profile.policies and not profile.datasets:
-        return []
-    try:
-        return check_world(profile)
-    except (ValueError, SuiteUnavailable) as e:
-        raise pytest.UsageError(str(e)) from None
-
-
-def offline_env(offline: bool) -> None:
-    if not offline:
-        return
-    os.environ["HF_HUB_OFFLINE"] = "1"
-    os.environ["TRANSFORMERS_OFFLINE"] = "1"
-    os.environ["HF_DATASETS_OFFLINE"] = "1"
-    if "huggingface_hub.constants" in sys.modules:  # imported before us: patch the cached flag
-        sys.modules["huggingface_hub.constants"].HF_HUB_OFFLINE = True
-
-
-def check_rollouts_possible(profile) -> None:
-    """--rollouts needs LIBERO scenes behind the suites and the simulator installed."""
-    if profile.data_source == "tiny":
-        raise pytest.UsageError(
-            f"--rollouts: profile {profile.name!r} uses generated synthetic suites, which have no "
-            "simulator; use --profile sim (scripted demos in LIBERO scenes) or --profile paper")
-    from bench.sim.env import INSTALL_HINT, libero_available
-
-    if not libero_available():
-        raise pytest.UsageError(f"--rollouts needs the LIBERO simulator; {INSTALL_HINT}")
 
 
 def report_path(report: str | None, results: str | None, profile: str, results_dir: Path) -> Path:
@@ -331,19 +274,6 @@ def report_path(report: str | None, results: str | None, profile: str, results_d
     if results is None and profile == "tiny":
         return REPO_ROOT / "REPORT.md"
     return results_dir / "REPORT.md"
-
-
-def check_writable(option: str, folder: Path) -> None:
-    """A UsageError naming the option when `folder` cannot be created or written."""
-    import tempfile
-
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
-                                "pass a writable folder") from None
 
 
 @dataclass(frozen=True)
@@ -383,7 +313,7 @@ def parse_options(config: pytest.Config) -> RunOptions:
     if rollouts < 0:
         raise pytest.UsageError(f"--rollouts {rollouts}: give episodes per task >= 0")
     if rollouts:
-        check_rollouts_possible(profile)
+        check_rollouts_possible(profile, rollouts)
     check_executor_options(config)
     slurm = SlurmOptions(partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
                          gpus_per_task=opt("--slurm-gpus-per-task"),

@@ -12,12 +12,9 @@ from pathlib import Path
 import pytest
 
 from bench.grid.cells import CellSpec, ScreenCase, control_cells, graft_cells, screen_cases
-from bench.options import (  # noqa: F401  (pytest_addoption: the hook, found here by name)
-    check_startup,
-    check_writable,
-    pytest_addoption,
-)
+from bench.options import pytest_addoption  # noqa: F401  (the hook, found here by name)
 from bench.session import GraftSession
+from bench.startup import check_startup, check_writable
 from bench.summary import cell_id_of
 
 SESSION_KEY = pytest.StashKey[GraftSession]()

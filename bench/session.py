@@ -19,7 +19,8 @@ from typing import Callable
 import pytest
 
 from bench.grid.cells import CellSpec
-from bench.options import check_startup, check_writable, collects_grid, offline_env, parse_options
+from bench.options import parse_options
+from bench.startup import check_startup, check_writable, collects_grid, offline_env
 from bench.progress import say
 from bench.regression.run import BaselineRun
 

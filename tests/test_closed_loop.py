@@ -6,6 +6,8 @@ hands them over (images, state, task; no action keys).
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
@@ -17,6 +19,7 @@ from bench.run.features import encode_pooled
 from bench.run.graft import GraftFeed, Projector
 from bench.suites.windows import raw_batch
 from bench.run.train import frozen_autocast
+from tests.factories import make_record
 
 
 def observations(ws, n=6):
@@ -101,3 +104,102 @@ def test_resume_rule_for_rollouts():
     assert RunInfo(rollouts={"spec": {"episodes_per_task": 5}}).has_rollouts(5)
     assert not RunInfo(rollouts={"spec": {"episodes_per_task": 2}}).has_rollouts(5)
     assert RunInfo(rollouts={"skipped": NO_CLOSED_LOOP["shuffled"]}).has_rollouts(5)
+
+
+class Killed(BaseException):
+    """A kill arriving mid-episode (not an Exception: nothing may catch and record it)."""
+
+
+def fake_scenes(ws, kill_at_reset: int | None = None, crash_at_reset: int | None = None):
+    """bench.sim.rollout.Scenes without the simulator, for the real rollout loop: observations
+    are tiny-suite frames (the cell's policy runs on them for real); an episode succeeds at its
+    3rd step, except task 0 from init state 48, which runs out its steps. Counts resets."""
+    from bench.sim.rollout import Scenes
+
+    frames, tasks, resets = observations(ws, 4), ws.suite("spatial").tasks, []
+
+    class Env:
+        def __init__(self, task):
+            self.task, self.init, self.t = task, 0, 0
+
+        def step(self, action):
+            if crash_at_reset is not None and len(resets) >= crash_at_reset:
+                raise RuntimeError("mj_step: simulation unstable (QACC)")
+            self.t += 1
+            won = self.t >= 3 and (self.task, self.init) != (0, 48)
+            return self.init % 4, 0.0, False, False, {"is_success": won}
+
+        def close(self):
+            pass
+
+    def reset_to(env, init_state, seed):
+        resets.append((env.task, init_state))
+        if kill_at_reset is not None and len(resets) >= kill_at_reset:
+            raise Killed()
+        env.init, env.t = init_state, 0
+        return init_state % 4
+
+    def observe(raws, texts):
+        i = raws[0]
+        return {**{k: v[i:i + 1] for k, v in frames.items() if k != "task"}, "task": list(texts)}
+
+    scenes = Scenes(lambda suite, task, render, max_steps=None: Env(task), lambda suite: tasks,
+                    lambda env: 50, reset_to, observe)
+    return scenes, resets
+
+
+def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path):
+    """Killed during its 4th episode, a cell keeps the 3 finished ones (atomically, in the
+    store's episode log) and a rerun rolls out only the rest: same episodes as one sitting."""
+    from bench.results.store import ResultStore
+    from bench.run.closed_loop import cell_rollouts
+
+    store = ResultStore(tmp_path / "res")
+    cell, backbone = CellSpec("native", "pi05", "spatial", 0), tiny_ws.backbone("pi05")
+    run = lambda scenes, policy="p1": cell_rollouts(  # noqa: E731
+        cell, tiny_ws.suite("spatial"), backbone, 2, store=store, policy=policy,
+        scenes=scenes, progress=False)
+    killed, _ = fake_scenes(tiny_ws, kill_at_reset=4)
+    with pytest.raises(Killed):
+        run(killed)
+    log = json.loads((tmp_path / "res" / "rollouts" / f"{cell.id}.json").read_text())
+    assert [(e["task"], e["episode"]) for e in log["episodes"]] == [(0, 0), (0, 1), (1, 0)]
+
+    scenes, resets = fake_scenes(tiny_ws)
+    out = run(scenes)
+    assert resets == [(1, 48), (2, 49), (2, 48), (3, 49), (3, 48)]  # only the 5 not finished
+    assert [(e["task"], e["episode"], e["init_state"]) for e in out["episodes"]] == [
+        (t, e, 49 - e) for t in range(4) for e in range(2)]
+    assert [e["success"] for e in out["episodes"]] == [True, False] + [True] * 6
+    assert out["settings"]["resumed_episodes"] == 3 and out["success_rate"] == 7 / 8
+
+    # Episodes of another policy are never resumed; writing the record removes the log.
+    other, resets = fake_scenes(tiny_ws, kill_at_reset=2)
+    with pytest.raises(Killed):
+        run(other, policy="p2")
+    assert resets == [(0, 49), (0, 48)]  # started over, not resumed from p1's episodes
+    store.write(make_record(kind="native", backbone="pi05", encoder=None).replace(
+        cell_id=cell.id))
+    assert not (tmp_path / "res" / "rollouts" / f"{cell.id}.json").exists()
+
+
+def test_a_crashed_env_fails_its_cell_with_the_reason_and_the_next_cell_runs(tiny_ws, tmp_path):
+    from bench.results.record import Failure
+    from bench.results.store import ResultStore
+    from bench.run.closed_loop import cell_rollouts
+    from bench.sim.rollout import RolloutCrashed
+
+    store, suite = ResultStore(tmp_path / "res"), tiny_ws.suite("spatial")
+    backbone = tiny_ws.backbone("pi05")
+    broken = CellSpec("native", "pi05", "spatial", 0)
+    crashing, _ = fake_scenes(tiny_ws, crash_at_reset=2)
+    with pytest.raises(RolloutCrashed) as crash:
+        cell_rollouts(broken, suite, backbone, 2, store=store, scenes=crashing, progress=False)
+    line = Failure.of(broken, "hash", crash.value).error
+    assert line.startswith("RolloutCrashed: rollout crashed in spatial task 0 episode 1 (init "
+                           "state 48): RuntimeError: mj_step: simulation unstable (QACC) (1 "
+                           "episode(s) finished before it are kept; rerun to resume)"), line
+    healthy, _ = fake_scenes(tiny_ws)
+    other = CellSpec("native", "pi05", "spatial", 1)
+    out = cell_rollouts(other, suite, backbone, 2, store=store, scenes=healthy, progress=False)
+    assert len(out["episodes"]) == 8

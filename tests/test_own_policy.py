@@ -165,7 +165,8 @@ def _copy_meta(world: Path, tmp_path: Path, edit) -> Path:
 
 
 def _usage_error(**options) -> str:
-    from bench.options import build_profile, check_user_world
+    from bench.options import build_profile
+    from bench.startup import check_user_world
 
     with pytest.raises(pytest.UsageError) as caught:
         check_user_world(build_profile(Config(**options)))

@@ -26,6 +26,31 @@ def test_init_states_and_seeds_depend_on_the_spec_only():
         RolloutSpec("goal", (0,), 1, 0, 10, 1)
 
 
+def test_demo_specs_refuse_a_task_the_expert_cannot_solve():
+    from bench.sim.demos import DEFAULT_SPECS, DemoSpec, demo_spec
+
+    more = demo_spec("spatial", (0, 1), 20)
+    assert (more.tasks, more.episodes_per_task, more.max_attempts) == ((0, 1), 20, 24)
+    assert more.key() != DEFAULT_SPECS["spatial"].key() and demo_spec("object") == \
+        DEFAULT_SPECS["object"]
+    with pytest.raises(ValueError, match=r"cannot solve LIBERO-object task 6 \(measured 0/5"):
+        DemoSpec("object", tasks=(0, 6))
+    with pytest.raises(ValueError, match="task 10 is not a LIBERO-spatial task id"):
+        demo_spec("spatial", (10,))
+
+
+def test_a_sim_spec_picks_its_own_cached_suite(monkeypatch):
+    """load_suite(..., sim_spec=) (the workspace's --sim-tasks / --sim-demos) looks for the
+    dataset of that spec, not the default one."""
+    from bench.sim.demos import demo_spec
+    from bench.suites import SuiteUnavailable, load_suite
+
+    monkeypatch.setattr(sim_env, "libero_available", lambda: False)
+    spec = demo_spec("spatial", (2, 3), 7)  # never generated: the message names its folder
+    with pytest.raises(SuiteUnavailable, match=f"spatial-{spec.key()}"):
+        load_suite("spatial", "sim", sim_spec=spec)
+
+
 def test_sim_suite_without_the_extra_fails_in_one_line(monkeypatch, tmp_path):
     from bench.suites import SuiteUnavailable, load_suite
 

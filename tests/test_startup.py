@@ -62,6 +62,12 @@ BAD_INPUTS = [
     (["--steps", "0"], "--steps 0", "at least 1"),
     (["--profile", "nope"], "unknown profile 'nope'", "(--profile NAME)"),
     (["--rollouts", "-1"], "--rollouts -1", ">= 0"),
+    (["--profile", "sim", "--sim-tasks", "0,4"], "--sim-tasks 0,4",
+     "the scripted expert cannot solve LIBERO-spatial task 4 (measured 0/5"),
+    (["--profile", "sim", "--sim-tasks", "0,x"], "--sim-tasks 0,x", "give e.g. --sim-tasks 0,1,2"),
+    (["--sim-demos", "5"], "--sim-demos 5", "has no simulated suites; use --profile sim"),
+    (["--profile", "sim", "--sim-demos", "20", "--rollouts", "30"], "--rollouts 30",
+     "give --rollouts <= 26"),
     (["--slurm-time", "0"], "--slurm-time 0", ">= 1"),
     (["--policy", "mine=/nonexistent/policy"], "--policy mine=/nonexistent/policy",
      "no such folder; fix: give the folder save_pretrained wrote"),
@@ -94,6 +100,22 @@ def test_a_bad_input_is_one_usage_error_screen_before_collection(bench_run, args
     lines = [line for line in out.screen.splitlines() if line.strip()]
     assert len(lines) <= 3 and lines[0].startswith("ERROR: "), out.screen
     assert "collected" not in out.screen and out.records == []
+
+
+def test_rollouts_without_the_libero_extra_say_how_to_install_it(monkeypatch):
+    """The session's start-up check (bench.session calls it before collection; that it runs there
+    is test_grid_plugin's --rollouts case): one line, the option, the value and the fix."""
+    from bench.grid.protocol import get_profile
+    from bench.startup import check_rollouts_possible
+
+    import importlib
+
+    # The module object the check imports (an in-process pytester run may have re-imported it).
+    monkeypatch.setattr(importlib.import_module("bench.sim.env"), "libero_available", lambda: False)
+    with pytest.raises(pytest.UsageError) as error:
+        check_rollouts_possible(get_profile("sim"), 2)
+    assert str(error.value) == ("--rollouts 2: the LIBERO simulator (the libero extra) is not "
+                                "installed; fix: install the extra: bash scripts/install_libero.sh")
 
 
 def test_the_check_runs_under_collect_only_and_xdist(bench_run):

@@ -15,6 +15,9 @@ The tie rule (one rule, every statistic; quoted in the report, see TIE_RULE):
   among the items tied for the prediction's first place.
 - A side on which every score ties has no order: the statistic is `Undefined` with that reason,
   never a 0 or a NaN inside a ranking. So are fewer than 2 items and non-finite scores.
+
+Pearson r (SimplerEnv reports it beside MMRV) measures linear agreement of the two score
+vectors; it is undefined on the same terms (a side without spread has no correlation).
 """
 
 from __future__ import annotations
@@ -117,6 +120,15 @@ def top1_regret(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
     return float(r.max() - r[picks].min())
 
 
+def pearson_r(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
+    """Pearson correlation of two (n,) higher-is-better vectors, in [-1, 1]; undefined when a
+    side ties throughout (no spread to correlate)."""
+    pair = _ordered(predicted, actual)
+    if isinstance(pair, Undefined):
+        return pair
+    return float(scipy.stats.pearsonr(*pair).statistic)
+
+
 @dataclass(frozen=True)
 class Agreement:
     """The four statistics of one cheaper tier against the tier it predicts, over n items."""
@@ -183,6 +195,13 @@ def bootstrap_agreement(predicted: np.ndarray, actual: np.ndarray, n_resamples: 
                 reasons.setdefault(k, v.reason)
             else:
                 values[k].append(v)
+    return _percentile_intervals(values, reasons, n_resamples, confidence)
+
+
+def _percentile_intervals(values: dict[str, list[float]], reasons: dict[str, str],
+                          n_resamples: int, confidence: float
+                          ) -> dict[str, Interval | Undefined]:
+    """Percentile interval per statistic over its defined replicates; Undefined when none is."""
     alpha = (1 - confidence) / 2
     out: dict[str, Interval | Undefined] = {}
     for k, v in values.items():
@@ -192,3 +211,38 @@ def bootstrap_agreement(predicted: np.ndarray, actual: np.ndarray, n_resamples: 
         out[k] = Interval(float(np.quantile(v, alpha)), float(np.quantile(v, 1 - alpha)),
                           len(v), n_resamples - len(v))
     return out
+
+
+WITH_PEARSON = (*STATISTICS, "pearson_r")
+
+
+def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: int = 1000,
+                       seed: int = 0, confidence: float = 0.95
+                       ) -> dict[str, Interval | Undefined]:
+    """Paired bootstrap when the two tiers are measured on different units: each replicate draws
+    the W columns of `predicted` and, independently, the E columns of `actual` with replacement,
+    ONCE for all n items, and re-averages both (e.g. offline -MSE over held-out windows against
+    closed-loop success over rollout episodes that every item shares).
+
+    predicted: (n, W) per-window scores; actual: (n, E) per-episode scores; both higher is
+    better. Intervals of the four statistics and Pearson r (WITH_PEARSON)."""
+    predicted = np.asarray(predicted, dtype=float)
+    actual = np.asarray(actual, dtype=float)
+    if predicted.ndim != 2 or actual.ndim != 2 or len(predicted) != len(actual):
+        raise ValueError(f"predicted must be (n, W) and actual (n, E); got {predicted.shape} and "
+                         f"{actual.shape}")
+    rng = np.random.default_rng(seed)
+    values: dict[str, list[float]] = {k: [] for k in WITH_PEARSON}
+    reasons: dict[str, str] = {}
+    for _ in range(n_resamples):
+        w = rng.integers(0, predicted.shape[1], predicted.shape[1])
+        e = rng.integers(0, actual.shape[1], actual.shape[1])
+        s, r = predicted[:, w].mean(axis=1), actual[:, e].mean(axis=1)
+        stats = agreement(s, r)
+        for k in WITH_PEARSON:
+            v = pearson_r(s, r) if k == "pearson_r" else getattr(stats, k)
+            if isinstance(v, Undefined):
+                reasons.setdefault(k, v.reason)
+            else:
+                values[k].append(v)
+    return _percentile_intervals(values, reasons, n_resamples, confidence)

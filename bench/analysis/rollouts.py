@@ -2,14 +2,19 @@
 
 Per backbone x suite, the items are the cells that carry a `rollouts` entry, grouped over seeds by
 what they are (graft encoder, control kind + encoder + variant, native). Each item has a mean
-offline MSE (normalised, over seeds) and a mean success rate (over seeds). Agreement is Kendall
-tau-b and weighted tau between the MSE ranking and the failure-rate ranking (1 - success), so
-+1 means "the offline ranking is the closed-loop ranking".
+offline MSE (normalised, over seeds) and a mean success rate (over seeds). Agreement is measured
+by bench.analysis.agreement (the one place, one tie rule) with predicted = -MSE (the offline
+tier, higher is better) and actual = success rate (the closed loop): Kendall tau-b, weighted
+tau, MMRV (SimplerEnv's, in success-rate units), top-1 regret (success points lost by taking the
+offline winner) and Pearson r of -MSE and success. +1 (tau, r) means "the offline ranking is the
+closed-loop ranking". A closed-loop ranking that is one tie (every item succeeds equally often)
+has no order: those statistics are `Undefined` with the reason, never 0.
 
-Interval of tau (stated in the report): a paired bootstrap. Each replicate draws the held-out
-windows and the rollout episodes (identical init states across cells) with replacement, once
-for all items, and recomputes both rankings; percentile interval. With a handful of items and
-a few episodes per task the interval is wide: that is the honest answer at small N.
+Intervals (stated in the report): a paired bootstrap. Each replicate draws the held-out windows
+and, independently, the rollout episodes (identical init states across cells) with replacement,
+once for all items, and recomputes every statistic; percentile interval over the replicates
+where it is defined. With a handful of items and few episodes the interval is wide: that is the
+honest answer at small N.
 """
 
 from __future__ import annotations
@@ -19,9 +24,11 @@ from typing import Sequence
 
 import numpy as np
 
-from bench.analysis.agreement import as_float, kendall_tau_b
+from bench.analysis.agreement import (
+    Interval, Measure, Undefined, WITH_PEARSON, agreement, bootstrap_two_axes, kendall_p_value,
+    pearson_r,
+)
 from bench.analysis.rankings import CONFIDENCE, PRIMARY
-from bench.analysis.transfer import rank_agreement
 from bench.grid.kinds import record_label
 from bench.stats import wilson_interval
 
@@ -39,9 +46,18 @@ def episode_keys(rollouts: dict) -> list[tuple[int, int, int]]:
             for e in rollouts["episodes"]]
 
 
+def _jsonable(value):
+    if isinstance(value, Undefined):
+        return {"undefined": value.reason}
+    return asdict(value) if isinstance(value, Interval) else value
+
+
 @dataclass
 class ClosedLoop:
-    """Offline vs closed-loop ranking of the rolled-out items of one backbone x suite."""
+    """Offline vs closed-loop ranking of the rolled-out items of one backbone x suite.
+
+    `agreement`: statistic name (WITH_PEARSON, plus "p_value" of Kendall's test) -> value or
+    Undefined; `intervals`: the same names -> bootstrap Interval or Undefined."""
 
     backbone: str
     suite: str
@@ -51,22 +67,30 @@ class ClosedLoop:
     success: list[float] = field(default_factory=list)
     success_ci: list[tuple[float, float]] = field(default_factory=list)
     n_episodes: list[int] = field(default_factory=list)
-    agreement: dict = field(default_factory=dict)
-    tau_ci: tuple[float, float] = (float("nan"), float("nan"))
+    agreement: dict[str, Measure] = field(default_factory=dict)
+    intervals: dict[str, Interval | Undefined] = field(default_factory=dict)
     n_resamples: int = 0
     missing: str | None = None
 
+    @property
+    def measured(self) -> bool:
+        """Agreement was computed (paired cells, at least two items)."""
+        return bool(self.agreement)
+
+    def interval_of(self, name: str) -> tuple[float, float] | None:
+        """(low, high) of statistic `name`'s bootstrap interval; None when it has none."""
+        ci = self.intervals.get(name)
+        return (ci.low, ci.high) if isinstance(ci, Interval) else None
+
     def to_dict(self) -> dict:
-        return asdict(self)
+        out = {k: v for k, v in asdict(self).items() if k not in ("agreement", "intervals")}
+        out["agreement"] = {k: _jsonable(v) for k, v in self.agreement.items()}
+        out["intervals"] = {k: _jsonable(v) for k, v in self.intervals.items()}
+        return out
 
 
-def _tau(mse: np.ndarray, success: np.ndarray) -> float:
-    # a constant ranking has no order to agree with: undefined, NaN in the resample array
-    return as_float(kendall_tau_b(-mse, success))
-
-
-def rollout_agreement(records: Sequence[dict], backbone: str, suite: str, *,
-                n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> ClosedLoop:
+def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
+                      n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> ClosedLoop:
     """Agreement of offline MSE and success over the rolled-out cells of backbone x suite."""
     out = ClosedLoop(backbone, suite, n_resamples=n_resamples)
     rolled = [r for r in records if r.backbone == backbone and r.suite == suite
@@ -81,7 +105,7 @@ def rollout_agreement(records: Sequence[dict], backbone: str, suite: str, *,
             out.missing = (f"{r.cell_id} was rolled out from other init states or scored on other "
                            "windows than the rest: not paired, no agreement computed")
             return out
-    groups: dict[str, list[dict]] = {}
+    groups: dict[str, list] = {}
     for r in rolled:
         groups.setdefault(record_label(r), []).append(r)
     out.items = sorted(groups)
@@ -101,23 +125,17 @@ def rollout_agreement(records: Sequence[dict], backbone: str, suite: str, *,
     if len(out.items) < 2:
         out.missing = f"only one rolled-out item ({out.items[0]}): nothing to rank"
         return out
-    out.agreement = rank_agreement(out.mse, [1.0 - s for s in out.success])
-    rng = np.random.default_rng(random_seed)
-    taus = []
-    for _ in range(n_resamples):
-        w = rng.integers(0, per_window.shape[1], per_window.shape[1])
-        e = rng.integers(0, per_episode.shape[1], per_episode.shape[1])
-        taus.append(_tau(per_window[:, w].mean(axis=1), per_episode[:, e].mean(axis=1)))
-    taus = np.asarray(taus)
-    finite = taus[np.isfinite(taus)]
-    out.agreement["resamples_with_a_tie_only"] = int(len(taus) - len(finite))
-    if len(finite):
-        alpha = (1 - CONFIDENCE) / 2
-        out.tau_ci = (float(np.quantile(finite, alpha)), float(np.quantile(finite, 1 - alpha)))
+    predicted, actual = -np.asarray(out.mse), np.asarray(out.success)
+    point = agreement(predicted, actual)
+    out.agreement = {k: pearson_r(predicted, actual) if k == "pearson_r" else getattr(point, k)
+                     for k in WITH_PEARSON}
+    out.agreement["p_value"] = kendall_p_value(predicted, actual)
+    out.intervals = bootstrap_two_axes(-per_window, per_episode, n_resamples=n_resamples,
+                                       seed=random_seed, confidence=CONFIDENCE)
     return out
 
 
-def closed_loop_all(records: Sequence[dict], **kwargs) -> list[ClosedLoop]:
+def closed_loop_all(records: Sequence, **kwargs) -> list[ClosedLoop]:
     """One ClosedLoop per backbone x suite that has at least one rolled-out cell."""
     pairs = sorted({(r.backbone, r.suite) for r in records if rolled_out(r)})
     return [rollout_agreement(records, b, s, **kwargs) for b, s in pairs]

@@ -112,6 +112,11 @@ class Profile:
     policies: tuple[tuple[str, str], ...] = ()
     datasets: tuple[tuple[str, str], ...] = ()
     camera_map: tuple[tuple[str, str], ...] = ()
+    # Sim suites only (--sim-tasks, --sim-demos): the LIBERO task ids demonstrated and rolled out,
+    # and successful demonstrations per task; empty / 0: bench.sim.demos.DEFAULT_SPECS. Not part
+    # of `protocol`: the data they make changes the suite fingerprint and the tiny releases.
+    sim_tasks: tuple[int, ...] = ()
+    sim_demos: int = 0
 
     @property
     def data_source(self) -> str:

@@ -24,12 +24,13 @@ from bench.analysis.rollouts import closed_loop_all
 from bench.analysis.transfer import support_counts, transfer_all
 from bench.grid.kinds import GRAFT
 from bench.results.store import Results, load_results
+from bench.report.closed_loop import closed_loop_section
 from bench.report.context import ReportContext
 from bench.report.provenance import per_task_section, provenance_section
 from bench.report.screen import (SCATTER_TITLE, SECTION_TITLE, scatter_points, screen_agreements,
                                  screen_section)
 from bench.report.sections import (
-    answer_lines, caveats, closed_loop_section, controls_section, plots_section,
+    answer_lines, caveats, controls_section, plots_section,
     rankings_section, seed_section, tie_section, transfer_section, vision_section,
     wrapper_section,
 )

@@ -14,6 +14,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from bench.analysis.agreement import is_defined
 from bench.analysis.rankings import PRIMARY, Ranking, backbone_order
 from bench.analysis.transfer import Transfer
 from bench.grid.kinds import CELL_KINDS, column_label
@@ -129,8 +130,10 @@ def plot_closed_loop(closed_loop: Sequence, path: Path) -> Path | None:
         ax.errorbar(c.mse, succ, yerr=err, fmt="o", capsize=3)
         for x, y, name in zip(c.mse, succ, c.items):
             ax.annotate(name, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
-        tau = c.agreement.get("tau_b", float("nan")) if c.agreement else float("nan")
-        ax.set_title(f"{c.backbone} x {c.suite}: tau-b {tau:.2f}", fontsize=9)
+        tau = c.agreement.get("tau_b")
+        ax.set_title(f"{c.backbone} x {c.suite}: tau-b "
+                     f"{'n/a' if tau is None or not is_defined(tau) else f'{tau:.2f}'}",
+                     fontsize=9)
         ax.set_xlabel("offline normalised MSE (lower is better)")
         ax.set_ylabel("closed-loop success")
         ax.set_ylim(-0.05, 1.05)

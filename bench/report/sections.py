@@ -10,6 +10,7 @@ from bench.analysis.rankings import CONFIDENCE, PRIMARY
 from bench.analysis.controls import UNCHECKED_HINT, VISION_RULE, VisionCheck, VisionComparison
 from bench.analysis.transfer import SUPPORT_RULES, min_exact_kendall_p
 from bench.grid.kinds import get_kind
+from bench.report.closed_loop import closed_loop_caveat
 from bench.report.context import ReportContext
 from bench.report.format import bullets, half_width, interval, num, pct, table, yes_no
 from bench.report.study import DISAGREES, compare_records
@@ -109,13 +110,8 @@ def caveats(ctx: ReportContext) -> str:
     else:  # no finished record carries the protocol: leave its values out, say why
         split, crn = " (its seed and size are left out: no finished cell records them)", ""
     wrapper = [f"{b} x {s}: {ctx.wrapper_text(b, s)}" for b, s in sorted(ctx.wrapper)]
-    rolled = sum(1 for cl in ctx.closed_loop for n in cl.n_episodes if n)
     lines = [
-        "**Offline action MSE is not closed-loop task success.** "
-        + (f"Rollouts in the LIBERO simulator were run for {rolled} rolled-out item(s): see "
-           "'Closed loop' for how far the two rankings agree; elsewhere this is "
-           if rolled else "No simulator rollouts were run; this is ")
-        + "a pre-commitment diagnostic for choosing an encoder, not a deployment claim.",
+        closed_loop_caveat(ctx),
         "**Conclusions are conditional on the fixed wrapper** (adaptive average pool to the "
         "native token grid, LayerNorm without affine, one trainable Linear). Its neutrality "
         "delta (native-wrapped vs native) is shown beside every ranking: "
@@ -322,47 +318,6 @@ def controls_section(ctx: ReportContext) -> str:
     return intro + "\n\n" + table(rows, ["backbone", "suite", "control", "seed", "norm. MSE",
                                          "reference", "reference norm. MSE", "Δ norm.",
                                          "Δ raw"])
-
-
-CLOSED_LOOP_INTRO = (
-    "Cells run with `--rollouts N` are also rolled out in the LIBERO simulator from fixed init "
-    "states, identical for every cell (paired). Success is per episode; its interval is Wilson's "
-    f"({CONFIDENCE:.0%}). Agreement is Kendall tau-b (and top-weighted tau) between the offline-MSE "
-    "ranking and the failure-rate ranking of the rolled-out items (means over seeds): +1 = same "
-    "order. Its interval is a paired bootstrap over held-out windows and rollout episodes. Offline "
-    "MSE is not closed-loop success; with few items and few episodes per task the interval is "
-    "wide, and a tau from 3 items or a success rate from 10 episodes decides little."
-)
-
-
-def closed_loop_section(ctx: ReportContext) -> str:
-    if not ctx.closed_loop:
-        return CLOSED_LOOP_INTRO + "\n\n_No cell was rolled out (run with `--rollouts N` on a " \
-            "simulated suite, see docs/LIBERO_SIM.md)._"
-    parts = [CLOSED_LOOP_INTRO]
-    for cl in ctx.closed_loop:
-        head = f"**{cl.backbone} x {cl.suite}**"
-        rows = [[item, ", ".join(map(str, cl.seeds.get(item, []))), num(mse), f"{succ:.1%}",
-                 interval(ci, 2), n]
-                for item, mse, succ, ci, n in zip(cl.items, cl.mse, cl.success, cl.success_ci,
-                                                  cl.n_episodes)]
-        if rows:
-            head += "\n\n" + table(rows, ["item", "seeds", "norm. MSE", "success",
-                                          f"success {CONFIDENCE:.0%} CI", "episodes"])
-        if cl.missing:
-            head += f"\n\n_No agreement: {cl.missing}._"
-        elif len(set(cl.success)) == 1:
-            head += (f"\n\nEvery item has the same success rate ({cl.success[0]:.1%}): the "
-                     "closed-loop ranking is one tie, so there is no rank agreement to measure.")
-        else:
-            a = cl.agreement
-            head += (f"\n\nAgreement over {a['n']} items: Kendall tau-b {num(a['tau_b'], 2)} "
-                     f"(p={num(a['p_value'], 3)}), {CONFIDENCE:.0%} bootstrap interval "
-                     f"{interval(cl.tau_ci, 2)} ({cl.n_resamples} resamples, "
-                     f"{a.get('resamples_with_a_tie_only', 0)} left out as all-tied); "
-                     f"weighted tau {num(a['weighted_tau'], 2)}.")
-        parts.append(head)
-    return "\n\n".join(parts)
 
 
 def plots_section(ctx: ReportContext) -> str:

@@ -5,6 +5,7 @@
     RESULTS_DIR/failed/<cell_id>.json   failed cells    (status "failed", with "error")
     RESULTS_DIR/grid.json               optional: {"expected": [cell_id, ...], "profile": "tiny"}
     RESULTS_DIR/screens/...             the screen tier (--screen): bench.results.screen
+    RESULTS_DIR/rollouts/<cell_id>.json closed-loop episodes of a cell still rolling out (EpisodeLog)
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord,
 
 CELLS, FAILED, GRID = "cells", "failed", "grid.json"  # the folder and file names, only here
 SCREENS, SELECTIONS = "screens", "selections"  # screens/, screens/selections/
+ROLLOUTS = "rollouts"
 _GRID_EXPECTED, _GRID_PROFILE = "expected", "profile"
+_LOG_KEY, _LOG_EPISODES = "key", "episodes"
 
 
 class ResultsDirError(RuntimeError):
@@ -147,6 +150,37 @@ def load_failure(results_dir: str | Path, cell_id: str) -> Failure | None:
         return None
 
 
+class EpisodeLog:
+    """The finished closed-loop episodes of one cell while its rollouts run, so a killed run
+    resumes per episode: one JSON file rewritten atomically after every episode (a kill loses
+    at most the episode in flight; an episode is a few hundred bytes, so rewriting stays cheap).
+
+    `key` names the policy and rollout spec the episodes belong to: episodes stored under
+    another key (a retrained policy, another spec) are never resumed, they are started over.
+    The store removes the file when the cell's record is written (the record holds them)."""
+
+    def __init__(self, path: Path, key: str) -> None:
+        self.path, self.key = Path(path), key
+
+    def finished(self) -> list[dict]:
+        """Episodes stored under this key, in the order they finished; [] when none is usable."""
+        try:
+            data = _read_json(self.path)
+        except (OSError, ValueError):
+            return []  # absent, or unreadable: roll out again rather than trust it
+        if not isinstance(data, dict) or data.get(_LOG_KEY) != self.key:
+            return []
+        return list(data.get(_LOG_EPISODES) or [])
+
+    def add(self, episode: dict) -> None:
+        """Store one more finished episode (atomically, with those before it)."""
+        atomic_write_json(self.path, {_LOG_KEY: self.key,
+                                      _LOG_EPISODES: [*self.finished(), episode]})
+
+    def clear(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
 class ResultStore:
     """A writable results dir (layout: module docstring). A failure file is never used to skip
     work; a successful write clears it."""
@@ -197,7 +231,12 @@ class ResultStore:
         path = self.cell_path(record.cell_id)
         atomic_write_json(path, record.to_json())
         self.failure_path(record.cell_id).unlink(missing_ok=True)
+        self.episode_log(record.cell_id, "").clear()  # the record now holds its episodes
         return path
+
+    def episode_log(self, cell_id: str, key: str) -> EpisodeLog:
+        """The resumable episode log of `cell_id`'s rollouts under `key` (EpisodeLog)."""
+        return EpisodeLog(self.root / ROLLOUTS / f"{cell_id}.json", key)
 
     def write_failure(self, failure: Failure) -> Path:
         path = self.failure_path(failure.cell_id)

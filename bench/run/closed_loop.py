@@ -11,6 +11,8 @@ and a rerun of the same cell is bit-identical without any counter to keep in ste
 
 from __future__ import annotations
 
+import hashlib
+import json
 from typing import Callable
 
 import torch
@@ -88,16 +90,17 @@ def cell_act(cell, backbone, *, noise_seed: int, feed=None, encoder=None, grid=N
                     features_from_images=lambda images: encode_pooled(encoder, images, grid))
 
 
-def rollout_spec(suite, episodes_per_task: int, n_action_steps: int):
+def rollout_spec(suite, episodes_per_task: int, n_action_steps: int, descriptions=None):
     """The RolloutSpec of a LIBERO-backed suite: every task the suite's data holds, matched to
-    LIBERO's task ids by instruction text."""
+    LIBERO's task ids by instruction text (`descriptions`: suite -> instructions, LIBERO's)."""
     from bench.sim import env as sim_env
     from bench.sim.rollout import RolloutSpec
 
     if suite.name not in sim_env.LIBERO_SUITES:
         raise ValueError(f"suite {suite.name!r} has no LIBERO scene to roll out in; "
                          f"choose one of {sorted(sim_env.LIBERO_SUITES)}")
-    ids = {text.strip().lower(): i for i, text in enumerate(sim_env.task_descriptions(suite.name))}
+    texts = (descriptions or sim_env.task_descriptions)(suite.name)
+    ids = {text.strip().lower(): i for i, text in enumerate(texts)}
     unknown = [t for t in suite.tasks if t.strip().lower() not in ids]
     if unknown:
         raise ValueError(f"suite {suite.name!r} ({suite.repo_id}) has tasks that are not LIBERO "
@@ -109,18 +112,50 @@ def rollout_spec(suite, episodes_per_task: int, n_action_steps: int):
                        n_action_steps=n_action_steps)
 
 
+def policy_fingerprint(backbone, feed, identity: str) -> str:
+    """sha256 naming the policy a cell rolls out: `identity` (its checkpoint and protocol, as
+    recorded) and the parameters it trained (projector, LoRA). Episodes resumed from an episode
+    log must come from this very policy; a retrained one that differs starts over."""
+    digest = hashlib.sha256(identity.encode())
+    trained = sorted(feed.projector.state_dict().items()) if feed is not None else []
+    trained += sorted((n, p) for n, p in backbone.policy.named_parameters() if "lora_" in n)
+    for name, tensor in trained:
+        digest.update(name.encode())
+        digest.update(tensor.detach().float().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def rollout_log_key(spec, render, policy: str) -> str:
+    """What an episode log's episodes belong to: the spec, the render settings, the policy."""
+    from dataclasses import asdict
+
+    blob = json.dumps({"spec": asdict(spec), "render": asdict(render), "policy": policy},
+                      sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
 def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, encoder=None,
-                  grid=None, progress: bool = True) -> dict:
-    """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts"."""
+                  grid=None, progress: bool = True, store=None, policy: str = "",
+                  scenes=None) -> dict:
+    """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts".
+
+    With a results `store`, every finished episode is kept in the cell's episode log (under
+    the spec, render settings and `policy`, a policy_fingerprint) and a rerun after a kill
+    resumes from it. `scenes`: bench.sim.rollout.Scenes (LIBERO's unless a test passes one)."""
     if cell.spec.eval_inputs in NO_CLOSED_LOOP:
         return {"skipped": NO_CLOSED_LOOP[cell.spec.eval_inputs]}
     from dataclasses import asdict
 
-    from bench.sim.rollout import run_rollouts
+    from bench.sim.rollout import LIBERO, run_rollouts
 
-    spec = rollout_spec(suite, episodes_per_task, backbone.info.chunk_size)
+    scenes = scenes or LIBERO
+    spec = rollout_spec(suite, episodes_per_task, backbone.info.chunk_size, scenes.descriptions)
+    render = suite_render(suite)
     act = cell_act(cell, backbone, noise_seed=spec.seed, feed=feed, encoder=encoder, grid=grid)
-    out = run_rollouts(act, spec, progress=progress, render=suite_render(suite))
+    log = store.episode_log(cell.id, rollout_log_key(spec, render, policy)) if store else None
+    out = run_rollouts(act, spec, progress=progress, render=render,
+                       finished=log.finished() if log else [],
+                       on_episode=log.add if log else None, scenes=scenes)
     return {**out, "spec": asdict(spec)}
 
 

@@ -5,8 +5,9 @@ names a kind."""
 
 from __future__ import annotations
 
+import json
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import torch
 from safetensors.torch import load_file, save_file
@@ -23,7 +24,7 @@ from bench.run.plan import (  # noqa: F401  (shared_projector_key: read here by 
 from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
-from bench.run.closed_loop import cell_rollouts
+from bench.run.closed_loop import cell_rollouts, policy_fingerprint
 from bench.results.record import (
     MeasuredUnder, Record, RunInfo, Training as TrainingPart, checkpoint_of, new_record,
 )
@@ -139,18 +140,22 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
                    features_for=inputs.eval_features(kind.eval_inputs),
                    images_for=inputs.eval_images(kind.eval_inputs))
     timings["eval"] = time.perf_counter() - t0
+    measured = measured_under(cell, ws, backbone, inputs, context)
     rollouts = None
     if ws.rollouts:
         t0 = time.perf_counter()
-        rollouts = cell_rollouts(cell, suite, backbone, ws.rollouts,
-                                 feed=graft.feed if graft else None, encoder=inputs.encoder,
-                                 grid=inputs.grid, progress=ws.progress)
+        feed = graft.feed if graft else None
+        rollouts = cell_rollouts(
+            cell, suite, backbone, ws.rollouts, feed=feed, encoder=inputs.encoder,
+            grid=inputs.grid, progress=ws.progress, store=ws.store,
+            policy=policy_fingerprint(backbone, feed, json.dumps(asdict(measured),
+                                                                 sort_keys=True, default=str)))
         timings.update(rollouts=time.perf_counter() - t0)  # the phase (a timings_s entry)
     timings["total"] = time.perf_counter() - t_start
 
     record = new_record(
         cell,
-        measured=measured_under(cell, ws, backbone, inputs, context),
+        measured=measured,
         scores=scores,
         training=training_fields(backbone, graft, training, inputs.encoder,
                                  save_projector(ws.store.root, cell.id, graft.projector)

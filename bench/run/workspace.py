@@ -74,12 +74,22 @@ class Workspace:
             start = time.monotonic()
             datasets = dict(self.profile.datasets)
             suite = (load_user_suite(name, datasets[name]) if name in datasets
-                     else load_suite(name, self.profile.data_source))
+                     else load_suite(name, self.profile.data_source,
+                                     sim_spec=self._demos(name)))
             say(self.progress, f"suite {name}: {len(suite.state)} frames, "
                                f"{len(set(suite.episode_index.tolist()))} episodes "
                                f"({time.monotonic() - start:.0f} s)")
             self._suites[name] = suite
         return self._suites[name]
+
+    def _demos(self, name: str):
+        """The sim suite's DemoSpec when --sim-tasks / --sim-demos change it, else None."""
+        p = self.profile
+        if p.data_source != "sim" or not (p.sim_tasks or p.sim_demos):
+            return None
+        from bench.sim.demos import demo_spec
+
+        return demo_spec(name, p.sim_tasks, p.sim_demos)
 
     def split(self, name: str) -> Split:
         if name not in self._splits:

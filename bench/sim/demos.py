@@ -21,12 +21,12 @@ import json
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from bench.sim.expert import ScriptedExpert, episode_seed
+from bench.sim.expert import ScriptedExpert, check_solvable, episode_seed
 from external.paths import build_dataset_dir, cache_dir
 from external.lerobot_dataset import write_dataset
 from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
@@ -48,6 +48,12 @@ class DemoSpec:
     max_steps: int = 280  # LeRobot's LIBERO-Spatial / -Object episode limit
     image_size: int = 128  # public LeRobot LIBERO datasets: 256
 
+    def __post_init__(self):
+        check_solvable(self.suite, self.tasks)  # no demonstrations from a task it never solved
+        if self.episodes_per_task < 1 or self.max_attempts < self.episodes_per_task:
+            raise ValueError(f"DemoSpec needs 1 <= episodes_per_task <= max_attempts; got "
+                             f"{self.episodes_per_task} and {self.max_attempts}")
+
     def key(self) -> str:
         """12 hex chars naming the content (generator version + every field)."""
         blob = json.dumps({"version": GENERATOR_VERSION, **asdict(self)}, sort_keys=True)
@@ -58,6 +64,15 @@ class DemoSpec:
 # or 5/5 (object) from init states 0.. (docs/LIBERO_SIM.md).
 DEFAULT_SPECS = {"spatial": DemoSpec("spatial", tasks=(0, 1, 2, 3)),
                  "object": DemoSpec("object", tasks=(0, 2, 3, 4))}
+
+
+def demo_spec(suite: str, tasks: tuple[int, ...] = (), episodes: int = 0) -> DemoSpec:
+    """The suite's DEFAULT_SPECS entry with other task ids and demonstrations per task (empty /
+    0: the default's). A few more attempts than episodes, for the odd failed init state."""
+    base = DEFAULT_SPECS[suite]
+    episodes = episodes or base.episodes_per_task
+    return replace(base, tasks=tuple(tasks) or base.tasks, episodes_per_task=episodes,
+                   max_attempts=max(base.max_attempts, episodes + 4))
 
 
 def repo_id(suite: str) -> str:
@@ -284,15 +299,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--root", default=None, help="output folder (default: the cache)")
     args = parser.parse_args(argv)
     base = DEFAULT_SPECS[args.suite]
-    spec = DemoSpec(
-        args.suite,
-        tuple(int(t) for t in args.tasks.split(",")) if args.tasks else base.tasks,
-        base.episodes_per_task if args.episodes is None else args.episodes,
-        base.max_attempts if args.max_attempts is None else args.max_attempts,
-        base.seed if args.seed is None else args.seed,
-        base.max_steps,
-        base.image_size if args.image_size is None else args.image_size,
-    )
+    try:
+        tasks = tuple(int(t) for t in args.tasks.split(",")) if args.tasks else base.tasks
+        spec = DemoSpec(
+            args.suite, tasks,
+            base.episodes_per_task if args.episodes is None else args.episodes,
+            base.max_attempts if args.max_attempts is None else args.max_attempts,
+            base.seed if args.seed is None else args.seed,
+            base.max_steps,
+            base.image_size if args.image_size is None else args.image_size,
+        )
+    except ValueError as e:  # one line naming the option, before any env is built
+        parser.error(f"--tasks {args.tasks or ','.join(map(str, base.tasks))}: {e}")
     path = generate(spec, args.root)
     print(path)
     print((path / EXPERT_SUCCESS_FILE).read_text())

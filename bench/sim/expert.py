@@ -27,6 +27,38 @@ def episode_seed(seed: int, task: int, init_state: int) -> int:
     return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
 
 
+# The committed expert's measured success per LIBERO task id, (successes, attempts): seed 0,
+# init states 0..4, max 280 steps, no rendering (`python -m bench.sim.expert`; the tables of
+# docs/LIBERO_SIM.md). A task it never solved cannot give demonstrations: refused at start-up.
+MEASURED_SUCCESS = {
+    "spatial": {0: (5, 5), 1: (5, 5), 2: (5, 5), 3: (5, 5), 4: (0, 5), 5: (5, 5), 6: (5, 5),
+                7: (5, 5), 8: (1, 5), 9: (3, 5)},
+    "object": {0: (5, 5), 1: (0, 5), 2: (5, 5), 3: (5, 5), 4: (5, 5), 5: (5, 5), 6: (0, 5),
+               7: (5, 5), 8: (5, 5), 9: (5, 5)},
+}
+
+
+def check_solvable(suite: str, tasks) -> None:
+    """ValueError naming every task id of `suite` the expert cannot solve (or that LIBERO lacks),
+    with its measured success and the ids to choose instead."""
+    measured = MEASURED_SUCCESS.get(suite)
+    if measured is None:
+        raise ValueError(f"suite {suite!r} has no scripted expert; choose one of "
+                         f"{sorted(MEASURED_SUCCESS)}")
+    unknown = [t for t in tasks if t not in measured]
+    unsolved = [t for t in tasks if t in measured and measured[t][0] == 0]
+    if not unknown and not unsolved:
+        return
+    solved = ",".join(str(t) for t, (k, n) in measured.items() if k == n)
+    partly = ", ".join(f"{t} ({k}/{n})" for t, (k, n) in measured.items() if 0 < k < n)
+    why = [f"task {t} is not a LIBERO-{suite} task id (0..{len(measured) - 1})" for t in unknown]
+    why += [f"the scripted expert cannot solve LIBERO-{suite} task {t} (measured "
+            f"{measured[t][0]}/{measured[t][1]} from init states 0..4, docs/LIBERO_SIM.md)"
+            for t in unsolved]
+    raise ValueError(f"{'; '.join(why)}; choose from {solved} (expert 100%)"
+                     + (f" or {partly}" if partly else ""))
+
+
 POS_SCALE = 0.05  # metres per action unit (OSC_POSE output_max)
 ROT_SCALE = 0.5  # radians per action unit
 OPEN, CLOSE = -1.0, 1.0

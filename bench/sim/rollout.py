@@ -10,6 +10,11 @@ semantics). An episode succeeds when LIBERO's goal predicate holds (LiberoEnv's 
 Init states: episode e of a task uses official init state `n - 1 - e` (n = 50: counted from
 the end), while the demonstrations use them from the start (0, 1, ...): the two sets are
 disjoint as long as demos + rollouts per task <= 50.
+
+Resumable per episode: `finished` episodes (from a killed run) are kept, not rerun, and
+`on_episode` is handed each new one as it ends (bench.run.closed_loop persists it through the
+results store). An exception inside an episode (the env, or the policy) becomes RolloutCrashed
+naming the task, episode and init state: that cell fails with it, the run goes on.
 """
 
 from __future__ import annotations
@@ -27,6 +32,26 @@ from bench.sim import env as sim_env
 from bench.stats import wilson_interval
 
 ActFn = Callable[[dict], torch.Tensor]  # raw obs (batch of B) -> (B, T, 7) raw actions
+
+
+class RolloutCrashed(RuntimeError):
+    """An episode raised (env or policy): the cell fails with this one line."""
+
+
+@dataclass(frozen=True)
+class Scenes:
+    """The simulator calls the rollout loop makes: LIBERO's (bench.sim.env) by default. A test
+    passes its own to drive the same loop without the simulator; nothing else differs."""
+
+    make_env: Callable  # (suite, task, render, max_steps=) -> env with .step(action), .close()
+    descriptions: Callable[[str], list[str]]  # suite -> instruction per task id
+    num_init_states: Callable  # env -> int
+    reset_to: Callable  # (env, init_state, env_seed) -> raw observation
+    observe: Callable  # ([raw observation], [instruction]) -> what `act` receives
+
+
+LIBERO = Scenes(sim_env.make_env, sim_env.task_descriptions, sim_env.num_init_states,
+                sim_env.reset_to, sim_env.observe)
 
 
 @dataclass(frozen=True)
@@ -61,16 +86,16 @@ def rollout_env_seed(seed: int, task: int, episode: int) -> int:
 
 
 def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
-                n_action_steps: int, description: str) -> dict:
+                n_action_steps: int, description: str, scenes: Scenes = LIBERO) -> dict:
     """One closed-loop episode from `init_state`; {"init_state", "success", "steps", "seconds"}."""
     start = time.perf_counter()
-    obs = sim_env.reset_to(env, init_state, env_seed)
+    obs = scenes.reset_to(env, init_state, env_seed)
     on_reset = getattr(act, "on_reset", None)
     if on_reset is not None:  # privileged policies (the scripted expert) read the sim state
         on_reset([env])
     success, steps = False, 0
     while steps < max_steps and not success:
-        raw = sim_env.observe([obs], [description])
+        raw = scenes.observe([obs], [description])
         with torch.inference_mode():
             chunk = act(raw)
         chunk = torch.as_tensor(chunk).detach().float().cpu()
@@ -89,36 +114,55 @@ def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
 
 
 def run_rollouts(act: ActFn, spec: RolloutSpec, progress: bool = True,
-                 render: sim_env.RenderSettings | None = None) -> dict:
+                 render: sim_env.RenderSettings | None = None, *, finished: list[dict] = (),
+                 on_episode: Callable[[dict], None] | None = None,
+                 scenes: Scenes = LIBERO) -> dict:
     """Run `spec` with policy `act`; per-episode successes, rates and Wilson 95% intervals.
 
     act(raw) -> (B, T, 7) raw actions, raw = {"observation.images.image": (B, 3, H, W) float32
     [0, 1], "observation.images.wrist_image": same, "observation.state": (B, 8) float32,
     "task": list[str]}; B = 1 here (one env stepped at a time: 2 cores gain nothing from more).
+    finished: episode rows of an interrupted run of the same policy and spec (kept, not rerun);
+    on_episode: called with each new row as soon as its episode ends.
     """
     render = render or sim_env.RenderSettings()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # 2 shared cores: one thread each for sim and policy is faster
+    start = time.perf_counter()
     try:
-        episodes, seconds = _run_all(act, spec, progress, render)
+        episodes = _run_all(act, spec, progress, render, finished, on_episode, scenes)
     finally:
         torch.set_num_threads(threads)
-    return summarise(episodes, spec, render, seconds)
+    return summarise(episodes, spec, render, time.perf_counter() - start,
+                     resumed=len({(e["task"], e["episode"]) for e in finished}))
 
 
-def _run_all(act: ActFn, spec: RolloutSpec, progress: bool,
-             render: sim_env.RenderSettings) -> tuple[list[dict], float]:
-    descriptions = sim_env.task_descriptions(spec.suite)
+def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.RenderSettings,
+             finished, on_episode, scenes: Scenes) -> list[dict]:
+    done = {(int(e["task"]), int(e["episode"])): e for e in finished}
+    descriptions = scenes.descriptions(spec.suite)
     episodes = []
-    start = time.perf_counter()
     for task in spec.tasks:
-        env = sim_env.make_env(spec.suite, task, render, max_steps=spec.max_steps)
+        todo = [e for e in range(spec.episodes_per_task) if (task, e) not in done]
+        env = _crash_named(lambda: scenes.make_env(spec.suite, task, render,
+                                                   max_steps=spec.max_steps),
+                           f"{spec.suite} task {task}: building its env", len(episodes)) \
+            if todo else None
         try:
             for episode in range(spec.episodes_per_task):
-                init_state = rollout_init_state(episode, sim_env.num_init_states(env))
-                row = {"task": task, "episode": episode, **run_episode(
-                    act, env, init_state, rollout_env_seed(spec.seed, task, episode),
-                    spec.max_steps, spec.n_action_steps, descriptions[task])}
+                if episode not in todo:
+                    episodes.append(done[(task, episode)])
+                    continue
+                init_state = rollout_init_state(episode, scenes.num_init_states(env))
+                row = {"task": task, "episode": episode, **_crash_named(
+                    lambda: run_episode(act, env, init_state,
+                                        rollout_env_seed(spec.seed, task, episode),
+                                        spec.max_steps, spec.n_action_steps,
+                                        descriptions[task], scenes),
+                    f"{spec.suite} task {task} episode {episode} (init state {init_state})",
+                    len(episodes))}
+                if on_episode is not None:
+                    on_episode(row)
                 episodes.append(row)
                 if progress:
                     print(f"[rollout] {spec.suite} task {task} episode {episode} "
@@ -126,8 +170,19 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool,
                           f" in {row['steps']} steps ({row['seconds']:.1f} s)",
                           file=sys.stderr, flush=True)
         finally:
-            env.close()
-    return episodes, time.perf_counter() - start
+            if env is not None:
+                env.close()
+    return episodes
+
+
+def _crash_named(step: Callable, where: str, n_finished: int):
+    """`step()`, with an exception turned into RolloutCrashed naming where it happened."""
+    try:
+        return step()
+    except Exception as e:
+        raise RolloutCrashed(f"rollout crashed in {where}: {type(e).__name__}: {e} "
+                             f"({n_finished} episode(s) finished before it are kept; rerun "
+                             "to resume)") from e
 
 
 def replay(actions: np.ndarray, suite: str, task: int, init_state: int, env_seed: int,
@@ -146,8 +201,9 @@ def replay(actions: np.ndarray, suite: str, task: int, init_state: int, env_seed
 
 
 def summarise(episodes: list[dict], spec: RolloutSpec, render: sim_env.RenderSettings,
-              seconds: float) -> dict:
-    """The result dict of run_rollouts from its episode rows."""
+              seconds: float, resumed: int = 0) -> dict:
+    """The result dict of run_rollouts from its episode rows (`resumed` of them from an earlier,
+    interrupted run; `seconds` is this sitting's wall time)."""
     wins = sum(e["success"] for e in episodes)
     per_task = {}
     for task in spec.tasks:
@@ -172,5 +228,6 @@ def summarise(episodes: list[dict], spec: RolloutSpec, render: sim_env.RenderSet
             "init_states": "official LIBERO init states, episode e -> n-1-e",
             "image_orientation": "LeRobot LIBERO env processor (rotated 180 degrees)",
             "seconds": round(seconds, 1),
+            "resumed_episodes": resumed,
         },
     }

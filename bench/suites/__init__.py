@@ -37,8 +37,10 @@ SUITES: dict[str, SuiteSpec] = {
 }
 
 
-def load_suite(name: str, source: str, root: str | Path | None = None) -> Suite:
-    """Load suite `name` from `source` ("tiny" | "hub" | "sim"); `root`: optional local folder."""
+def load_suite(name: str, source: str, root: str | Path | None = None,
+               sim_spec=None) -> Suite:
+    """Load suite `name` from `source` ("tiny" | "hub" | "sim"); `root`: optional local folder;
+    `sim_spec`: the sim source's bench.sim.demos.DemoSpec (default: its DEFAULT_SPECS entry)."""
     if name not in SUITES:
         raise ValueError(f"unknown suite {name!r}; valid names: {sorted(SUITES)}")
     if source == "tiny":
@@ -59,14 +61,14 @@ def load_suite(name: str, source: str, root: str | Path | None = None) -> Suite:
 
         from bench.sim import demos
 
-        path = _sim_suite_path(name, root)
+        path = _sim_suite_path(name, root, sim_spec)
         ds = LeRobotDataset(demos.repo_id(name), root=path)
         libero.validate_features(ds.features, demos.repo_id(name))
         return suite_from_dataset(name, ds, images_in_memory=True)
     raise ValueError(f"unknown suite source {source!r}; choose one of {list(SOURCES)}")
 
 
-def _sim_suite_path(name: str, root: str | Path | None = None) -> Path:
+def _sim_suite_path(name: str, root: str | Path | None = None, spec=None) -> Path:
     """Folder of the generated "sim" suite `name` (generated on first use; needs the extra)."""
     from bench.sim import demos
     from bench.sim import env as sim_env
@@ -74,7 +76,7 @@ def _sim_suite_path(name: str, root: str | Path | None = None) -> Path:
     if name not in demos.DEFAULT_SPECS:
         raise ValueError(f"suite {name!r} has no simulated version; choose one of "
                          f"{sorted(demos.DEFAULT_SPECS)}")
-    spec = demos.DEFAULT_SPECS[name]
+    spec = spec or demos.DEFAULT_SPECS[name]
     path = Path(root) if root is not None else demos.suite_path(spec)
     if (path / "meta" / "info.json").is_file():
         return path

@@ -1,0 +1,89 @@
+"""The closed-loop section of REPORT.md and the agreement clause its first caveat quotes."""
+
+from __future__ import annotations
+
+from bench.analysis.agreement import TIE_RULE, Interval, Undefined
+from bench.analysis.rankings import CONFIDENCE
+from bench.report.context import ReportContext
+from bench.report.format import interval, num, table
+
+CLOSED_LOOP_INTRO = (
+    "Cells run with `--rollouts N` are also rolled out in the LIBERO simulator from fixed init "
+    "states, identical for every cell (paired). Success is per episode; its interval is Wilson's "
+    f"({CONFIDENCE:.0%}). Agreement (bench.analysis.agreement, one tie rule, below) compares the "
+    "offline ranking (predicted: -MSE) with the closed-loop ranking (actual: success rate) of "
+    "the rolled-out items (means over seeds): Kendall tau-b and top-weighted tau (+1 = same "
+    "order), MMRV (SimplerEnv's mean maximum rank violation, in success-rate units, 0 = no "
+    "violation), Pearson r of -MSE and success (+1 = lower MSE goes with higher success) and "
+    "top-1 regret (success lost by taking the offline winner). Intervals: a paired bootstrap "
+    "that draws held-out windows and rollout episodes, each once for all items. A closed-loop "
+    "ranking that is one tie has no order: its statistics are undefined, never 0. Offline MSE is "
+    "not closed-loop success; with few items and few episodes per task the interval is wide, "
+    "and a tau from 3 items or a success rate from 10 episodes decides little."
+)
+AGREEMENT_ROWS = (("tau_b", "Kendall tau-b"), ("weighted_tau", "weighted tau"),
+                  ("mmrv", "MMRV"), ("pearson_r", "Pearson r (-MSE, success)"),
+                  ("top1_regret", "top-1 regret"))
+
+
+def measure(value, digits: int = 2) -> str:
+    """A statistic from bench.analysis.agreement: its number, or 'undefined (reason)'."""
+    return str(value) if isinstance(value, Undefined) else num(value, digits)
+
+
+def agreement_summary(cl) -> str:
+    """One clause for the caveat: the measured agreement of one backbone x suite, or why none."""
+    where = f"{cl.backbone} x {cl.suite}"
+    if not cl.measured:
+        return f"{where}: no agreement measured ({cl.missing})"
+    tau = cl.agreement["tau_b"]
+    if isinstance(tau, Undefined):
+        return f"{where}: Kendall tau-b {tau} over {len(cl.items)} items"
+    shown = [f"{label.split(' (')[0]} {measure(cl.agreement[k])} "
+             f"{interval(cl.interval_of(k), 2)}" for k, label in AGREEMENT_ROWS[:4]]
+    return f"{where} ({len(cl.items)} items): " + ", ".join(shown)
+
+
+def closed_loop_caveat(ctx: ReportContext) -> str:
+    """The report's first caveat: offline MSE is not success, and how far they agreed here."""
+    rolled = sum(1 for cl in ctx.closed_loop for n in cl.n_episodes if n)
+    return ("**Offline action MSE is not closed-loop task success.** "
+            + (f"Rollouts in the LIBERO simulator were run for {rolled} rolled-out item(s); the "
+               "offline ranking against the closed-loop one, measured ('Closed loop'): "
+               + "; ".join(agreement_summary(cl) for cl in ctx.closed_loop)
+               + ". Elsewhere this is " if rolled else "No simulator rollouts were run, so their "
+               "agreement with the offline ranking is not measured here; this is ")
+            + "a pre-commitment diagnostic for choosing an encoder, not a deployment claim.")
+
+
+def closed_loop_section(ctx: ReportContext) -> str:
+    if not ctx.closed_loop:
+        return CLOSED_LOOP_INTRO + "\n\n_No cell was rolled out (run with `--rollouts N` on a " \
+            "simulated suite, see docs/LIBERO_SIM.md)._"
+    parts = [CLOSED_LOOP_INTRO, "Tie rule (here the cheaper tier is offline -MSE and the graft "
+             f"score is closed-loop success): {TIE_RULE}"]
+    for cl in ctx.closed_loop:
+        head = f"**{cl.backbone} x {cl.suite}**"
+        rows = [[item, ", ".join(map(str, cl.seeds.get(item, []))), num(mse), f"{succ:.1%}",
+                 interval(ci, 2), n]
+                for item, mse, succ, ci, n in zip(cl.items, cl.mse, cl.success, cl.success_ci,
+                                                  cl.n_episodes)]
+        if rows:
+            head += "\n\n" + table(rows, ["item", "seeds", "norm. MSE", "success",
+                                          f"success {CONFIDENCE:.0%} CI", "episodes"])
+        if not cl.measured:
+            head += f"\n\n_No agreement: {cl.missing}._"
+        else:
+            stats = []
+            for key, label in AGREEMENT_ROWS:
+                ci = cl.intervals.get(key)
+                kept = f"{ci.replicates} of {cl.n_resamples}" if isinstance(ci, Interval) else "0"
+                stats.append([label, measure(cl.agreement[key]),
+                              interval(cl.interval_of(key), 2) if isinstance(ci, Interval)
+                              else measure(ci), kept])
+            head += (f"\n\nAgreement over {len(cl.items)} items (Kendall p="
+                     f"{measure(cl.agreement['p_value'], 3)}):\n\n"
+                     + table(stats, ["statistic", "value", f"{CONFIDENCE:.0%} bootstrap CI",
+                                     "replicates defined"]))
+        parts.append(head)
+    return "\n\n".join(parts)
