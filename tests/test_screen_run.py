@@ -121,3 +121,15 @@ def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path)
     for proxy in SUPERVISED:
         scores = [s.score(proxy) for s in screens]
         assert kendall_tau_b(scores, planted) == pytest.approx(1.0), (proxy, scores)
+
+
+def test_more_kept_than_listed_is_allowed_and_said(bench_cli, tmp_path):
+    out = bench_cli(tmp_path, "--screen", "--encoders", "dinov2_s,fastvit", "--screen-keep", "5",
+                    "--collect-only", "-q")
+    assert out.returncode == 0, out.stdout[-2000:]
+    assert ("--screen-keep 5 is more than the 2 listed encoder(s) (references aside): all are "
+            "grafted") in out.stdout
+    assert "(added to --encoders)" in out.stdout  # pixels, blind: always grafted
+    ids = [line for line in out.stdout.splitlines() if "::test_" in line]
+    assert ids[0].endswith("test_screen[smolvla-spatial-dinov2_s]") and len(
+        [i for i in ids if "test_screen[" in i]) == 8  # 2 backbones x (2 listed + 2 references)
