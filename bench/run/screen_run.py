@@ -95,7 +95,8 @@ class ScreenRun:
             self._selections[key] = chosen
             say(self.workspace().progress,
                 f"screen {backbone} x {suite}: grafting {', '.join(chosen.kept) or 'none'} "
-                f"(best {chosen.keep or 'all'} by {chosen.by}) and the references "
+                f"({f'the best {chosen.keep}' if chosen.keep else 'all'} by {chosen.by}) and the "
+                "references "
                 f"{', '.join(chosen.references) or 'none'}; dropped {len(chosen.dropped)}")
         return self._selections[key]
 
