@@ -137,7 +137,8 @@ def screen_section(ctx) -> str | None:
     parts = ["Zero-training proxies per encoder from the stored features (`pytest bench "
              "--screen`): each supervised proxy's score is the gain of [state, features] over "
              "[state] alone on the grafts' held-out windows (higher is better); entropy is "
-             "label-free.", screen_table(screens) if screens else "_No finished screen._"]
+             "label-free. A screen averages each camera's token grid: what an encoder carries in "
+             "where things are is lost here, not in the graft (README: the tiny ladder).", screen_table(screens) if screens else "_No finished screen._"]
     if res.screen_failures:
         parts.append("Screens that failed (their grafts are dropped): " + "; ".join(
             f"`{f.screen_id}`: {f.error}" for f in res.screen_failures))
