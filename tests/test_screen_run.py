@@ -26,18 +26,28 @@ ARGS = ("--screen", "--encoders", ",".join(("pixels", "blind") + SCREENED), "--b
 
 @pytest.fixture(scope="module")
 def keep_two(tmp_path_factory):
-    """A --screen-keep 2 run and its rerun, on one results dir."""
+    """On one results dir: the screens alone (-k), then a --screen-keep 2 run, then its rerun."""
     from tests.bench_inprocess import run_bench
 
     folder = tmp_path_factory.mktemp("screen")
     where = ("--results-dir", str(folder / "results"), "--report", str(folder / "REPORT.md"))
+    screens = run_bench(*where, *ARGS, "-k", "test_screen")
+    screens_report = (folder / "REPORT.md").read_text() if (folder / "REPORT.md").exists() else ""
     first = run_bench(*where, *ARGS, "--screen-keep", "2")
     again = run_bench(*where, *ARGS, "--screen-keep", "2")
-    return folder, first, again
+    return folder, first, again, (screens, screens_report)
+
+
+def test_the_screens_alone_run_with_k_and_report(keep_two):
+    _, first, _, (screens, report) = keep_two
+    assert screens.returncode == 0, screens.stdout[-3000:]
+    assert "screens 5: measured 5, resumed from store 0, failed 0" in screens.stdout
+    assert "test_graft[" not in screens.stdout and "## Screening many encoders" in report
+    assert "screens 5: measured 0, resumed from store 5" in first.stdout  # the next run's
 
 
 def test_the_best_two_by_logme_are_grafted_with_the_references(keep_two):
-    folder, first, _ = keep_two
+    folder, first, _, _ = keep_two
     assert first.returncode == 0, first.stdout[-3000:]
     results = load_results(folder / "results")
     gains = {s.scores.encoder: s.scores.score("logme") for s in results.screens}
@@ -56,19 +66,19 @@ def test_the_best_two_by_logme_are_grafted_with_the_references(keep_two):
 
 
 def test_a_rerun_resumes_every_screen_and_graft(keep_two):
-    _, _, again = keep_two
+    _, _, again, _ = keep_two
     assert again.returncode == 0, again.stdout[-3000:]
     assert "screens 5: measured 0, resumed from store 5, failed 0" in again.stdout
     assert "measured 0, resumed from store 4, failed 0" in again.stdout
 
 
 def test_the_report_shows_the_screen_its_cost_and_what_it_dropped(keep_two):
-    folder, _, _ = keep_two
+    folder, _, _, _ = keep_two
     text = (folder / "REPORT.md").read_text()
     section = text[text.index("## Screening many encoders"):]
     section = section[:section.index("\n## ", 1)]
     assert "| LogME gain" in section and "Cost per encoder" in section
-    assert "not measured: 4 encoder(s) have both a logme score" in section  # < 6: no agreement
+    assert "not measured: 4 encoder(s) have both the logme score" in section  # < 6: no agreement
     assert "logme rank 3 of 3" in section and "references pixels, blind" in section
     assert "screen_scatter.png" in section
 
