@@ -143,3 +143,25 @@ def test_more_kept_than_listed_is_allowed_and_said(bench_cli, tmp_path):
     ids = [line for line in out.stdout.splitlines() if "::test_" in line]
     assert ids[0].endswith("test_screen[smolvla-spatial-dinov2_s]") and len(
         [i for i in ids if "test_screen[" in i]) == 8  # 2 backbones x (2 listed + 2 references)
+
+
+def test_screen_files_are_validated_round_trip_and_a_bad_one_is_skipped(tmp_path):
+    from bench.results.screen import (ScreenConditions, ScreenScores, ScreenSelection,
+                                      new_screen_record)
+    from bench.stats import Undefined
+
+    store = ResultStore(tmp_path)
+    scores = ScreenScores("timm:resnet10t", "pi05", "object", entropy=Undefined("no tokens"))
+    scores.proxies = {"ridge": {"state": 0.4, "state+features": 0.3, "gain": 0.1}}
+    record = new_screen_record(scores, ScreenConditions("abc", "fp", "fp16"), 1.5)
+    path = store.write_screen(record)
+    assert path.name == "pi05-object-timm:resnet10t.json"
+    again = store.load_screen("pi05-object-timm:resnet10t")
+    assert again.to_json() == record.to_json() and again.scores.entropy == Undefined("no tokens")
+    store.write_selection(ScreenSelection("pi05", "object", "ridge", 1, ("a",), ("pixels",)))
+    path.write_text(path.read_text().replace('"gain"', '"gian"'))
+    assert store.load_screen("pi05-object-timm:resnet10t") is None  # measured again
+    results = load_results(tmp_path)
+    assert results.screens == [] and results.selections[0].kept == ("a",)
+    assert results.skipped == [("screens/pi05-object-timm:resnet10t.json",
+                                "ValueError: proxy ridge has no gain")]
