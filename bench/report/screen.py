@@ -125,6 +125,10 @@ def dropped_lines(selections: Sequence) -> list[str]:
                      f"{', '.join(sel.kept) or 'none'}; references {', '.join(sel.references) or 'none'}"
                      + (f" ({sel.note})" if sel.note else ""))
         lines += [f"  - dropped `{e}`: {why}" for e, why in sorted(sel.dropped.items())]
+        if sel.keep is not None and sel.dropped:
+            lines.append("  - a top-K run grafts only what the screen liked, so it cannot "
+                         "measure the screen: the agreement above is a calibration study's "
+                         "(`--screen-keep all` into these results) or not measured")
     return lines
 
 
