@@ -183,7 +183,7 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     if hasattr(session.config, "workerinput"):
         return  # xdist worker: the controller compares and reports from the shared store
     gs: GraftSession = session.config.stash.get(SESSION_KEY, None)
-    if gs is None or not gs.selected:
+    if gs is None or not (gs.selected or gs.screens_selected):
         return
     try:
         sections = gs.finish_baseline()

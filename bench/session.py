@@ -129,7 +129,9 @@ class GraftSession:
         one line). Under --screen, a cell of an encoder the screen dropped is skipped, saying
         why, before anything trains."""
         if self.screening is not None and (why := self.screening.dropped_reason(cell)):
-            pytest.skip(f"dropped by the screen: {why}")
+            from bench.run.screen_run import DROPPED
+
+            pytest.skip(DROPPED + why)
         cell_plan = self.plan(cell)
         if cell_plan.resume is not None:
             record = cell_plan.resume
@@ -197,8 +199,12 @@ class GraftSession:
         from bench.summary import OUTCOME_PROPERTY, cell_id_of, failure_line
 
         cell = cell_id_of(report.nodeid)
+        if cell in self.screens_selected and report.when == "call":
+            self.screening.note_report(cell, report)  # an xdist worker's screen
         if cell is None or cell not in self.selected or report.when != "call":
             return
+        if report.skipped and self.screening is not None:
+            self.screening.note_report(cell, report)  # dropped by the screen (here or a worker)
         if report.passed:
             outcome = dict(report.user_properties).get(OUTCOME_PROPERTY)
             self.outcomes[cell] = outcome or self.outcomes.get(cell, "measured")

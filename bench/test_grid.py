@@ -27,7 +27,7 @@ def _check_record(record: Record, cell) -> None:
             f"{cell.id}: training did not reduce the probe loss ({before:.4f} -> {after:.4f})")
 
 
-def test_screen(screen_case, graft_session):
+def test_screen(screen_case, graft_session, record_property):
     """--screen only, before the grafts: the encoder's proxies stored (or resumed); an encoder
     that cannot be built or extracted fails here in one line, and the screen goes on."""
     from bench.results.screen import ScreenFailure
@@ -37,6 +37,7 @@ def test_screen(screen_case, graft_session):
     if isinstance(item, ScreenFailure):
         pytest.fail(f"{screen_case.id}: {item.error}", pytrace=False)
     assert item.screen_id == screen_case.id
+    record_property(OUTCOME_PROPERTY, graft_session.screening.outcomes.get(screen_case.id))
 
 
 def test_graft(graft_cell, graft_session, record_property):

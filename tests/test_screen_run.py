@@ -26,18 +26,28 @@ ARGS = ("--screen", "--encoders", ",".join(("pixels", "blind") + SCREENED), "--b
 
 @pytest.fixture(scope="module")
 def keep_two(tmp_path_factory):
-    """A --screen-keep 2 run and its rerun, on one results dir."""
+    """On one results dir: the screens alone (-k), then a --screen-keep 2 run, then its rerun."""
     from tests.bench_inprocess import run_bench
 
     folder = tmp_path_factory.mktemp("screen")
     where = ("--results-dir", str(folder / "results"), "--report", str(folder / "REPORT.md"))
+    screens = run_bench(*where, *ARGS, "-k", "test_screen")
+    screens_report = (folder / "REPORT.md").read_text() if (folder / "REPORT.md").exists() else ""
     first = run_bench(*where, *ARGS, "--screen-keep", "2")
     again = run_bench(*where, *ARGS, "--screen-keep", "2")
-    return folder, first, again
+    return folder, first, again, (screens, screens_report)
+
+
+def test_the_screens_alone_run_with_k_and_report(keep_two):
+    _, first, _, (screens, report) = keep_two
+    assert screens.returncode == 0, screens.stdout[-3000:]
+    assert "screens 5: measured 5, resumed from store 0, failed 0" in screens.stdout
+    assert "test_graft[" not in screens.stdout and "## Screening many encoders" in report
+    assert "screens 5: measured 0, resumed from store 5" in first.stdout  # the next run's
 
 
 def test_the_best_two_by_logme_are_grafted_with_the_references(keep_two):
-    folder, first, _ = keep_two
+    folder, first, _, _ = keep_two
     assert first.returncode == 0, first.stdout[-3000:]
     results = load_results(folder / "results")
     gains = {s.scores.encoder: s.scores.score("logme") for s in results.screens}
@@ -56,19 +66,19 @@ def test_the_best_two_by_logme_are_grafted_with_the_references(keep_two):
 
 
 def test_a_rerun_resumes_every_screen_and_graft(keep_two):
-    _, _, again = keep_two
+    _, _, again, _ = keep_two
     assert again.returncode == 0, again.stdout[-3000:]
     assert "screens 5: measured 0, resumed from store 5, failed 0" in again.stdout
     assert "measured 0, resumed from store 4, failed 0" in again.stdout
 
 
 def test_the_report_shows_the_screen_its_cost_and_what_it_dropped(keep_two):
-    folder, _, _ = keep_two
+    folder, _, _, _ = keep_two
     text = (folder / "REPORT.md").read_text()
     section = text[text.index("## Screening many encoders"):]
     section = section[:section.index("\n## ", 1)]
     assert "| LogME gain" in section and "Cost per encoder" in section
-    assert "not measured: 4 encoder(s) have both a logme score" in section  # < 6: no agreement
+    assert "not measured: 4 encoder(s) have both the logme score" in section  # < 6: no agreement
     assert "logme rank 3 of 3" in section and "references pixels, blind" in section
     assert "screen_scatter.png" in section
 
@@ -121,3 +131,37 @@ def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path)
     for proxy in SUPERVISED:
         scores = [s.score(proxy) for s in screens]
         assert kendall_tau_b(scores, planted) == pytest.approx(1.0), (proxy, scores)
+
+
+def test_more_kept_than_listed_is_allowed_and_said(bench_cli, tmp_path):
+    out = bench_cli(tmp_path, "--screen", "--encoders", "dinov2_s,fastvit", "--screen-keep", "5",
+                    "--collect-only", "-q")
+    assert out.returncode == 0, out.stdout[-2000:]
+    assert ("--screen-keep 5 is more than the 2 listed encoder(s) (references aside): all are "
+            "grafted") in out.stdout
+    assert "(added to --encoders)" in out.stdout  # pixels, blind: always grafted
+    ids = [line for line in out.stdout.splitlines() if "::test_" in line]
+    assert ids[0].endswith("test_screen[smolvla-spatial-dinov2_s]") and len(
+        [i for i in ids if "test_screen[" in i]) == 8  # 2 backbones x (2 listed + 2 references)
+
+
+def test_screen_files_are_validated_round_trip_and_a_bad_one_is_skipped(tmp_path):
+    from bench.results.screen import (ScreenConditions, ScreenScores, ScreenSelection,
+                                      new_screen_record)
+    from bench.stats import Undefined
+
+    store = ResultStore(tmp_path)
+    scores = ScreenScores("timm:resnet10t", "pi05", "object", entropy=Undefined("no tokens"))
+    scores.proxies = {"ridge": {"state": 0.4, "state+features": 0.3, "gain": 0.1}}
+    record = new_screen_record(scores, ScreenConditions("abc", "fp", "fp16"), 1.5)
+    path = store.write_screen(record)
+    assert path.name == "pi05-object-timm:resnet10t.json"
+    again = store.load_screen("pi05-object-timm:resnet10t")
+    assert again.to_json() == record.to_json() and again.scores.entropy == Undefined("no tokens")
+    store.write_selection(ScreenSelection("pi05", "object", "ridge", 1, ("a",), ("pixels",)))
+    path.write_text(path.read_text().replace('"gain"', '"gian"'))
+    assert store.load_screen("pi05-object-timm:resnet10t") is None  # measured again
+    results = load_results(tmp_path)
+    assert results.screens == [] and results.selections[0].kept == ("a",)
+    assert results.skipped == [("screens/pi05-object-timm:resnet10t.json",
+                                "ValueError: proxy ridge has no gain")]

@@ -20,6 +20,7 @@ import pytest
 # Imported before pytester's sys.modules snapshot: the in-process runs reuse them (re-importing
 # torchvision ops would fail) and pay no import time.
 import backbones  # noqa: F401
+import bench.run.screen  # noqa: F401  (--screen options parse there)
 import bench.run.userworld  # noqa: F401
 import bench.suites.user  # noqa: F401
 import encoders  # noqa: F401

@@ -76,7 +76,7 @@ def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: s
         else:
             out.encoders.append(encoder)
     if len(out.encoders) < MIN_ENCODERS:
-        out.missing = (f"not measured: {len(out.encoders)} encoder(s) have both a {tier} score "
+        out.missing = (f"not measured: {len(out.encoders)} encoder(s) have both the {tier} score "
                        f"and a graft on {backbone} x {suite} ({out.encoders}); needs "
                        f"{MIN_ENCODERS}")
         return out

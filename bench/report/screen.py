@@ -125,6 +125,10 @@ def dropped_lines(selections: Sequence) -> list[str]:
                      f"{', '.join(sel.kept) or 'none'}; references {', '.join(sel.references) or 'none'}"
                      + (f" ({sel.note})" if sel.note else ""))
         lines += [f"  - dropped `{e}`: {why}" for e, why in sorted(sel.dropped.items())]
+        if sel.keep is not None and sel.dropped:
+            lines.append("  - a top-K run grafts only what the screen liked, so it cannot "
+                         "measure the screen: the agreement above is a calibration study's "
+                         "(`--screen-keep all` into these results) or not measured")
     return lines
 
 
@@ -137,7 +141,8 @@ def screen_section(ctx) -> str | None:
     parts = ["Zero-training proxies per encoder from the stored features (`pytest bench "
              "--screen`): each supervised proxy's score is the gain of [state, features] over "
              "[state] alone on the grafts' held-out windows (higher is better); entropy is "
-             "label-free.", screen_table(screens) if screens else "_No finished screen._"]
+             "label-free. A screen averages each camera's token grid: what an encoder carries in "
+             "where things are is lost here, not in the graft (README: the tiny ladder).", screen_table(screens) if screens else "_No finished screen._"]
     if res.screen_failures:
         parts.append("Screens that failed (their grafts are dropped): " + "; ".join(
             f"`{f.screen_id}`: {f.error}" for f in res.screen_failures))

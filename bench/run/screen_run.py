@@ -19,6 +19,7 @@ from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord,
 from bench.run.screen import REFERENCES, ScreenOptions, screen_features, select_for_graft
 
 MEASURED, RESUMED = "measured", "resumed"
+DROPPED = "dropped by the screen: "  # the skip line of a cell the screen dropped
 
 
 def measure_screen(ws, encoder: str, backbone: str, suite: str,
@@ -95,9 +96,26 @@ class ScreenRun:
             self._selections[key] = chosen
             say(self.workspace().progress,
                 f"screen {backbone} x {suite}: grafting {', '.join(chosen.kept) or 'none'} "
-                f"(best {chosen.keep or 'all'} by {chosen.by}) and the references "
+                f"({f'the best {chosen.keep}' if chosen.keep else 'all'} by {chosen.by}) and the "
+                "references "
                 f"{', '.join(chosen.references) or 'none'}; dropped {len(chosen.dropped)}")
         return self._selections[key]
+
+    def note_report(self, case_id: str, report) -> None:
+        """What a pytest report says of a screen case (its outcome, a property) or of a cell the
+        screen dropped (its skip line): how an xdist controller learns what its workers did."""
+        from bench.summary import OUTCOME_PROPERTY
+
+        if case_id in self._screens or case_id in self.dropped:
+            return  # done here: this process knows already
+        if report.skipped:
+            line = report.longrepr[-1] if isinstance(report.longrepr, tuple) else ""
+            if DROPPED in line:
+                self.dropped[case_id] = line.split(DROPPED, 1)[1]
+        elif report.passed:
+            self.outcomes[case_id] = dict(report.user_properties).get(OUTCOME_PROPERTY, MEASURED)
+        elif report.failed:
+            self.outcomes[case_id] = "failed: " + report.longreprtext.strip().splitlines()[-1]
 
     def dropped_reason(self, cell) -> str | None:
         """Why the screen drops `cell` (a cell of a listed, non-reference encoder that was not
