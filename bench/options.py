@@ -1,10 +1,12 @@
-"""The grid's command-line options: declared, parsed into a Profile, and checked at start-up,
-each bad value a one-line `pytest.UsageError` naming the option (never an INTERNALERROR)."""
+"""The grid's command-line options: declared, parsed ONCE into a frozen `RunOptions` (the
+profile, where results and the report go, how cells run, the regression and screen options),
+each bad value a one-line `pytest.UsageError` naming the option (never an INTERNALERROR). The
+session passes `RunOptions` down; nothing reads the config's options after. The names and paths
+the options give are checked next: bench.startup."""
 
 from __future__ import annotations
 
-import os
-import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -12,7 +14,8 @@ import pytest
 from bench.grid.gridfile import read_grid_file
 from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
-from bench.grid.protocol import get_profile, with_overrides
+from bench.grid.protocol import Profile, get_profile, with_overrides
+from bench.startup import check_rollouts_possible
 
 DEFAULT_PROFILE = "tiny"
 
@@ -64,10 +67,60 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                 help="how the feature store keeps features on disk: fp16 (default; moves a "
                      "cell's MSE < 2e-4 relative, docs/PERFORMANCE.md), bf16, or float32 (the "
                      "encoder's numbers bit for bit, twice the disk)")
+    _add_screen_options(g)
     _add_executor_options(g)
     from bench.regression.run import add_baseline_options
 
     add_baseline_options(parser)
+
+
+def _add_screen_options(g) -> None:
+    """The screen tier (bench.run.screen): screen every encoder, graft the best few."""
+    g.addoption("--screen", action="store_true",
+                help="screen every --encoders name first (no training: LogME, ridge, k-NN, "
+                     "entropy on stored features; cases test_screen[BACKBONE-SUITE-ENCODER]), "
+                     "then graft only the best --screen-keep plus the pixels/blind references")
+    g.addoption("--screen-keep", metavar="K|all",
+                help=f"with --screen: encoders grafted per backbone x suite (default "
+                     f"{DEFAULT_SCREEN_KEEP}); all: every screened one (the calibration study)")
+    g.addoption("--screen-by", metavar="PROXY",
+                help="with --screen: the proxy that ranks them, logme (default), ridge, knn or "
+                     "entropy")
+
+
+DEFAULT_SCREEN_KEEP = 3
+
+
+def screen_options(config: pytest.Config, profile):
+    """(the profile with the references added to its encoders, the run's ScreenOptions or None,
+    lines to print): --screen, --screen-keep, --screen-by checked, each bad one a UsageError."""
+    keep, by = config.getoption("--screen-keep"), config.getoption("--screen-by")
+    if not config.getoption("--screen"):
+        given = [(o, v) for o, v in (("--screen-keep", keep), ("--screen-by", by)) if v is not None]
+        if given:
+            option, value = given[0]
+            raise pytest.UsageError(f"{option} {value}: it chooses what a screen keeps, and "
+                                    f"--screen is not given; fix: add --screen or drop {option}")
+        return profile, None, []
+    import dataclasses
+
+    from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, ScreenOptions,
+                                  parse_screen_by, parse_screen_keep)
+
+    try:
+        options = ScreenOptions(parse_screen_keep(keep) if keep is not None else DEFAULT_SCREEN_KEEP,
+                                parse_screen_by(by) if by is not None else DEFAULT_SCREEN_BY)
+    except ValueError as e:
+        raise pytest.UsageError(str(e)) from None
+    added = tuple(r for r in REFERENCES if r not in profile.encoders)
+    screened = [e for e in profile.encoders if e not in REFERENCES]
+    lines = [f"[graftbench] --screen: {len(screened)} encoder(s) screened per backbone x suite; "
+             f"grafted: the best {options.keep or 'all'} by {options.by}, and the references "
+             f"{', '.join(REFERENCES)}" + (" (added to --encoders)" if added else "")]
+    if options.keep is not None and options.keep > len(screened):
+        lines.append(f"[graftbench] --screen-keep {options.keep} is more than the "
+                     f"{len(screened)} listed encoder(s) (references aside): all are grafted")
+    return (dataclasses.replace(profile, encoders=profile.encoders + added), options, lines)
 
 
 def _add_executor_options(g) -> None:
@@ -204,29 +257,6 @@ def fold_duplicates(profile, labels: dict[str, str]):
     return dataclasses.replace(profile, **changes), lines
 
 
-def collects_grid(config: pytest.Config) -> bool:
-    """Whether this run collects the grid (bench/test_grid.py, or a folder above it), so its
-    names and paths are checked at start-up: `pytest tests` does not pay for them."""
-    grid = Path(__file__).with_name("test_grid.py").resolve()
-    here = Path(config.invocation_params.dir)
-    if getattr(config.option, "help", False):
-        return False
-    for arg in config.args:
-        path = (here / str(arg).split("::", 1)[0]).resolve()
-        if path == grid or path in grid.parents:
-            return True
-    return False
-
-
-def check_startup(profile, labels: dict[str, str] | None = None) -> list[str]:
-    """Every name and user path of the grid, before collection: each bad one a one-line
-    UsageError (exit 4, no cell run). Returns the camera pairing lines to print. The output
-    folders come after (the session opens --results-dir, then probes --report: the report
-    defaults to a folder inside the results dir, whose own error names the right option)."""
-    validate_names(profile, labels)
-    return check_user_world(profile)
-
-
 def check_executor_options(config: pytest.Config) -> None:
     """The Slurm numbers: one-line UsageErrors naming the option."""
     for option, least in (("--slurm-time", 1), ("--slurm-gpus-per-task", 0),
@@ -234,86 +264,6 @@ def check_executor_options(config: pytest.Config) -> None:
         value = config.getoption(option)
         if value < least:
             raise pytest.UsageError(f"{option} {value}: give a whole number >= {least}")
-
-
-def validate_names(profile, labels: dict[str, str] | None = None) -> None:
-    """Unknown backbone/suite/encoder names: a UsageError naming where the name came from
-    (`labels`, option_labels) and listing the valid ones. Timm names are checked on timm's
-    registry and a meta-device build (< 0.5 s); a user's MODULE:FACTORY is built and probed."""
-    from backbones import get_entry
-    from bench.suites import SUITES
-    from encoders import get_spec
-
-    labels = labels or {}
-    policies, datasets = dict(profile.policies), dict(profile.datasets)
-    checks = [("backbones", b, get_entry) for b in profile.backbones if b not in policies]
-    checks += [("encoders", e, lambda e: get_spec(e, profile.source)) for e in profile.encoders]
-    checks += [("control_encoders", e, lambda e: get_spec(e, profile.source))
-               for e in profile.control_encoders if e not in profile.encoders]
-    for field, name, check in checks:
-        try:
-            check(name)
-        except ValueError as e:
-            raise pytest.UsageError(f"{labels.get(field, '--' + field)}: {e}") from None
-    for s in profile.suites:
-        if s not in SUITES and s not in datasets:
-            raise pytest.UsageError(f"{labels.get('suites', '--suites')}: unknown suite {s!r}; "
-                                    f"valid suites: {', '.join(SUITES)}")
-
-
-def check_user_world(profile) -> list[str]:
-    """Every --policy x --dataset pair (cameras, dims, saved stats, tasks), checked at start-up
-    before any cell runs: a mismatch is a one-line UsageError (exit 4). Returns the camera
-    pairing of each pair, one line each, for the terminal."""
-    from bench.run.userworld import check_world
-    from bench.suites.base import SuiteUnavailable
-
-    if profile.camera_map and not profile.policies:
-        given = ",".join(f"{p}={d}".replace("observation.images.", "")
-                         for p, d in profile.camera_map)
-        raise pytest.UsageError(f"--camera-map {given}: it maps the cameras of a --policy, and "
-                                "none is given; fix: add --policy NAME=FOLDER or drop --camera-map")
-    if not profile.policies and not profile.datasets:
-        return []
-    try:
-        return check_world(profile)
-    except (ValueError, SuiteUnavailable) as e:
-        raise pytest.UsageError(str(e)) from None
-
-
-def offline_env(offline: bool) -> None:
-    if not offline:
-        return
-    os.environ["HF_HUB_OFFLINE"] = "1"
-    os.environ["TRANSFORMERS_OFFLINE"] = "1"
-    os.environ["HF_DATASETS_OFFLINE"] = "1"
-    if "huggingface_hub.constants" in sys.modules:  # imported before us: patch the cached flag
-        sys.modules["huggingface_hub.constants"].HF_HUB_OFFLINE = True
-
-
-def check_rollouts_possible(profile, rollouts: int) -> None:
-    """--rollouts needs LIBERO scenes behind the suites, the simulator installed, and rollout
-    init states that no demonstration used."""
-    if profile.data_source == "tiny":
-        raise pytest.UsageError(
-            f"--rollouts: profile {profile.name!r} uses generated synthetic suites, which have no "
-            "simulator; use --profile sim (scripted demos in LIBERO scenes) or --profile paper")
-    from bench.sim.env import INSTALL_HINT, libero_available
-
-    if not libero_available():
-        raise pytest.UsageError(f"--rollouts {rollouts}: the LIBERO simulator (the libero "
-                                f"extra) is not installed; fix: {INSTALL_HINT}")
-    if profile.data_source == "sim":
-        from bench.sim.demos import demo_spec
-
-        for suite in profile.suites:
-            spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos)
-            # demos use init states 0.. (at most max_attempts), rollouts 49, 48, ...: disjoint
-            if spec.max_attempts + rollouts > 50:
-                raise pytest.UsageError(
-                    f"--rollouts {rollouts}: with {spec.episodes_per_task} demonstrations per "
-                    f"task (init states 0..{spec.max_attempts - 1}) rollouts would reuse a "
-                    f"demonstration's init state; give --rollouts <= {50 - spec.max_attempts}")
 
 
 def report_path(report: str | None, results: str | None, profile: str, results_dir: Path) -> Path:
@@ -326,14 +276,51 @@ def report_path(report: str | None, results: str | None, profile: str, results_d
     return results_dir / "REPORT.md"
 
 
-def check_writable(option: str, folder: Path) -> None:
-    """A UsageError naming the option when `folder` cannot be created or written."""
-    import tempfile
+@dataclass(frozen=True)
+class RunOptions:
+    """One grid run's command line, parsed and checked (`parse_options`)."""
 
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
-                                "pass a writable folder") from None
+    profile: Profile  # duplicates folded (startup_lines say so)
+    labels: dict  # {profile field: where its values came from} (option_labels)
+    startup_lines: tuple[str, ...]
+    results_dir: Path
+    report_path: Path
+    rerun: bool = False
+    features_mode: str = "cache"
+    feature_dtype: str = "fp16"
+    rollouts: int = 0
+    executor: str = "local"
+    slurm: object = None  # bench.run.executors.SlurmOptions
+    baseline: object = None  # bench.regression.run.BaselineOptions
+    screen: object = None  # bench.run.screen.ScreenOptions; None without --screen
+
+
+def parse_options(config: pytest.Config) -> RunOptions:
+    """Every option of the grid, parsed and checked: a bad one is a UsageError (exit 4). Names
+    and user paths are checked after (check_startup: only when the grid is collected)."""
+    from bench.regression.run import BaselineOptions
+    from bench.run.executors import SlurmOptions
+
+    opt = config.getoption
+    profile = build_profile(config)
+    labels = option_labels(profile, config)
+    profile, lines = fold_duplicates(profile, labels)
+    profile, screen, screen_lines = screen_options(config, profile)
+    results = opt("--results-dir")
+    results_dir = (Path(results) if results
+                   else REPO_ROOT / ".graftbench" / "results" / profile.name)
+    rollouts = int(opt("--rollouts") or 0)
+    if rollouts < 0:
+        raise pytest.UsageError(f"--rollouts {rollouts}: give episodes per task >= 0")
+    if rollouts:
+        check_rollouts_possible(profile, rollouts)
+    check_executor_options(config)
+    slurm = SlurmOptions(partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
+                         gpus_per_task=opt("--slurm-gpus-per-task"),
+                         array_parallelism=opt("--slurm-array-parallelism"))
+    return RunOptions(
+        profile, labels, tuple(lines + screen_lines), results_dir,
+        report_path(opt("--report"), results, profile.name, results_dir),
+        rerun=bool(opt("--rerun")), features_mode=opt("--features"),
+        feature_dtype=opt("--feature-dtype"), rollouts=rollouts, executor=opt("--executor"),
+        slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen)

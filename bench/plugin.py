@@ -7,19 +7,18 @@ from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 
 import pytest
 
-from bench.grid.cells import CellSpec, control_cells, graft_cells
-from bench.options import (  # noqa: F401  (pytest_addoption: the hook, found here by name)
-    check_startup,
-    check_writable,
-    pytest_addoption,
-)
+from bench.grid.cells import CellSpec, ScreenCase, control_cells, graft_cells, screen_cases
+from bench.options import pytest_addoption  # noqa: F401  (the hook, found here by name)
 from bench.session import GraftSession
+from bench.startup import check_startup, check_writable
 from bench.summary import cell_id_of
 
 SESSION_KEY = pytest.StashKey[GraftSession]()
+GRID_MODULE = Path(__file__).with_name("test_grid.py")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -106,21 +105,42 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
     """xdist controller: it collects nothing itself, so the cells its workers collected (after
-    -k/-m) are the selection that grid.json and the report expect."""
+    -k/-m) are the selection that the paper preflight checks and grid.json and the report
+    expect."""
     gs: GraftSession = node.config.stash[SESSION_KEY]
     if gs.selected:
         return  # every worker collects the same items
-    known = {c.id for c in graft_cells(gs.profile) + control_cells(gs.profile)}
+    known = {c.id: c for c in graft_cells(gs.profile) + control_cells(gs.profile)}
     gs.selected = [c for c in map(cell_id_of, ids) if c in known]
+    screens = {c.id for c in screen_cases(gs.profile)} if gs.screen_options else set()
+    gs.screens_selected = [c for c in map(cell_id_of, ids) if c in screens]
     if gs.selected:
+        try:  # the paper preflight of the selection, here where -k has been applied
+            gs.preflight([known[c] for c in gs.selected])
+        except pytest.UsageError as e:  # raised inside xdist's loop: an exit, not an INTERNALERROR
+            pytest.exit(f"ERROR: {e}", returncode=pytest.ExitCode.USAGE_ERROR)
         gs.store.write_grid(gs.selected, gs.profile.name)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_pycollect_makeitem(collector, name: str, obj):
+    """The grid's `test_screen` exists only under --screen (no empty-parameter case without)."""
+    if name == "test_screen" and collector.path == GRID_MODULE:
+        gs: GraftSession = collector.config.stash[SESSION_KEY]
+        return [] if gs.screen_options is None else None
+    return None
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     names = metafunc.fixturenames
+    session: GraftSession = metafunc.config.stash[SESSION_KEY]
+    if "screen_case" in names:  # --screen: before the grafts, in bench/test_grid.py's order
+        metafunc.parametrize("screen_case", [
+            pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))
+            for c in screen_cases(session.profile)])
+        return
     if "graft_cell" not in names and "control_cell" not in names:
         return
-    session: GraftSession = metafunc.config.stash[SESSION_KEY]
     if not session.names_checked and not hasattr(metafunc.config, "workerinput"):
         # A grid module outside bench/ (tests' own): checked here, at its collection.
         session.names_checked = True
@@ -136,7 +156,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 @pytest.hookimpl(trylast=True)  # after -k/-m deselection: grid.json lists what will run
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items) -> None:
     gs: GraftSession = config.stash[SESSION_KEY]
-    gs.selected = []
+    gs.selected, gs.screens_selected = [], []
     cells = []
     for item in items:
         params = getattr(getattr(item, "callspec", None), "params", {})
@@ -144,10 +164,13 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
         if isinstance(cell, CellSpec):
             gs.selected.append(cell.id)
             cells.append(cell)
-    if gs.selected and not hasattr(config, "workerinput"):
+        elif isinstance(params.get("screen_case"), ScreenCase):
+            gs.screens_selected.append(params["screen_case"].id)
+    if (gs.selected or gs.screens_selected) and not hasattr(config, "workerinput"):
         gs.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
         check_writable("--report", gs.report_path.parent)
         gs.preflight(cells)  # the selected cells' artifacts (after -k)
+    if gs.selected and not hasattr(config, "workerinput"):
         gs.store.write_grid(gs.selected, gs.profile.name)
 
 
@@ -177,14 +200,17 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
-    from bench.summary import summary_lines
+    from bench.summary import screen_summary_lines, summary_lines
 
     gs: GraftSession | None = config.stash.get(SESSION_KEY, None)
-    if gs is None or not gs.selected or hasattr(config, "workerinput"):
+    if gs is None or not (gs.selected or gs.screens_selected) or hasattr(config, "workerinput"):
         return
     terminalreporter.write_sep("-", "graftbench")
-    for line in summary_lines(gs.profile.name, gs.profile.protocol.hash, gs.outcomes,
-                              len(gs.selected), gs.results_dir, gs.report_path,
-                              gs.report_written is not None):
+    lines = summary_lines(gs.profile.name, gs.profile.protocol.hash, gs.outcomes,
+                          len(gs.selected), gs.results_dir, gs.report_path,
+                          gs.report_written is not None)
+    if gs.screening is not None:
+        lines[2:2] = screen_summary_lines(gs.screening.outcomes, gs.screening.dropped)
+    for line in lines:
         terminalreporter.write_line(line)
     gs.baseline.summary(terminalreporter)

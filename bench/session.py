@@ -19,11 +19,8 @@ from typing import Callable
 import pytest
 
 from bench.grid.cells import CellSpec
-from bench.options import (
-    build_profile, check_executor_options, check_rollouts_possible, check_startup, check_writable,
-    collects_grid, fold_duplicates, offline_env, option_labels, report_path,
-)
-from external.paths import REPO_ROOT
+from bench.options import parse_options
+from bench.startup import check_startup, check_writable, collects_grid, offline_env
 from bench.progress import say
 from bench.regression.run import BaselineRun
 
@@ -54,43 +51,41 @@ class GraftSession:
 
     def __init__(self, config: pytest.Config) -> None:
         self.config = config
-        # Start-up: every option here, before collection (bench.options): a bad one is ONE
-        # UsageError screen, exit 4, no cell run. Lines to print at the session's start.
-        profile = build_profile(config)
-        labels = option_labels(profile, config)
-        self.profile, self.startup_lines = fold_duplicates(profile, labels)
+        # Start-up: every option, parsed once into a frozen value before collection
+        # (bench.options): a bad one is ONE UsageError screen, exit 4, no cell run.
+        self.options = options = parse_options(config)
+        self.startup_lines = list(options.startup_lines)  # printed at the session's start
         offline_env(self.profile.offline)
-        results = config.getoption("--results-dir")
-        self.results_dir = Path(results) if results else REPO_ROOT / ".graftbench" / "results" / self.profile.name
-        self.report_path = report_path(config.getoption("--report"), results, self.profile.name,
-                                       self.results_dir)
-        self.rerun = bool(config.getoption("--rerun"))
-        self.features_mode = config.getoption("--features")
-        self.feature_dtype = config.getoption("--feature-dtype")
-        self.rollouts = int(config.getoption("--rollouts") or 0)
-        if self.rollouts < 0:
-            raise pytest.UsageError(f"--rollouts {self.rollouts}: give episodes per task >= 0")
-        if self.rollouts:
-            check_rollouts_possible(self.profile, self.rollouts)
-        check_executor_options(config)
         # Seams (module docstring).
         self.cell_runner: Callable = _run_cell
         self.workspace_factory: Callable = _default_workspace
         self.report_builder: Callable = _build_report
-        self.baseline = BaselineRun(config, self.profile.protocol.hash)
+        self.baseline = BaselineRun(options.baseline, self.profile.protocol.hash)
         self._workspace = None
         self._store = None
         self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
         self.selected: list[str] = []
+        self.screens_selected: list[str] = []  # test_screen cases collected (screen ids)
+        self._screening = None
         self.report_written: Path | None = None
         self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
         # Names, user paths, output folders: checked here when this run collects the grid (an
         # xdist worker's controller checked them); else at collection (bench.plugin).
         self.names_checked = collects_grid(config) and not hasattr(config, "workerinput")
         if self.names_checked:
-            self.startup_lines += check_startup(self.profile, labels)
+            self.startup_lines += check_startup(self.profile, options.labels)
             self.store  # opens (creates, probes) the results dir
             check_writable("--report", self.report_path.parent)
+
+    # What the options say, by the names the cells' code reads (one value: self.options).
+    profile = property(lambda self: self.options.profile)
+    results_dir = property(lambda self: self.options.results_dir)
+    report_path = property(lambda self: self.options.report_path)
+    rerun = property(lambda self: self.options.rerun)
+    rollouts = property(lambda self: self.options.rollouts)
+    features_mode = property(lambda self: self.options.features_mode)
+    feature_dtype = property(lambda self: self.options.feature_dtype)
+    screen_options = property(lambda self: self.options.screen)  # None without --screen
 
     @property
     def store(self):
@@ -116,11 +111,25 @@ class GraftSession:
         quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
         return False if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
 
+    @property
+    def screening(self):
+        """The run's screens and graft selections (bench.run.screen_run); None without --screen."""
+        if self._screening is None and self.screen_options is not None:
+            from bench.run.screen_run import ScreenRun
+
+            self._screening = ScreenRun(self.screen_options, self.profile, self.store,
+                                        self.workspace, feature_dtype=self.feature_dtype,
+                                        rerun=self.rerun)
+        return self._screening
+
     # --- one cell: plan, then run ------------------------------------------------------------
     def run(self, cell: CellSpec):
         """Plan the cell (resume the stored record, or measure, and with what: bench.run.plan),
         carry the plan out, then the baseline's cell checks (a regression fails this case in
-        one line)."""
+        one line). Under --screen, a cell of an encoder the screen dropped is skipped, saying
+        why, before anything trains."""
+        if self.screening is not None and (why := self.screening.dropped_reason(cell)):
+            pytest.skip(f"dropped by the screen: {why}")
         cell_plan = self.plan(cell)
         if cell_plan.resume is not None:
             record = cell_plan.resume
@@ -165,7 +174,7 @@ class GraftSession:
         if cell_plan.discard:  # a degraded record never outlives its run
             self.store.forget(cell.id)
         self._say_start(cell_plan)
-        if self.config.getoption("--executor") != "local":
+        if self.options.executor != "local":
             return self._run_submitted(cell)
         try:
             result = self.cell_runner(cell, self.workspace(), cell_plan.context)
@@ -206,22 +215,18 @@ class GraftSession:
     def _run_submitted(self, cell: CellSpec) -> dict:
         """--executor slurm|submitit-local: the first case submits every selected cell that has
         no current record as ONE job array; each case then waits for its own task."""
-        from bench.run.executors import CellArray, CellJob, SlurmOptions
+        from bench.run.executors import CellArray, CellJob
         from external.paths import cache_dir
         from bench.results.record import Failure
 
         if self._cell_array is None:
-            opt = self.config.getoption
-            slurm = SlurmOptions(
-                partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
-                gpus_per_task=opt("--slurm-gpus-per-task"),
-                array_parallelism=opt("--slurm-array-parallelism"),
-            )
-            self._cell_array = CellArray(opt("--executor"), self.results_dir / "submitit", slurm)
+            self._cell_array = CellArray(self.options.executor, self.results_dir / "submitit",
+                                         self.options.slurm)
             items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
             params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
             cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
-            todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None]
+            todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None
+                    and not (self.screening and self.screening.dropped_reason(c))]
             paths = (str(self.results_dir), str(cache_dir()))
             self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
                                              self.rollouts, self.feature_dtype) for c in todo])
@@ -249,17 +254,29 @@ class GraftSession:
         if any(not a.present for a in artifacts) and not self.config.option.collectonly:
             raise pytest.UsageError(missing_summary(artifacts))
 
+    @property
+    def ran_cells(self) -> list[str]:
+        """The selected cells the screen did not drop: what grid.json and the baseline expect."""
+        dropped = self.screening.dropped if self.screening is not None else {}
+        return [c for c in self.selected if c not in dropped]
+
     def finish_baseline(self) -> list[tuple[str, str]]:
         """The baseline's save / compare over the stored records; the report sections it adds."""
-        records = {cid: r for cid in self.selected if (r := self.store.load(cid)) is not None}
-        return self.baseline.finish(self.selected, records)
+        records = {cid: r for cid in self.ran_cells if (r := self.store.load(cid)) is not None}
+        return self.baseline.finish(self.ran_cells, records)
 
     def finish(self, sections: list[tuple[str, str]] = ()) -> Path | None:
         """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
         nothing new finished (an existing report is left as it is)."""
-        measured = any(o == "measured" for o in self.outcomes.values())
-        resumed = any(o == "resumed" for o in self.outcomes.values())
-        if not self.selected or not (measured or (resumed and not self.report_path.exists())):
+        outcomes = list(self.outcomes.values())
+        if self.screening is not None:
+            outcomes += list(self.screening.outcomes.values())
+            if self.selected and self.screening.dropped:  # grid.json: what was meant to run
+                self.store.write_grid(self.ran_cells, self.profile.name)
+        measured = any(o == "measured" for o in outcomes)
+        resumed = any(o == "resumed" for o in outcomes)
+        if not (self.selected or self.screens_selected) or not (
+                measured or (resumed and not self.report_path.exists())):
             return None
         self.report_written = self.report_builder(self.results_dir, self.report_path,
                                                   extra_sections=sections)

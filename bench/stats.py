@@ -1,7 +1,36 @@
-"""Statistics that the simulator (bench/sim) and the analysis (bench/analysis) both use: a leaf
-module below both, importing nothing of graftbench's."""
+"""Statistics that the simulator (bench/sim), the analysis (bench/analysis) and the stored screen
+records (bench/results) use: a leaf module below them, importing nothing of graftbench's."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Union
+
+
+@dataclass(frozen=True)
+class Undefined:
+    """A statistic that has no value on these inputs, and why (never a NaN inside a ranking)."""
+
+    reason: str
+
+    def __float__(self) -> float:
+        return float("nan")
+
+    def __str__(self) -> str:
+        return f"undefined ({self.reason})"
+
+
+Measure = Union[float, Undefined]
+
+
+def is_defined(x: Measure) -> bool:
+    """True when `x` is a number, False when it is `Undefined`."""
+    return not isinstance(x, Undefined)
+
+
+def as_float(x: Measure) -> float:
+    """`x` as a float for numeric consumers (plots, JSON): NaN when undefined."""
+    return float(x)
 
 
 def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:

@@ -58,3 +58,15 @@ def summary_lines(profile: str, protocol_hash: str, outcomes: dict[str, str], se
         lines.append(f"answer: {answer}")
     lines += [f"FAILED {cell}: {reason}" for cell, reason in sorted(failed.items())]
     return lines
+
+
+def screen_summary_lines(outcomes: dict[str, str], dropped: dict[str, str]) -> list[str]:
+    """--screen: screens measured / resumed / failed, and each cell the screen dropped, why."""
+    measured = sum(1 for o in outcomes.values() if o == "measured")
+    resumed = sum(1 for o in outcomes.values() if o == "resumed")
+    failed = {s: o for s, o in outcomes.items() if o not in ("measured", "resumed")}
+    lines = [f"screens {len(outcomes)}: measured {measured}, resumed from store {resumed}, "
+             f"failed {len(failed)}; cells dropped by the screen {len(dropped)}"]
+    lines += [f"SCREEN FAILED {sid}: {o.removeprefix('failed: ')}" for sid, o in sorted(failed.items())]
+    lines += [f"dropped {cell}: {why}" for cell, why in sorted(dropped.items())]
+    return lines

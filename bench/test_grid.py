@@ -1,27 +1,42 @@
 """The grid. One parametrised case per cell; ids read as the cell, so
 `pytest bench -k "pi05 and spatial"` selects exactly that slice.
 
+Under --screen, `test_screen[backbone-suite-encoder]` cases come first (bench.run.screen_run).
 A case asserts what must hold of any cell (finite loss that went down, the freeze, a finite
 recorded MSE); it never asserts a ranking: rankings are the report's business.
 """
 
-from bench.results.record import validate_record
+import pytest
+
+from bench.results.record import Record, validate_record
 from bench.summary import OUTCOME_PROPERTY
 
 
-def _check_record(record: dict, cell) -> None:
+def _check_record(record: Record, cell) -> None:
     """What the runner cannot check while it runs: a record resumed from disk is checked like a
     new one (the runner validates what it writes: finite scores, counts, the freeze), and
     training must have lowered the probe loss (fixed frames, noise and time, before vs after;
     the training curve itself is noisy)."""
     validate_record(record)
-    assert record["cell_id"] == cell.id
+    assert record.cell_id == cell.id
     if cell.trains_projector:
-        probe = record["probe_loss"]
-        assert probe["after"] < probe["before"], (
-            f"{cell.id}: training did not reduce the probe loss ({probe['before']:.4f} -> "
-            f"{probe['after']:.4f})"
-        )
+        probe = record.training.probe_before_after
+        assert probe is not None, f"{cell.id}: a trained cell without its probe loss"
+        before, after = probe
+        assert after < before, (
+            f"{cell.id}: training did not reduce the probe loss ({before:.4f} -> {after:.4f})")
+
+
+def test_screen(screen_case, graft_session):
+    """--screen only, before the grafts: the encoder's proxies stored (or resumed); an encoder
+    that cannot be built or extracted fails here in one line, and the screen goes on."""
+    from bench.results.screen import ScreenFailure
+
+    item = graft_session.screening.screen(screen_case.backbone, screen_case.suite,
+                                          screen_case.encoder)
+    if isinstance(item, ScreenFailure):
+        pytest.fail(f"{screen_case.id}: {item.error}", pytrace=False)
+    assert item.screen_id == screen_case.id
 
 
 def test_graft(graft_cell, graft_session, record_property):

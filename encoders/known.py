@@ -11,6 +11,8 @@ in the tiny world); everything else the image shows is kept exactly.
 
 from __future__ import annotations
 
+import hashlib
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -76,3 +78,70 @@ register(EncoderSpec(
     name="blind", timm_name=None, input_size=64, layout="map",
     description="known answer: constant ones, 16 ch, 2x2 grid; no visual information"),
     BlindEncoder)
+
+
+# The known-answer ladder (issue 26): the image at falling resolution, then with rising noise,
+# down to blind. A rung is the image's r x r block means (minus 0.5) flattened into 3*r*r
+# channels of one token, repeated on a 2x2 grid (the smallest grid an encoder gives:
+# tests/test_encoders.py); one token, because a screen averages each camera's grid, and a grid
+# of pixel patches averages to the mean patch, which has lost where things are. 4 x 4 is a
+# function of 8 x 8, and each noisy rung is the one before plus more of the same draw, so no
+# rung can hold more about the scene than the one above. Why not other rungs, as measured on
+# the tiny world (smolvla, spatial): at 16 x 16 LogME's evidence fell below 8 x 8's (0.154 vs
+# 0.171; 1,500 columns on ~1,000 windows), and k-NN ranked 1 x 1 (the mean colour, 3 columns)
+# above 8 x 8: an estimator's score is not monotone in information across widths, so below
+# 4 x 4 the ladder adds noise at a fixed width instead (as tests/test_screen.py's ladder does).
+# `pytest bench --screen --encoders <LADDER> --screen-keep all` checks a screen against it.
+LADDER_RUNGS = ((8, 0.0), (4, 0.0), (4, 0.02), (4, 0.03))  # (resolution, noise sigma)
+
+
+def _rung_name(resolution: int, sigma: float) -> str:
+    return f"pixels_res{resolution}" + (f"_noise{round(sigma * 100)}" if sigma else "")
+
+
+LADDER = (*(_rung_name(r, s) for r, s in LADDER_RUNGS), "blind")
+
+
+def image_noise(images: Tensor) -> Tensor:
+    """A standard normal draw per image, seeded by the image's bytes: the same image always gets
+    the same draw (the feature store may read a frame in any batch), different images differ."""
+    draws = []
+    for image in images.detach().float().cpu():
+        seed = int.from_bytes(hashlib.sha256(image.numpy().tobytes()).digest()[:8], "little")
+        draws.append(torch.randn(image.shape, generator=torch.Generator().manual_seed(seed)))
+    return torch.stack(draws).to(images.device)
+
+
+class LowResolutionEncoder(_KnownEncoder):
+    """(B, 3, H, W) -> (B, 3*r*r, 2, 2): the image's r x r block means minus 0.5, plus `noise`
+    times a per-image normal draw, in every cell."""
+
+    resolution = 1
+    noise = 0.0
+
+    @property
+    def channels(self) -> int:
+        return 3 * self.resolution ** 2
+
+    def forward(self, images: Tensor) -> Tensor:
+        h, w = images.shape[-2:]
+        if h % self.resolution or w % self.resolution:
+            raise ValueError(f"{self.spec.name} needs H, W multiples of {self.resolution}; got "
+                             f"{tuple(images.shape)}")
+        coarse = F.adaptive_avg_pool2d(images.float(), self.resolution) - 0.5
+        if self.noise:
+            coarse = coarse + self.noise * image_noise(images)[..., :self.resolution,
+                                                               :self.resolution]
+        return coarse.flatten(1)[:, :, None, None].expand(-1, -1, 2, 2).contiguous()
+
+
+for _r, _sigma in LADDER_RUNGS:
+    register(EncoderSpec(
+        name=_rung_name(_r, _sigma), timm_name=None, input_size=64, layout="map",
+        description=f"known-answer ladder: the image as {_r}x{_r} block means in one token "
+                    f"({3 * _r * _r} ch)" + (f", plus noise sigma {_sigma}" if _sigma else "")
+                    + "; less visual information than the rung above"),
+        type(f"LowResolution{_r}Noise{round(_sigma * 100)}", (LowResolutionEncoder,),
+             # weights_id names the definition: the feature store keys on it
+             {"resolution": _r, "noise": _sigma,
+              "weights_id": f"none:{_rung_name(_r, _sigma)}"}))

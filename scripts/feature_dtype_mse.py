@@ -53,7 +53,7 @@ def main() -> None:
         ws.feature_dtype = dtype
         ws._features = FeatureStore(tmp / f"features-{dtype}", dtype=dtype, progress=False)
         for cell in cells:
-            mse.setdefault(cell.id, {})[dtype] = run_cell(cell, ws)["mse"]
+            mse.setdefault(cell.id, {})[dtype] = run_cell(cell, ws).scores.mse
             print(f"{dtype:8} {cell.id}: {mse[cell.id][dtype]}", flush=True)
     ref, worst = dtypes[0], {d: 0.0 for d in dtypes[1:]}
     print(f"\nrelative MSE change against {ref} (normalised / raw):")

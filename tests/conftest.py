@@ -53,3 +53,46 @@ def bench_cli():
                          "--report", str(folder / "REPORT.md"), *args, **kwargs)
 
     return run
+
+
+# `pytest tests -n 2` (the README's command; bench.plugin gives each worker its share of the
+# CPUs): every module is one group, so a module's fixtures and measured cells stay in one worker,
+# except the modules in SPLIT (the known answers: one group per backbone, each about the size of
+# a whole module). xdist's own --dist loadgroup cannot carry groups under pytest 9.2 (bench.plugin's
+# scheduler says why), so the groups are read from the node ids here. They go out longest first
+# (a long group started last would finish alone): LONGEST_FIRST, from docs/TESTING.md's seconds
+# per group under -n 2; the rest keep the collection's order.
+SPLIT = {"tests/test_known_answers.py"}  # by the test's parameter id (its backbone)
+LONGEST_FIRST = (
+    "tests/test_known_answers.py[pi05]", "tests/test_xdist.py", "tests/test_executors.py",
+    "tests/test_known_answers.py[smolvla]", "tests/test_known_answers.py[pi0]",
+    "tests/test_export.py", "tests/test_sim_demos.py", "tests/test_hub_world.py",
+    "tests/test_own_policy.py", "tests/test_sim_rollout.py", "tests/test_gpu_smoke.py",
+    "tests/test_known_answers.py",
+)
+
+
+def xdist_group(nodeid: str) -> str:
+    """tests/test_x.py::test_y[a] -> 'tests/test_x.py' ('tests/test_x.py[a]' in SPLIT modules)."""
+    module, _, name = nodeid.partition("::")
+    if module in SPLIT and name.endswith("]") and "[" in name:
+        return f"{module}[{name[name.index('[') + 1:-1]}]"
+    return module
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)  # before bench.plugin's (grid cells only)
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_group(nodeid)
+
+    config.option.loadscopereorder = False  # keep LONGEST_FIRST, not xdist's most-tests-first
+    return ModuleScheduling(config, log)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if hasattr(config, "workerinput"):  # the controller schedules groups in this order
+        rank = {group: i for i, group in enumerate(LONGEST_FIRST)}
+        items.sort(key=lambda item: rank.get(xdist_group(item.nodeid), len(rank)))

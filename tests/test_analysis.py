@@ -192,7 +192,7 @@ def test_windows_aligned_by_id_and_mismatch_is_an_error():
     b = make_record(encoder="dinov2_s", per_window=[3.5, 1.5, 2.5],
                     window_ids=[20, 0, 10])  # same windows, other order
     _, orders = align_windows([a, b])
-    assert np.asarray(b["per_window"]["normalized"])[orders[1]].tolist() == [1.5, 2.5, 3.5]
+    assert np.asarray(b.scores.per_window_in())[orders[1]].tolist() == [1.5, 2.5, 3.5]
     r = rank_encoders([a, b], "smolvla", "spatial", n_resamples=RESAMPLES)
     assert r.encoders[1].diff["normalized"] == pytest.approx(0.5)
     c = make_record(encoder="fastvit", per_window=[1.0, 2.0, 3.0], window_ids=[0, 10, 99])

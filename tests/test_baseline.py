@@ -92,8 +92,8 @@ def test_paired_interval_is_deterministic_and_pairs_by_window_id():
     a, b = _cell(0.08, noise=0.01), _cell(0.07, noise=0.01)
     assert B.paired_interval(*B.aligned(a, b, "normalized")) == \
         B.paired_interval(*B.aligned(a, b, "normalized"))
-    shuffled = b.replace(window_ids=b["window_ids"][::-1],
-                         per_window={k: v[::-1] for k, v in b["per_window"].items()})
+    shuffled = b.replace(window_ids=b.scores.window_ids[::-1],
+                         per_window={k: v[::-1] for k, v in b.scores.per_window.items()})
     assert np.allclose(B.aligned(a, shuffled, "raw")[1], B.aligned(a, b, "raw")[1])
 
 
@@ -118,7 +118,7 @@ def test_rank_swap_within_the_tie_band_passes():
     wobble = [0.0725 + (0.01 if i % 2 else -0.01) for i in range(24)]
     now = {"siglip": _cell(encoder="siglip", per_window=wobble),
            "dinov2_s": _cell(encoder="dinov2_s", per_window=[0.0720] * 24)}
-    assert now["siglip"]["mse"]["normalized"] > now["dinov2_s"]["mse"]["normalized"]  # swapped
+    assert now["siglip"].scores.mse["normalized"] > now["dinov2_s"].scores.mse["normalized"]  # swapped
     assert B.RankCheck().fails(base, now) is None
 
 
@@ -128,8 +128,8 @@ def test_compare_run_groups_graft_cells_by_backbone_suite_seed():
     now = [_cell(0.0734, encoder="siglip"), _cell(0.0706, encoder="dinov2_s"),
            _cell(0.05, kind="native")]
     baseline = B.snapshot(base, "ci", created="t", git_commit="c", machine={})
-    comp = B.compare_run("ci", baseline, [r["cell_id"] for r in now],
-                         {r["cell_id"]: r for r in now}, [B.parse_compare_fail("rank")])
+    comp = B.compare_run("ci", baseline, [r.cell_id for r in now],
+                         {r.cell_id: r for r in now}, [B.parse_compare_fail("rank")])
     assert comp.groups_compared == 1 and list(comp.flips) == ["smolvla-spatial-seed0"]
     assert not comp.regressed and comp.failed
 
@@ -144,9 +144,9 @@ def test_snapshot_round_trip_and_new_and_not_compared(tmp_path):
     path.write_text(json.dumps(B.snapshot(records, "ci", created="t", git_commit="c",
                                           machine={"node": "n"}).to_json()))
     baseline = B.load_baseline(path)
-    assert baseline.protocol_hash == records[0]["protocol_hash"]
+    assert baseline.protocol_hash == records[0].measured.protocol_hash
     fresh = _cell(0.09, encoder="repvit")
-    now = {r["cell_id"]: r for r in (records[0], fresh)}
+    now = {r.cell_id: r for r in (records[0], fresh)}
     comp = B.compare_run("ci", baseline, list(now), now, [B.parse_compare_fail("mse:10%")])
     assert [r.verdict for r in comp.rows] == ["ok"]
     assert comp.new == ["smolvla-spatial-repvit-seed0"]
@@ -174,9 +174,9 @@ def test_missing_or_corrupt_baseline_is_one_line_naming_the_file(tmp_path, conte
 
 def test_protocol_and_version_mismatch_are_named():
     base, now = _cell(), _cell()
-    now = now.replace(protocol_hash="abc123", versions={**now["versions"], "torch": "9.9"})
+    now = now.replace(protocol_hash="abc123", versions={**now.run.versions, "torch": "9.9"})
     assert B.provenance_mismatch(base, {}, now) == [
-        f"protocol_hash abc123 (baseline {base['protocol_hash']})",
+        f"protocol_hash abc123 (baseline {base.measured.protocol_hash})",
         "torch 9.9 (baseline 2.11.0)",
     ]
     assert B.provenance_mismatch(base, {}, _cell()) == []

@@ -23,6 +23,6 @@ def test_lora_cell_does_not_depend_on_the_global_random_state(tmp_path, backbone
     torch.manual_seed(2)  # what earlier cells or tests drew from the global generator
     torch.rand(1000)
     again = run_cell(spec, ws)
-    assert first["lora_params"] == again["lora_params"] > 0
-    assert first["mse"] == again["mse"]
-    assert first["per_window"] == again["per_window"]
+    assert first.training.lora_params == again.training.lora_params > 0
+    assert first.scores.mse == again.scores.mse
+    assert first.scores.per_window == again.scores.per_window

@@ -20,6 +20,10 @@ EXPECTED = {
     "repvit": (384, 64, 2),
     "pixels": (192, 192, 8),
     "blind": (16, 16, 2),
+    # the known-answer ladder
+    **{n: (3 * r * r, 3 * r * r, 2) for n, r in (("pixels_res8", 8), ("pixels_res4", 4),
+                                                 ("pixels_res4_noise2", 4),
+                                                 ("pixels_res4_noise3", 4))},
 }
 # The paper's parameter counts (without head), in millions.
 PAPER_PARAMS_M = {"siglip": 92.9, "dinov2_s": 22.1, "fastvit": 10.6, "repvit": 4.7}
@@ -230,3 +234,21 @@ def test_blind_is_identical_for_different_images():
     enc = build_encoder("blind", "hub")
     a, b = enc(torch.zeros(3, 3, 64, 64)), enc(torch.rand(3, 3, 96, 96))
     assert torch.equal(a, b) and a.shape == (3, 16, 2, 2) and (a != 0).all()
+
+
+def test_each_ladder_rung_holds_less_than_the_rung_above():
+    """8 x 8 block means, then their 4 x 4 means, then those plus 2x and 3x one fixed per-image
+    draw (the same image always draws the same: the feature store reads frames in any batch)."""
+    from encoders.known import LADDER
+
+    image = torch.rand((2, 3, 64, 64), generator=torch.Generator().manual_seed(0))
+    tokens = [build_encoder(name, "tiny")(image)[..., 0, 0] for name in LADDER[:-1]]
+    expected = torch.nn.functional.avg_pool2d(image, 8) - 0.5
+    assert torch.allclose(tokens[0].reshape(2, 3, 8, 8), expected, atol=1e-6)
+    averaged = torch.nn.functional.avg_pool2d(tokens[0].reshape(2, 3, 8, 8), 2).flatten(1)
+    assert torch.allclose(tokens[1], averaged, atol=1e-6)
+    noise2, noise3 = tokens[2] - tokens[1], tokens[3] - tokens[1]
+    assert torch.allclose(noise3, 1.5 * noise2, atol=1e-5) and noise2.abs().mean() > 0.01
+    assert not torch.allclose(noise2[0], noise2[1])  # each image its own draw
+    alone = build_encoder(LADDER[2], "tiny")(image[1:])[..., 0, 0]
+    assert torch.equal(alone[0], tokens[2][1])  # whatever batch it is read in

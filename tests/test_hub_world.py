@@ -101,12 +101,14 @@ def test_removing_any_one_artifact_makes_the_preflight_name_exactly_it(in_world,
 
 
 @pytest.mark.slow  # `pytest bench` in a fresh interpreter that reads the world at import
-def test_a_missing_artifact_stops_the_run_in_one_line_before_any_cell(world, tmp_path):
+@pytest.mark.parametrize("extra", [(), ("-n", "2")], ids=["serial", "xdist"])
+def test_a_missing_artifact_stops_the_run_in_one_line_before_any_cell(world, tmp_path, extra):
+    """Under -n the xdist controller collects nothing: it checks what its workers collected."""
     tokenizer = _artifact_paths(Path(world["HF_HUB_CACHE"]))["google/paligemma-3b-pt-224"]
     aside = tmp_path / "aside"
     shutil.move(tokenizer, aside)
     try:
-        out = run_bench(world, tmp_path)
+        out = run_bench(world, tmp_path, *extra)
     finally:
         shutil.move(aside, tokenizer)
     assert out.returncode == 4, out.stdout[-2000:]  # pytest's usage error: nothing ran

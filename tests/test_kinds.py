@@ -88,12 +88,12 @@ def test_a_new_control_kind_runs_records_and_reports(twin_kind, tmp_path):
     ws = lent_workspace(profile, ResultStore(tmp_path / "results"))
     projectors = {}  # kept across cells, as a session keeps them
     graft, _, twin = (run_cell(c, ws, projectors=projectors) for c in cells)
-    assert twin["kind"] == "twin" and twin["reference"] == graft["cell_id"]
-    assert twin["projector_from"] == graft["cell_id"]
-    assert twin["per_window"] == graft["per_window"]  # same projector, same windows, same noise
+    assert twin.kind == "twin" and twin.reference == graft.cell_id
+    assert twin.training.projector_from == graft.cell_id
+    assert twin.scores.per_window == graft.scores.per_window  # same projector, same windows, same noise
 
     results = load_results(tmp_path / "results")
-    assert not results.skipped and {r["kind"] for r in results.records} == {"graft", "native", "twin"}
+    assert not results.skipped and {r.kind for r in results.records} == {"graft", "native", "twin"}
     report = build_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
     row = next(line for line in report.splitlines() if "twin of pixels" in line)
     assert "+0.0%" in row or "+0.00%" in row or " 0.0%" in row, row
@@ -102,7 +102,7 @@ def test_a_new_control_kind_runs_records_and_reports(twin_kind, tmp_path):
 def test_fabricated_records_follow_the_writers_format(tmp_path):
     """Test records (tests.factories.make_record) carry the ids CellSpec gives and read back."""
     record = make_record(kind="pooling", encoder="pixels", variant="half")
-    assert record["cell_id"] == CellSpec("pooling", "smolvla", "spatial", 0, "pixels", "half").id
+    assert record.cell_id == CellSpec("pooling", "smolvla", "spatial", 0, "pixels", "half").id
     save_record(tmp_path, record)
     assert [r.to_json() for r in load_results(tmp_path).records] == \
         [json.loads(json.dumps(record.to_json()))]  # tuples: lists

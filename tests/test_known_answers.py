@@ -19,6 +19,7 @@ from scipy.stats import wilcoxon
 
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
+from bench.results.record import Record, Scores
 from bench.run.runner import run_cell
 from bench.run.train import NonFiniteLoss
 
@@ -30,17 +31,22 @@ FEW_STEPS = with_overrides(TINY, steps=12)  # for the checks that are not about 
 KNOWN_ANSWER_STEPS = {"smolvla": 300, "pi05": TINY.protocol.steps, "pi0": 300}
 
 
-def paired(better: dict, worse: dict, margin: float = 0.05) -> tuple[float, float]:
+def paired(better: Record, worse: Record, margin: float = 0.05) -> tuple[float, float]:
     """Relative gap of the means and the one-sided Wilcoxon signed-rank p-value of the paired
     per-window differences (identical windows, common noise)."""
-    a = np.asarray(better["per_window"]["normalized"])
-    b = np.asarray(worse["per_window"]["normalized"])
-    assert better["window_ids"] == worse["window_ids"], "not scored on identical windows"
+    return paired_scores(better.scores, worse.scores, better.cell_id, worse.cell_id, margin)
+
+
+def paired_scores(better: Scores, worse: Scores, better_name: str, worse_name: str,
+                  margin: float = 0.05) -> tuple[float, float]:
+    a = np.asarray(better.per_window_in())
+    b = np.asarray(worse.per_window_in())
+    assert better.window_ids == worse.window_ids, "not scored on identical windows"
     gap = (b.mean() - a.mean()) / b.mean()
     p = wilcoxon(a, b, alternative="less").pvalue
     assert gap > margin and p < 0.01, (
-        f"{better['cell_id']} ({a.mean():.4f}) is not clearly better than "
-        f"{worse['cell_id']} ({b.mean():.4f}): gap {gap:+.1%}, Wilcoxon p={p:.3g}"
+        f"{better_name} ({a.mean():.4f}) is not clearly better than "
+        f"{worse_name} ({b.mean():.4f}): gap {gap:+.1%}, Wilcoxon p={p:.3g}"
     )
     return gap, p
 
@@ -82,8 +88,8 @@ def test_pixels_beats_blind_and_training_reduces_the_loss(measured, backbone):
     blind = measured("graft", backbone, "blind")
     paired(pixels, blind)
     for record in (pixels, blind):
-        assert record["probe_loss"]["after"] < record["probe_loss"]["before"]
-        assert record["trainable_params"] == record["projector_params"] > 0
+        assert record.training.probe_loss["after"] < record.training.probe_loss["before"]
+        assert record.training.trainable_params == record.training.projector_params > 0
 
 
 @pytest.mark.parametrize("backbone", BACKBONES)
@@ -93,7 +99,7 @@ def test_native_policy_uses_vision(measured, backbone):
     shuffled = measured("shuffled_image", backbone)
     paired(native, zero)
     paired(native, shuffled)
-    assert native["trainable_params"] == 0
+    assert native.training.trainable_params == 0
 
 
 @pytest.mark.slow
@@ -110,7 +116,7 @@ def test_image_controls_of_a_graft_are_worse_than_the_graft(measured, backbone):
 def test_one_token_pooling_is_worse_than_the_native_grid(measured, backbone):
     graft = measured("graft", backbone, "pixels")
     pooled = measured("pooling", backbone, "pixels", "global")
-    assert pooled["grid"] == [1, 1]
+    assert pooled.measured.grid == [1, 1]
     paired(graft, pooled, margin=0.03)
 
 
@@ -130,8 +136,7 @@ def test_released_tiny_policy_beats_an_untrained_one(tiny_ws):
         p = tiny_ws.profile.protocol
         a = score(released, suite, split.windows, p.eval_batch_size, p.eval_noise_seed)
         b = score(untrained, suite, split.windows, p.eval_batch_size, p.eval_noise_seed)
-        paired({**a.to_json(), "cell_id": f"released {name}"},
-               {**b.to_json(), "cell_id": f"untrained {name}"}, 0.3)
+        paired_scores(a, b, f"released {name}", f"untrained {name}", 0.3)
 
 
 def test_lora_trainable_count_is_projector_plus_adapters_exactly(few_steps_ws):
@@ -144,8 +149,8 @@ def test_lora_trainable_count_is_projector_plus_adapters_exactly(few_steps_ws):
         if isinstance(m, torch.nn.Linear) and n.split(".")[-1] in p.lora_targets
     )
     assert expected > 0
-    assert record["lora_params"] == expected
-    assert record["trainable_params"] == record["projector_params"] + expected
+    assert record.training.lora_params == expected
+    assert record.training.trainable_params == record.training.projector_params + expected
     # The shared backbone was not modified by the LoRA cell.
     assert not any("lora_" in n for n, _ in lm.named_parameters())
 
@@ -153,18 +158,18 @@ def test_lora_trainable_count_is_projector_plus_adapters_exactly(few_steps_ws):
 def test_cached_and_in_loop_features_give_the_same_mse(few_steps_ws):
     cached = cell(few_steps_ws, "graft", "pi05", "dinov2_s", features_mode="cache")
     loop = cell(few_steps_ws, "graft", "pi05", "dinov2_s", features_mode="loop")
-    assert loop["features_mode"] == "loop"
-    np.testing.assert_allclose(loop["mse"]["normalized"], cached["mse"]["normalized"], rtol=1e-4)
-    np.testing.assert_allclose(loop["per_window"]["raw"], cached["per_window"]["raw"], rtol=1e-3, atol=1e-6)
+    assert loop.measured.features_mode == "loop"
+    np.testing.assert_allclose(loop.scores.mse["normalized"], cached.scores.mse["normalized"], rtol=1e-4)
+    np.testing.assert_allclose(loop.scores.per_window["raw"], cached.scores.per_window["raw"], rtol=1e-3, atol=1e-6)
 
 
 def test_same_cell_twice_gives_the_same_mse(few_steps_ws):
     first = cell(few_steps_ws, "graft", "smolvla", "siglip", seed=1)
     again = cell(few_steps_ws, "graft", "smolvla", "siglip", seed=1)
-    assert first["mse"] == again["mse"]
-    assert first["per_window"] == again["per_window"]
+    assert first.scores.mse == again.scores.mse
+    assert first.scores.per_window == again.scores.per_window
     other_seed = cell(few_steps_ws, "graft", "smolvla", "siglip", seed=2)
-    assert other_seed["mse"] != first["mse"]
+    assert other_seed.scores.mse != first.scores.mse
 
 
 def test_nan_features_fail_the_cell_naming_the_step(few_steps_ws):

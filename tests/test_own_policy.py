@@ -90,12 +90,18 @@ def _beats(records: dict[str, dict], better: str, worse: str) -> None:
 
 
 def _check_known_answer(out, results: Path, policy: Path) -> dict[str, dict]:
+    records = _check_records(out, results, policy)
+    _beats(records, "pixels", "blind")
+    _beats(records, "native", "pixels")
+    return records
+
+
+def _check_records(out, results: Path, policy: Path) -> dict[str, dict]:
+    """The run passed and its records name the policy's weights and the dataset."""
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     records = _records(results)
     assert sorted(r["cell_id"] for r in records.values()) == [
         "mine-mydata-blind-seed0", "mine-mydata-native-seed0", "mine-mydata-pixels-seed0"]
-    _beats(records, "pixels", "blind")
-    _beats(records, "native", "pixels")
     record = records["pixels"]
     weights = hashlib.sha256((policy / "model.safetensors").read_bytes()).hexdigest()[:16]
     assert record["checkpoint"]["repo_id"] == str(policy.resolve())
@@ -117,15 +123,16 @@ def test_your_policy_on_your_data_pixels_beat_blind(world, bench_cli, tmp_path):
     assert "cameras of mine x mydata by identical names" in out.stdout
 
 
-@pytest.mark.slow  # trains grafts on the world's natively trained policy
 def test_the_same_through_a_grid_file(world, bench_cli, tmp_path):
+    """The grid file's policy, dataset and camera map reach the records (5 steps: the known
+    answer itself is the command line's test above)."""
     study = tmp_path / "study.toml"
-    study.write_text(f'encoders = ["pixels", "blind"]\nseeds = [0]\ncontrols = ["native"]\n'
-                     f'steps = {STEPS}\n[policies]\nmine = "{world / "policy"}"\n'
+    study.write_text('encoders = ["pixels", "blind"]\nseeds = [0]\ncontrols = ["native"]\n'
+                     f'steps = 5\n[policies]\nmine = "{world / "policy"}"\n'
                      f'[datasets]\nmydata = "{world / "data"}"\n'
                      '[camera_map]\nfront = "front"\nwrist = "wrist"\n')
     out = bench_cli(tmp_path, "--grid", str(study))
-    records = _check_known_answer(out, tmp_path / "results", world / "policy")
+    records = _check_records(out, tmp_path / "results", world / "policy")
     sha = hashlib.sha256(study.read_bytes()).hexdigest()
     assert {r["grid_file"]["sha256"] for r in records.values()} == {sha}
     assert "by the camera map" in out.stdout
@@ -158,7 +165,8 @@ def _copy_meta(world: Path, tmp_path: Path, edit) -> Path:
 
 
 def _usage_error(**options) -> str:
-    from bench.options import build_profile, check_user_world
+    from bench.options import build_profile
+    from bench.startup import check_user_world
 
     with pytest.raises(pytest.UsageError) as caught:
         check_user_world(build_profile(Config(**options)))

@@ -44,16 +44,16 @@ def test_controls_reuse_the_graft_projector_and_score_as_if_retrained(tmp_path, 
     shared, projectors = workspace(tmp_path, "shared"), {}  # what a session keeps
     g = run_cell(graft, shared, projectors=projectors)
     reused = [run_cell(c, shared, projectors=projectors) for c in (shuffled, zero_eval)]
-    assert g["projector_from"] is None
+    assert g.training.projector_from is None
     for record in reused:
-        assert record["projector_from"] == graft.id
-        assert record["loss_curve"] == g["loss_curve"]
-        assert record["probe_loss"] == g["probe_loss"]
-        assert record["mse"] != g["mse"]  # evaluated on other inputs than the graft
+        assert record.training.projector_from == graft.id
+        assert record.training.loss_curve == g.training.loss_curve
+        assert record.training.probe_loss == g.training.probe_loss
+        assert record.scores.mse != g.scores.mse  # evaluated on other inputs than the graft
 
     # Alone in a fresh session each control trains its own projector: same numbers.
     for spec, record in zip((shuffled, zero_eval), reused):
         alone = run_cell(spec, workspace(tmp_path, f"alone-{spec.kind}"))
-        assert alone["projector_from"] is None
-        assert alone["mse"] == record["mse"]
-        assert alone["per_window"] == record["per_window"]
+        assert alone.training.projector_from is None
+        assert alone.scores.mse == record.scores.mse
+        assert alone.scores.per_window == record.scores.per_window

@@ -20,14 +20,6 @@ from external.paths import REPO_ROOT
 from tests.factories import make_failed, make_record
 
 RECORD_MODULES = {"bench/results/record.py", "bench/results/parts.py"}
-# Modules this change did not own, whose record reads move to the accessors with their owners'
-# next edits (the mapping view, Record.__getitem__ / .get, keeps them working meanwhile): how many
-# spellings each still has (may only go down).
-NOT_YET_MOVED = {
-    "bench/report/study.py": 20,  # reads records as mappings (r["encoder"], r.get("device"))
-    "bench/test_grid.py": 2,  # record["cell_id"], record["probe_loss"]
-    "bench/grid/kinds.py": 6,  # kind_of / record_label / is_native_like: record.get("kind"), ...
-}
 # Dicts that share a name with a record key but are not records: the keys each may spell.
 NOT_RECORDS = {
     "bench/grid/gridfile.py": {"camera_map", "profile", "protocol"},  # a grid file's own fields
@@ -79,15 +71,13 @@ def spellings_by_module() -> dict[str, list[tuple[int, str]]]:
 
 
 def test_no_record_key_is_spelled_outside_the_record_modules():
+    """Readers use the typed parts (record.encoder, record.scores.mse_in()); the record has no
+    mapping view left for a spelled key to go through."""
     found = spellings_by_module()
-    offenders = {m: hits for m, hits in found.items() if m not in NOT_YET_MOVED
-                 and not {k for _, k in hits} <= NOT_RECORDS.get(m, set())}
+    offenders = {m: hits for m, hits in found.items()
+                 if not {k for _, k in hits} <= NOT_RECORDS.get(m, set())}
     assert not offenders, offenders
-    grown = {m: len(found.get(m, [])) for m, n in NOT_YET_MOVED.items()
-             if len(found.get(m, [])) > n}
-    assert not grown, f"more record-key literals than before in {grown}: use the accessors"
-    figure = sum(len(found.get(m, [])) for m in NOT_YET_MOVED)
-    print(f"record-key literals left in not-yet-moved modules: {figure}")
+    assert not hasattr(Record, "__getitem__") and not hasattr(Record, "get")
 
 
 def test_the_count_sees_a_spelled_key():

@@ -12,10 +12,11 @@ import pytest
 from tests.factories import make_failed, make_grid, make_record, save_record
 from bench.results.store import load_results
 from bench.report.build import SECTIONS, build_report, main
+from bench.report.screen import SECTION_TITLE
 
 ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 RESAMPLES = 200
-HEADINGS = [title for title, _ in SECTIONS]
+HEADINGS = [title for title, _ in SECTIONS if title != SECTION_TITLE]  # screens: test_screen_run
 
 
 def full_grid() -> list[dict]:
@@ -39,7 +40,7 @@ def full_grid() -> list[dict]:
 def write_grid(root: Path, records: list[dict], expected: list[dict] | None = None) -> Path:
     for r in records:
         save_record(root, r)
-    ids = [r["cell_id"] for r in (expected if expected is not None else records)]
+    ids = [r.cell_id for r in (expected if expected is not None else records)]
     (root / "grid.json").write_text(json.dumps({"expected": ids, "profile": "tiny"}))
     return root
 
@@ -115,7 +116,7 @@ def test_csv_and_json_beside_the_report(full_report):
 def test_half_grid_renders_every_section_and_lists_missing(tmp_path):
     records = full_grid()
     kept = records[::2]
-    kept = [r for r in kept if r["backbone"] == "smolvla" or r["suite"] != "object"]
+    kept = [r for r in kept if r.backbone == "smolvla" or r.suite != "object"]
     write_grid(tmp_path, kept, expected=records)
     out = build_report(tmp_path, tmp_path / "out" / "REPORT.md", n_resamples=RESAMPLES)
     text = check_markdown(out)
@@ -123,14 +124,14 @@ def test_half_grid_renders_every_section_and_lists_missing(tmp_path):
         assert f"\n## {title}\n" in text
     assert "could not be rendered" not in text
     assert "needs both backbones" in text and "pi05 has no graft cells on object" in text
-    missing = [r["cell_id"] for r in records if r not in kept]
+    missing = [r.cell_id for r in records if r not in kept]
     assert f"{len(missing)} missing of {len(records)} expected" in text
     for cell_id in missing:
         assert f"`{cell_id}`" in text
 
 
 def test_one_backbone_and_empty_results_do_not_crash(tmp_path):
-    smol = [r for r in full_grid() if r["backbone"] == "smolvla"]
+    smol = [r for r in full_grid() if r.backbone == "smolvla"]
     out = build_report(write_grid(tmp_path / "one", smol), n_resamples=RESAMPLES, plots=False)
     assert out == tmp_path / "one" / "REPORT.md"
     text = check_markdown(out)
@@ -154,7 +155,7 @@ def test_load_results_skips_bad_files(tmp_path):
     diverged["per_window"]["normalized"][1] = float("nan")
     (tmp_path / "cells" / "nan.json").write_text(json.dumps(diverged))
     res = load_results(tmp_path)
-    assert [r["cell_id"] for r in res.records] == ["smolvla-spatial-dinov2_s-seed0"]
+    assert [r.cell_id for r in res.records] == ["smolvla-spatial-dinov2_s-seed0"]
     assert res.skipped and "non-finite" in res.skipped[0][1] and res.missing == []
 
 

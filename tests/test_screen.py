@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 
 from bench.analysis.agreement import Undefined, is_defined, kendall_tau_b
-from bench.run.screen import (SUPERVISED, ScreenScores, parse_screen_keep, screen_cell,
-                              screen_features, select_for_graft)
+from bench.run.screen import (SUPERVISED, ScreenOptions, ScreenScores, parse_screen_keep,
+                              screen_cell, screen_features, select_for_graft)
 
 SUITE = "spatial"
 # (resolution of the camera image, noise sigma on its pixels); then blind. Information falls by
@@ -104,14 +104,19 @@ def fake_screen(encoder: str, gain) -> ScreenScores:
 
 def test_select_for_graft_keeps_the_top_and_says_what_it_dropped():
     screens = [fake_screen("a", 0.1), fake_screen("b", 0.3), fake_screen("c", 0.2),
-               fake_screen("d", Undefined("all 4 feature columns constant"))]
+               fake_screen("d", Undefined("all 4 feature columns constant")),
+               fake_screen("pixels", -1.0)]
     stored = ScreenScores.from_json(json.loads(json.dumps(screens[3].to_json())))
     assert stored.score("ridge") == Undefined("all 4 feature columns constant")
-    kept, dropped, note = select_for_graft(screens, 2, "ridge")
-    assert kept == ["b", "c"] and note is None
-    assert dropped["a"] == "ridge 0.1, below the top 2" and "constant" in dropped["d"]
-    kept, _, note = select_for_graft(screens, 5, "logme")
-    assert kept == ["b", "c", "a"] and "more than the 3" in note
-    assert select_for_graft(screens, None, "knn")[0] == ["b", "c", "a"]
-    with pytest.raises(ValueError, match="--screen-by short"):
-        select_for_graft(screens, 1, "short")
+    chosen = select_for_graft("smolvla", SUITE, screens, ScreenOptions(2, "ridge"), ("pixels",),
+                              {"e": "RuntimeError: no weights"})
+    assert chosen.kept == ("b", "c") and chosen.note is None
+    assert chosen.grafts("pixels") and not chosen.grafts("a")  # a reference is never ranked
+    assert chosen.dropped["a"] == "ridge rank 3 of 3 (0.1), below the top 2"
+    assert "constant" in chosen.dropped["d"] and "no weights" in chosen.dropped["e"]
+    chosen = select_for_graft("smolvla", SUITE, screens, ScreenOptions(5, "logme"))
+    assert chosen.kept == ("b", "c", "a", "pixels") and "more than the 4" in chosen.note
+    assert select_for_graft("smolvla", SUITE, screens, ScreenOptions(None, "knn")).kept == (
+        "b", "c", "a", "pixels")
+    with pytest.raises(ValueError, match="--screen-by short: unknown proxy; choose one of"):
+        select_for_graft("smolvla", SUITE, screens, ScreenOptions(1, "short"))

@@ -75,11 +75,18 @@ BAD_INPUTS = [
     (["--policy", "mine=nobody/no_such_policy"], "--policy mine=nobody/no_such_policy",
      "no LeRobot checkpoint there"),
     (["--policy", "smolvla=/tmp"], "--policy smolvla", "the name of a built-in one"),
-    (["--dataset", "mine=/nonexistent/data"], "--dataset /nonexistent/data",
+    (["--dataset", "mine=/nonexistent/data"], "--dataset mine=/nonexistent/data",
      "no LeRobotDataset there"),
     (["--grid", "/nonexistent/study.toml"], "--grid /nonexistent/study.toml", "no such file"),
     (["--camera-map", "front=top"], "--camera-map front=top", "add --policy NAME=FOLDER"),
     (["--camera-map", "front"], "--camera-map 'front'", "POLICY_CAMERA=DATASET_CAMERA"),
+    (["--screen", "--screen-keep", "0"], "--screen-keep 0", "give a whole number >= 1, or all"),
+    (["--screen", "--screen-keep", "-2"], "--screen-keep -2", "give a whole number >= 1, or all"),
+    (["--screen", "--screen-keep", "2.5"], "--screen-keep 2.5", "give a whole number >= 1, or all"),
+    (["--screen", "--screen-by", "short"], "--screen-by short",
+     "choose one of logme, ridge, knn, entropy"),
+    (["--screen-keep", "2"], "--screen-keep 2", "--screen is not given; fix: add --screen"),
+    (["--screen-by", "ridge"], "--screen-by ridge", "--screen is not given; fix: add --screen"),
 ]
 
 
@@ -99,7 +106,7 @@ def test_rollouts_without_the_libero_extra_say_how_to_install_it(monkeypatch):
     """The session's start-up check (bench.session calls it before collection; that it runs there
     is test_grid_plugin's --rollouts case): one line, the option, the value and the fix."""
     from bench.grid.protocol import get_profile
-    from bench.options import check_rollouts_possible
+    from bench.startup import check_rollouts_possible
 
     import importlib
 

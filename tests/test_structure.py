@@ -142,11 +142,7 @@ def test_no_import_cycle_between_modules():
 
 # Sub-package cycles known and owned elsewhere, each with why it is still there. The test fails
 # when one goes away as well, so that this list is emptied, never stale.
-KNOWN_PACKAGE_CYCLES = {
-    # bench.grid.cells takes `cell_id` from bench.results.record, which reads bench.grid.kinds:
-    # the cell id belongs with the cell (grid); it moves with the record rewrite (issue 23).
-    ("bench.grid", "bench.results"),
-}
+KNOWN_PACKAGE_CYCLES: set[tuple[str, ...]] = set()  # none (the last, grid <-> results, is gone)
 
 
 def test_no_import_cycle_between_sub_packages():

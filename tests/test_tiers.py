@@ -70,3 +70,32 @@ def test_report_tables_print_numbers_intervals_and_reasons():
                           entropy=Undefined("every token norm is 0"))
     screen.proxies = {p: {"gain": 0.0, "state+features": 0.3} for p in ("logme", "ridge", "knn")}
     assert "undefined: every token norm is 0" in screen_table([screen])
+
+
+def test_the_report_section_from_a_store_of_screens(tmp_path):
+    """Seven stored screens whose ridge gain orders them as their grafts do, a selection: the
+    report's screen section measures the agreement with intervals, and lists what was dropped."""
+    from bench.report.build import build_report
+    from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenScores,
+                                      ScreenSelection, new_screen_record)
+    from bench.results.store import ResultStore
+
+    store = ResultStore(tmp_path / "results")
+    for record in grafts():
+        store.write(record)
+    for e, level in LEVELS.items():
+        screen = ScreenScores(e, "smolvla", "spatial", seconds=0.5, entropy=0.9)
+        screen.proxies = {p: {"state": 0.1, "state+features": 0.1 - level, "gain": -level}
+                          for p in ("logme", "ridge", "knn")}
+        store.write_screen(new_screen_record(screen, ScreenConditions("h", "f", "fp16"), 2.0))
+    store.write_screen(ScreenFailure("smolvla", "spatial", "timm:broken", "OSError: no file"))
+    store.write_selection(ScreenSelection("smolvla", "spatial", "ridge", 2, tuple(ENCODERS[:2]),
+                                          ("pixels",), {ENCODERS[6]: "ridge rank 7 of 7 (-0.11)"}))
+    text = build_report(store.root, tmp_path / "REPORT.md", n_resamples=50).read_text()
+    section = text[text.index("## Screening many encoders"):text.index("## Plots")]
+    row = next(line for line in section.splitlines() if "| ridge " in line and "| 7 " in line)
+    assert "1 [1, 1]" in row  # tau-b 1 with its interval
+    assert "| entropy " in section and "undefined" in section  # entropy ties: no order
+    assert "`smolvla-spatial-timm:broken`: OSError: no file" in section
+    assert f"dropped `{ENCODERS[6]}`: ridge rank 7 of 7" in section
+    assert "screen_scatter.png" in section and (tmp_path / "REPORT_plots" / "screen_scatter.png").is_file()

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from bench.grid.cells import CellSpec
 from bench.run.features import feature_key
-from bench.options import validate_names
+from bench.startup import validate_names
 from bench.grid.protocol import TINY, with_overrides
 from encoders import UnknownEncoder, build_encoder, get_spec, user_encoders
 from encoders.timm_encoders import weight_artifacts

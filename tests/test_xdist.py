@@ -1,5 +1,6 @@
-"""`pytest bench -n 2` gives the records and REPORT.md numbers of a serial run (both in a fresh
-interpreter: xdist workers are processes, and the serial run must match their thread count).
+"""`pytest bench -n 2` gives the records and REPORT.md numbers of a serial run (the -n 2 run in a
+fresh interpreter: xdist workers are processes; the serial one in this process, on one torch
+thread as each worker).
 
 Two backbones, so each xdist worker gets one (`-n` implies `--dist loadgroup`, cells carry
 `xdist_group(backbone)`); the controller alone writes REPORT.md from the shared results store.
@@ -48,9 +49,17 @@ def report_before_provenance(results: Path) -> str:
 
 
 @pytest.fixture(scope="module")
-def serial_and_parallel(tmp_path_factory):
+def serial_and_parallel(tmp_path_factory, one_torch_thread):
+    """The serial run in this process (one torch thread, as each worker's), the -n 2 run in
+    fresh interpreters (xdist's workers are processes)."""
+    from tests.bench_inprocess import run_bench
+
     root = tmp_path_factory.mktemp("xdist")
-    serial_out = run_grid(root / "serial")
+    serial = root / "serial"
+    done = run_bench(*SLICE, "-q", "--results-dir", str(serial), "--report",
+                     str(serial / "REPORT.md"), env={"GRAFTBENCH_QUIET": "1"})
+    assert done.returncode == 0, done.stdout[-3000:]
+    serial_out = done.stdout
     parallel_out = run_grid(root / "parallel", "-n", "2", "-v")
     return root / "serial", root / "parallel", serial_out, parallel_out
 

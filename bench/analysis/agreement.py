@@ -23,10 +23,14 @@ vectors; it is undefined on the same terms (a side without spread has no correla
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence, Union
+from typing import Sequence
 
 import numpy as np
 import scipy.stats
+
+# A value or why there is none: defined below everything (bench.stats), so the stored screen
+# records (bench.results.screen) hold it without importing the analysis.
+from bench.stats import Measure, Undefined, as_float, is_defined  # noqa: F401  (re-exported)
 
 TIE_RULE = (
     "Scores tie when exactly equal. A tie earns no credit for an order the other side shows: "
@@ -35,32 +39,6 @@ TIE_RULE = (
     "definition), top-1 regret takes the worst graft score among the picks tied for first. A "
     "side whose scores all tie has no order: the statistic is reported undefined, with the reason."
 )
-
-
-@dataclass(frozen=True)
-class Undefined:
-    """A statistic that has no value on these inputs, and why (never a NaN inside a ranking)."""
-
-    reason: str
-
-    def __float__(self) -> float:
-        return float("nan")
-
-    def __str__(self) -> str:
-        return f"undefined ({self.reason})"
-
-
-Measure = Union[float, Undefined]
-
-
-def is_defined(x: Measure) -> bool:
-    """True when `x` is a number, False when it is `Undefined`."""
-    return not isinstance(x, Undefined)
-
-
-def as_float(x: Measure) -> float:
-    """`x` as a float for numeric consumers (plots, JSON): NaN when undefined."""
-    return float(x)
 
 
 def _pair(predicted: Sequence[float], actual: Sequence[float]

@@ -5,9 +5,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, CellKind, get_kind
+from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, CellKind, cell_id, get_kind
 from bench.grid.protocol import Profile
-from bench.results.record import cell_id
+
+
+
+def screen_id(backbone: str, suite: str, encoder: str) -> str:
+    """smolvla-spatial-timm:convnext_atto: the pytest id of the screen case and its record."""
+    return f"{backbone}-{suite}-{encoder}"
 
 
 @dataclass(frozen=True)
@@ -72,4 +77,25 @@ def control_cells(profile: Profile) -> list[CellSpec]:
     return cells
 
 
-__all__ = ["CellSpec", "GRAFT", "NATIVE", "graft_cells", "control_cells"]
+@dataclass(frozen=True)
+class ScreenCase:
+    """One screen (--screen): an encoder's zero-training proxies on backbone x suite. No seed: a
+    screen trains nothing, so every seed's graft reads the same screen."""
+
+    backbone: str
+    suite: str
+    encoder: str
+
+    @property
+    def id(self) -> str:
+        """smolvla-spatial-timm:convnext_atto (the encoder as listed)."""
+        return screen_id(self.backbone, self.suite, self.encoder)
+
+
+def screen_cases(profile: Profile) -> list[ScreenCase]:
+    return [ScreenCase(b, s, e) for b in profile.backbones for s in profile.suites
+            for e in profile.encoders]
+
+
+__all__ = ["CellSpec", "GRAFT", "NATIVE", "ScreenCase", "graft_cells", "control_cells",
+           "screen_cases"]

@@ -180,28 +180,38 @@ register_kind(CellKind("shuffled_image", "another held-out window's images at ev
                        encoder="optional", eval_inputs=SHUFFLED))
 
 
-def kind_of(record: dict) -> CellKind | None:
+def cell_id(kind: str, backbone: str, suite: str, encoder: str | None, seed: int,
+            variant: str | None = None) -> str:
+    """smolvla-spatial-dinov2_s-seed0, smolvla-spatial-native-seed0,
+    smolvla-spatial-pixels-pool_half-seed0, smolvla-spatial-native-zero_image_eval-seed0."""
+    parts = [backbone, suite, *get_kind(kind).id_parts(encoder, variant), f"seed{seed}"]
+    return "-".join(parts)
+
+
+# The helpers below take a bench.results.record.Record (or Failure): anything with the identity
+# fields kind, encoder and variant (this module sits below the record, which imports it).
+def kind_of(record) -> CellKind | None:
     """The kind of a record, or None for a kind this code does not know."""
-    return CELL_KINDS.get(record.get("kind"))
+    return CELL_KINDS.get(record.kind)
 
 
-def record_label(record: dict) -> str:
+def record_label(record) -> str:
     """What a record's cell is, seeds aside: 'dinov2_s', 'native', 'pooling[half] of pixels'."""
     kind = kind_of(record)
     if kind is None:
-        return str(record.get("kind"))
-    return kind.label(record.get("encoder"), record.get("variant"))
+        return str(record.kind)
+    return kind.label(record.encoder, record.variant)
 
 
-def column_label(record: dict) -> str | None:
+def column_label(record) -> str | None:
     """Its column in per-task and per-horizon tables: grafts by encoder, the released policy's
     own-tower cells (native, native_wrapped) by kind; None for the other controls."""
     kind = kind_of(record)
     if kind is None or not (kind.name == GRAFT or kind.encoder == "none"):
         return None
-    return record["encoder"] if kind.name == GRAFT else kind.name
+    return record.encoder if kind.name == GRAFT else kind.name
 
 
-def is_native_like(record: dict) -> bool:
+def is_native_like(record) -> bool:
     """Compared against the native policy (no encoder of its own)."""
-    return record.get("encoder") in (None, NATIVE_SLOT)
+    return record.encoder in (None, NATIVE_SLOT)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import datetime as dt
 import platform
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -79,32 +80,54 @@ def _parse_degrade(value: str) -> tuple[str, float]:
     return name, f
 
 
+@dataclass(frozen=True)
+class BaselineOptions:
+    """The regression options of one run, parsed and checked at start-up (bench.options)."""
+
+    dir: Path = DEFAULT_BASELINE_DIR
+    compare_name: str | None = None
+    save_name: str | None = None
+    strict: bool = False
+    compare_fail: tuple[str, ...] = ()
+    degrade: tuple[str, float] | None = None  # (encoder, factor): --degrade-encoder
+
+    @classmethod
+    def parse(cls, config: pytest.Config, executor: str) -> BaselineOptions:
+        """From the command line; a UsageError naming the option for a bad combination."""
+        opt = config.getoption
+        options = cls(Path(opt("--baseline-dir") or DEFAULT_BASELINE_DIR), opt("--compare"),
+                      opt("--save-baseline"), bool(opt("--compare-strict")),
+                      tuple(opt("--compare-fail") or ()),
+                      _parse_degrade(opt("--degrade-encoder")) if opt("--degrade-encoder") else None)
+        problem = None
+        if (options.compare_fail or options.strict) and not options.compare_name:
+            problem = "--compare-fail / --compare-strict need --compare NAME"
+        elif options.degrade and executor != "local":
+            problem = "--degrade-encoder acts on this process's workspace: it needs --executor local"
+        elif options.degrade and options.save_name:
+            problem = ("--degrade-encoder plants a regression: never save it as a baseline (drop "
+                       "--save-baseline)")
+        if problem:
+            raise pytest.UsageError(problem)
+        return options
+
+
 class BaselineRun:
     """This session's baseline work: what to save, what to compare with, and what happened."""
 
-    def __init__(self, config: pytest.Config, protocol_hash: str) -> None:
-        opt = config.getoption
-        self.dir = Path(opt("--baseline-dir") or DEFAULT_BASELINE_DIR)
-        self.strict = bool(opt("--compare-strict"))
-        self.compare_name = opt("--compare")
-        self.save_name = opt("--save-baseline")
-        self.degrade = _parse_degrade(opt("--degrade-encoder")) if opt("--degrade-encoder") else None
+    def __init__(self, options: BaselineOptions, protocol_hash: str) -> None:
+        self.dir = options.dir
+        self.strict = options.strict
+        self.compare_name = options.compare_name
+        self.save_name = options.save_name
+        self.degrade = options.degrade
         self.warned: set[str] = set()
         self.comparison: B.Comparison | None = None
         self.saved: tuple[Path, int, list[str]] | None = None
         self.checks: list = []
         self.baseline: B.Baseline | None = None
         try:
-            specs = opt("--compare-fail")
-            if (specs or self.strict) and not self.compare_name:
-                raise B.BaselineError("--compare-fail / --compare-strict need --compare NAME")
-            if self.degrade and opt("--executor") != "local":
-                raise B.BaselineError("--degrade-encoder acts on this process's workspace: it "
-                                      "needs --executor local")
-            if self.degrade and self.save_name:
-                raise B.BaselineError("--degrade-encoder plants a regression: never save it as a "
-                                      "baseline (drop --save-baseline)")
-            self.checks = [B.parse_compare_fail(s) for s in specs]
+            self.checks = [B.parse_compare_fail(s) for s in options.compare_fail]
             self.save_path = B.baseline_path(self.dir, self.save_name) if self.save_name else None
             if self.compare_name:
                 self.compare_path = B.baseline_path(self.dir, self.compare_name)

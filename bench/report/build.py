@@ -27,6 +27,8 @@ from bench.results.store import Results, load_results
 from bench.report.closed_loop import closed_loop_section
 from bench.report.context import ReportContext
 from bench.report.provenance import per_task_section, provenance_section
+from bench.report.screen import (SCATTER_TITLE, SECTION_TITLE, scatter_points, screen_agreements,
+                                 screen_section)
 from bench.report.sections import (
     answer_lines, caveats, controls_section, plots_section,
     rankings_section, seed_section, tie_section, transfer_section, vision_section,
@@ -46,6 +48,7 @@ SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
     ("Controls", controls_section),
     ("Closed loop: success beside offline MSE", closed_loop_section),
     ("Per-task breakdown", per_task_section),
+    (SECTION_TITLE, screen_section),  # only when the store holds screens
     ("Plots", plots_section),
     ("Provenance", provenance_section),
 ]
@@ -68,11 +71,16 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
                          closed_loop=closed_loop_all(records, n_resamples=n_resamples,
                                                      random_seed=random_seed),
                          vision=vision_checks(records, n_resamples=n_resamples,
-                                              random_seed=random_seed))
+                                              random_seed=random_seed),
+                         screen_agreements=screen_agreements(
+                             [r.scores for r in results.screens], records, n_resamples,
+                             random_seed))
 
 
-def _guarded(name: str, render: Callable[[ReportContext], str], ctx: ReportContext) -> str:
-    """A section that fails renders its error instead of taking the whole report down."""
+def _guarded(name: str, render: Callable[[ReportContext], str | None],
+             ctx: ReportContext) -> str | None:
+    """A section that fails renders its error instead of taking the whole report down; None:
+    the section has nothing to say in this report and is left out."""
     try:
         return render(ctx)
     except Exception as err:  # noqa: BLE001 - a partial report beats none at session end
@@ -88,8 +96,9 @@ def render_markdown(ctx: ReportContext,
         answer = [f"_The answer could not be computed: {type(err).__name__}: {err}_"]
     parts = ["# graftbench report", "\n\n".join(answer)]
     for title, render in SECTIONS:
-        parts.append(f"## {title}")
-        parts.append(_guarded(title, render, ctx))
+        body = _guarded(title, render, ctx)
+        if body is not None:
+            parts += [f"## {title}", body]
     for title, body in extra_sections:
         parts.append(f"## {title}")
         parts.append(body.strip() or "_(empty)_")
@@ -156,6 +165,7 @@ def summary(ctx: ReportContext) -> dict:
         "rankings": ctx.rankings, "transfers": ctx.transfers, "support": ctx.support,
         "wrapper_neutrality": ctx.wrapper, "controls": ctx.controls,
         "closed_loop": ctx.closed_loop, "vision_use": ctx.vision,
+        "screen_agreement": ctx.screen_agreements,
         "cells": {"finished": len(ctx.records), "failed": [f.cell_id for f in res.failed],
                   "missing": res.missing, "skipped": res.skipped},
         "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},
@@ -166,8 +176,13 @@ def _figures(ctx: ReportContext, folder: Path) -> list[tuple[str, Path]]:
     try:
         from bench.report.plots import write_plots
 
-        return write_plots(ctx.rankings, ctx.transfers, ctx.records, folder,
-                           closed_loop=ctx.closed_loop)
+        from bench.report.plots import plot_proxy_scatter
+
+        written = write_plots(ctx.rankings, ctx.transfers, ctx.records, folder,
+                              closed_loop=ctx.closed_loop)
+        points = scatter_points([r.scores for r in ctx.results.screens], ctx.records)
+        scatter = plot_proxy_scatter(points, folder / "screen_scatter.png")
+        return written + ([(SCATTER_TITLE, scatter)] if scatter is not None else [])
     except Exception:  # noqa: BLE001 - the report stays useful without figures
         traceback.print_exc(file=sys.stderr)
         return []

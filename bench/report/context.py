@@ -28,6 +28,7 @@ class ReportContext:
     n_resamples: int = 0
     closed_loop: list[ClosedLoop] = field(default_factory=list)
     vision: list[VisionCheck] = field(default_factory=list)
+    screen_agreements: list = field(default_factory=list)  # bench.analysis.tiers.TierAgreement
 
     @property
     def records(self) -> list[dict]:

@@ -142,6 +142,25 @@ def plot_closed_loop(closed_loop: Sequence, path: Path) -> Path | None:
     return path
 
 
+def plot_proxy_scatter(panels: Sequence[tuple[str, list, list, list]],
+                       path: Path) -> Path | None:
+    """One panel per (backbone x suite: proxy): each encoder's proxy score (x, higher is better)
+    against its graft MSE (y, lower is better). panels: bench.report.screen.scatter_points."""
+    if not panels:
+        return None
+    fig, axes = _figure(len(panels), width=3.6, height=3.0)
+    for ax, (title, scores, mse, names) in zip(axes, panels):
+        ax.scatter(scores, mse, s=14)
+        for x, y, name in zip(scores, mse, names):
+            ax.annotate(name, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("screen score (higher is better)")
+        ax.set_ylabel("graft normalised MSE")
+    fig.suptitle("Screen proxy vs graft MSE: a good screen slopes down", fontsize=9)
+    fig.savefig(path, dpi=110)
+    return path
+
+
 def write_plots(rankings: Sequence[Ranking], transfers: Sequence[Transfer],
                 records: Sequence[dict], out_dir: Path,
                 closed_loop: Sequence = ()) -> list[tuple[str, Path]]:

@@ -1,15 +1,23 @@
-"""REPORT.md text for the screen tier: the screen table and each tier's agreement with the graft.
+"""REPORT.md's screen section (`pytest bench --screen`): the screen table, each tier's agreement
+with the graft with intervals, each tier's measured cost, what the screen dropped and why, and a
+scatter of each proxy against the graft's MSE per backbone x suite.
 
-Pure: lists of bench.run.screen.ScreenScores and bench.analysis.tiers.TierAgreement in, markdown
-out. Not yet called by the report builder (the --screen workflow that produces them is not
-wired in); an undefined value prints as "undefined: <reason>", never as a number."""
+Pure apart from `screen_agreements`' bootstrap: stored screens, selections and graft records in,
+markdown out; an undefined value prints as "undefined: <reason>", never as a number."""
 
 from __future__ import annotations
 
 from typing import Sequence
 
 from bench.analysis.agreement import STATISTICS, TIE_RULE, Interval, Undefined
+from bench.analysis.tiers import MIN_ENCODERS, graft_per_window, tier_agreement
+from bench.grid.kinds import GRAFT
 from bench.report.format import num, table
+
+# bench.run.screen.SCREEN_BY, spelled here so the report does not import torch.
+SCREEN_BY = ("logme", "ridge", "knn", "entropy")
+SECTION_TITLE = "Screening many encoders"  # a report has it when its store holds screens
+SCATTER_TITLE = "Screen proxies against the graft's MSE"
 
 PROXIES = ("logme", "ridge", "knn")
 
@@ -53,3 +61,93 @@ def agreement_table(agreements: Sequence) -> str:
     return (table(rows, ["backbone", "suite", "tier", "encoders", "Kendall tau-b",
                          "weighted tau", "MMRV (MSE)", "top-1 regret (MSE)"])
             + f"\n\nTies: {TIE_RULE}")
+
+
+def _panels(screens: Sequence) -> list[tuple[str, str]]:
+    return sorted({(s.backbone, s.suite) for s in screens})
+
+
+def screen_agreements(screens: Sequence, records: Sequence, n_resamples: int,
+                      seed: int = 0) -> list:
+    """TierAgreement per backbone x suite x proxy: each proxy's scores (`screens`: ScreenScores)
+    against the graft records, over the encoders with both."""
+    out = []
+    for backbone, suite in _panels(screens):
+        mine = [s for s in screens if (s.backbone, s.suite) == (backbone, suite)]
+        for proxy in SCREEN_BY:
+            scores = {s.encoder: s.score(proxy) for s in mine}
+            out.append(tier_agreement(scores, records, backbone, suite, proxy, n_resamples, seed))
+    return out
+
+
+def scatter_points(screens: Sequence, records: Sequence) -> list[tuple[str, list, list, list]]:
+    """[(panel title, proxy scores, graft MSE, encoder names)] per backbone x suite x proxy, over
+    the encoders with a defined score and a graft (mean over seeds and windows)."""
+    panels = []
+    for backbone, suite in _panels(screens):
+        per_window, _ = graft_per_window(records, backbone, suite)
+        mine = [s for s in screens if (s.backbone, s.suite) == (backbone, suite)
+                and s.encoder in per_window]
+        for proxy in SCREEN_BY:
+            both = [s for s in mine if not isinstance(s.score(proxy), Undefined)]
+            if both:
+                panels.append((f"{backbone} x {suite}: {proxy}",
+                               [float(s.score(proxy)) for s in both],
+                               [float(per_window[s.encoder].mean()) for s in both],
+                               [s.encoder for s in both]))
+    return panels
+
+
+def cost_table(stored: Sequence, records: Sequence) -> str:
+    """Seconds per encoder of each tier per backbone x suite: the screen's solve, the feature
+    extraction it ran (0 when the store already held them: the graft needs them too), the graft."""
+    rows = []
+    for backbone, suite in _panels([r.scores for r in stored]):
+        mine = [r for r in stored if (r.scores.backbone, r.scores.suite) == (backbone, suite)]
+        grafts = [r.run.total_s for r in records if r.kind == GRAFT and r.backbone == backbone
+                  and r.suite == suite and r.run.total_s is not None]
+        solve = sum(r.scores.seconds for r in mine) / len(mine)
+        rows.append([backbone, suite, len(mine), num(solve, 3),
+                     num(sum(r.feature_seconds for r in mine) / len(mine), 3),
+                     num(sum(grafts) / len(grafts), 3) if grafts else "no graft record",
+                     f"{100 * solve / (sum(grafts) / len(grafts)):.2g}%" if grafts else "n/a"])
+    return table(rows, ["backbone", "suite", "screens", "screen s / encoder",
+                        "features s / encoder (extraction, when the screen ran it)", "graft s / cell",
+                        "screen / graft"])
+
+
+def dropped_lines(selections: Sequence) -> list[str]:
+    """What each --screen run grafted and dropped, with the score that decided it."""
+    lines = []
+    for sel in sorted(selections, key=lambda s: (s.backbone, s.suite)):
+        keep = "all" if sel.keep is None else f"the best {sel.keep}"
+        lines.append(f"- **{sel.backbone} x {sel.suite}**, {keep} by {sel.by}: grafted "
+                     f"{', '.join(sel.kept) or 'none'}; references {', '.join(sel.references) or 'none'}"
+                     + (f" ({sel.note})" if sel.note else ""))
+        lines += [f"  - dropped `{e}`: {why}" for e, why in sorted(sel.dropped.items())]
+    return lines
+
+
+def screen_section(ctx) -> str | None:
+    """The section, or None when the store holds no screen (the report leaves it out)."""
+    res = ctx.results
+    if not res.screens and not res.screen_failures:
+        return None
+    screens = [r.scores for r in res.screens]
+    parts = ["Zero-training proxies per encoder from the stored features (`pytest bench "
+             "--screen`): each supervised proxy's score is the gain of [state, features] over "
+             "[state] alone on the grafts' held-out windows (higher is better); entropy is "
+             "label-free.", screen_table(screens) if screens else "_No finished screen._"]
+    if res.screen_failures:
+        parts.append("Screens that failed (their grafts are dropped): " + "; ".join(
+            f"`{f.screen_id}`: {f.error}" for f in res.screen_failures))
+    parts += [f"**Agreement with the graft** (needs {MIN_ENCODERS} encoders with both; the graft "
+              "is the normalised held-out MSE, mean over seeds; intervals: paired window "
+              f"bootstrap, {ctx.n_resamples} resamples)", agreement_table(ctx.screen_agreements),
+              "**Cost per encoder**", cost_table(res.screens, ctx.records),
+              "**What the screen dropped**",
+              "\n".join(dropped_lines(res.selections)) or "_No --screen selection stored._"]
+    scatter = [p for t, p in ctx.plots if t == SCATTER_TITLE]
+    if scatter:
+        parts.append(f"![{SCATTER_TITLE}]({scatter[0].relative_to(ctx.out_path.parent).as_posix()})")
+    return "\n\n".join(parts)

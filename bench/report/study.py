@@ -14,9 +14,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 from backbones import BACKBONES, study_backbone
+
+if TYPE_CHECKING:  # this table stays light: no record code at import
+    from bench.results.record import Record
 
 STUDY_SOURCE = ("Zeng & She, arXiv 2606.14153, via secondary summaries (MISSION.md): verify "
                 "against the paper")
@@ -168,22 +171,22 @@ def _grid_text(grid: Any) -> str:
     return "x".join(str(int(g)) for g in grid) if isinstance(grid, (list, tuple)) else str(grid)
 
 
-def observed_from_records(records: Sequence[dict]) -> dict[str, Any]:
+def observed_from_records(records: Sequence[Record]) -> dict[str, Any]:
     """What the records say we used, by study-constant name (absent where they do not say)."""
     from bench.grid.protocol import PROFILES  # plain dataclasses: no model, no runner
 
     out: dict[str, Any] = {"optimiser": OUR_CODE["optimiser"]}
     from bench.grid.kinds import GRAFT
 
-    grafts = [r for r in records if r.get("kind") == GRAFT]
-    devices = {str(r.get("device")) for r in records if r.get("device")}
+    grafts = [r for r in records if r.kind == GRAFT]
+    devices = {str(r.run.device) for r in records if r.run.device}
     on_cuda = {d.startswith("cuda") for d in devices}
     if on_cuda:
         out["precision"] = {frozenset({True}): "bf16", frozenset({False}): "fp32 (cpu)"}.get(
             frozenset(on_cuda), "mixed: bf16 on cuda, fp32 on cpu")
-    profiles = {r.get("profile") for r in records} - {None}
+    profiles = {r.measured.profile for r in records} - {None}
     sources = {PROFILES[p].source if p in PROFILES else None for p in profiles}
-    encoders = sorted({r["encoder"] for r in grafts})
+    encoders = sorted({r.encoder for r in grafts})
     sizes = OUR_CODE["input sizes"]
     if sources == {"hub"} and encoders and all(e in sizes for e in encoders):
         out["preprocessing: input px"] = {e: sizes[e] for e in encoders}
@@ -191,12 +194,11 @@ def observed_from_records(records: Sequence[dict]) -> dict[str, Any]:
         out["preprocessing: input px"] = "tiny encoders at 56-64 px or native size"
     grids: dict[str, set[str]] = {}
     for r in grafts:
-        if r.get("grid") is not None:
-            grids.setdefault(r["backbone"], set()).add(_grid_text(r["grid"]))
+        if r.measured.grid is not None:
+            grids.setdefault(r.backbone, set()).add(_grid_text(r.measured.grid))
     if grids:
         out["pooling grid"] = {b: " / ".join(sorted(g)) for b, g in sorted(grids.items())}
-    windows = {(r["backbone"], r["suite"]): int(r["n_windows"]) for r in grafts
-               if r.get("n_windows") is not None}
+    windows = {(r.backbone, r.suite): int(r.scores.n_windows) for r in grafts}
     per_suite: dict[str, set[int]] = {}
     for (_, suite), n in windows.items():
         per_suite.setdefault(suite, set()).add(n)
@@ -206,28 +208,31 @@ def observed_from_records(records: Sequence[dict]) -> dict[str, Any]:
         out["held-out windows"] = {f"{b} x {s}": n for (b, s), n in sorted(windows.items())}
     seeds: dict[str, set[int]] = {}
     for r in grafts:
-        seeds.setdefault(f"{r['backbone']} x {r['suite']}", set()).add(int(r["seed"]))
+        seeds.setdefault(f"{r.backbone} x {r.suite}", set()).add(int(r.seed))
     if seeds:
         out["seeds"] = {k: len(v) for k, v in sorted(seeds.items())}
     checkpoints: dict[str, set[str]] = {}
     for r in records:
-        checkpoint = r.get("checkpoint")  # a repo id, or {"repo_id": ..., "revision": ...}
-        if isinstance(checkpoint, Mapping):
-            checkpoint = checkpoint.get("repo_id")
+        checkpoint = _repo_id(r.measured.checkpoint)
         if checkpoint:
-            checkpoints.setdefault(r["backbone"], set()).add(str(checkpoint))
+            checkpoints.setdefault(r.backbone, set()).add(str(checkpoint))
     if checkpoints:
         out["checkpoints"] = {b: " / ".join(sorted(c)) for b, c in sorted(checkpoints.items())}
     elif sources == {"tiny"}:
         out["checkpoints"] = {b: "tiny policy built locally"
-                              for b in sorted({r["backbone"] for r in records})}
+                              for b in sorted({r.backbone for r in records})}
     return out
 
 
-def compare_records(records: Sequence[dict]) -> dict[str, list[ConstantRow]]:
+def _repo_id(checkpoint: Any) -> str | None:
+    """A record's checkpoint: {"repo_id": ..., "revision": ...}, or a bare repo id (older)."""
+    return checkpoint.get("repo_id") if isinstance(checkpoint, Mapping) else checkpoint
+
+
+def compare_records(records: Sequence[Record]) -> dict[str, list[ConstantRow]]:
     """{protocol_hash: rows} over the records of each protocol."""
-    groups: dict[str, list[dict]] = {}
+    groups: dict[str, list[Record]] = {}
     for r in records:
-        groups.setdefault(str(r.get("protocol_hash", "?")), []).append(r)
-    return {h: compare_protocol(recs[0].get("protocol") or {}, observed_from_records(recs))
+        groups.setdefault(str(r.measured.protocol_hash or "?"), []).append(r)
+    return {h: compare_protocol(recs[0].measured.protocol or {}, observed_from_records(recs))
             for h, recs in groups.items()}

@@ -16,11 +16,10 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
-import functools
 import math
 from dataclasses import dataclass, field, fields
 
-from bench.grid.kinds import get_kind
+from bench.grid.kinds import cell_id, get_kind  # noqa: F401  (cell_id: re-exported)
 from bench.results.parts import (  # noqa: F401  (the parts are re-exported: one import for users)
     NORMALIZED, RAW, SPACES, Identity, MeasuredUnder, RunInfo, Scores, Training, checkpoint_of,
     checkpoint_revision, flat, task_score,
@@ -30,14 +29,6 @@ SCHEMA_VERSION = 1
 OK, FAILED = "ok", "failed"
 SCHEMA_KEY = _SCHEMA = "schema"  # the envelope keys (a baseline file's schema key, too)
 _STATUS = "status"
-
-
-def cell_id(kind: str, backbone: str, suite: str, encoder: str | None, seed: int,
-            variant: str | None = None) -> str:
-    """smolvla-spatial-dinov2_s-seed0, smolvla-spatial-native-seed0,
-    smolvla-spatial-pixels-pool_half-seed0, smolvla-spatial-native-zero_image_eval-seed0."""
-    parts = [backbone, suite, *get_kind(kind).id_parts(encoder, variant), f"seed{seed}"]
-    return "-".join(parts)
 
 
 _PARTS = {"identity": Identity, "measured": MeasuredUnder, "scores": Scores,
@@ -106,22 +97,6 @@ class Record(_IdentityFields):
             parts[name] = dataclasses.replace(getattr(self, name), **mine)
         return dataclasses.replace(self, **parts, extra={**self.extra, **changes})
 
-    # -- a read-only mapping view of the stored JSON --------------------------------------------
-    # For readers not yet on the typed parts (bench/report/study.py, bench.grid.kinds' record
-    # helpers, bench/test_grid.py, tests): record["mse"], record.get("kind").
-    @functools.cached_property
-    def _json(self) -> dict:
-        return self.to_json()
-
-    def __getitem__(self, key: str):
-        return self._json[key]
-
-    def get(self, key: str, default=None):
-        return self._json.get(key, default)
-
-    def __contains__(self, key: str) -> bool:
-        return key in self._json
-
 
 # What a baseline file (bench.regression.baseline) keeps of a record: what it is, what it was
 # measured under and the scores a later run is compared on.
@@ -179,12 +154,6 @@ class Failure(_IdentityFields):
             raise ValueError("no cell_id")
         ident = {f.name: data.get(f.name) for f in fields(Identity)}
         return cls(Identity(**ident), str(data.get("error")), data.get("protocol_hash"))
-
-    def get(self, key: str, default=None):  # the mapping view, as Record's
-        return self.to_json().get(key, default)
-
-    def __getitem__(self, key: str):
-        return self.to_json()[key]
 
 
 def validate_record(record: dict) -> None:

@@ -4,6 +4,7 @@
     RESULTS_DIR/cells/<cell_id>.json    finished cells  (status "ok", schema 1)
     RESULTS_DIR/failed/<cell_id>.json   failed cells    (status "failed", with "error")
     RESULTS_DIR/grid.json               optional: {"expected": [cell_id, ...], "profile": "tiny"}
+    RESULTS_DIR/screens/...             the screen tier (--screen): bench.results.screen
     RESULTS_DIR/rollouts/<cell_id>.json closed-loop episodes of a cell still rolling out (EpisodeLog)
 """
 
@@ -17,8 +18,11 @@ from pathlib import Path
 
 from bench.results.current import RunConditions, is_current
 from bench.results.record import Failure, Record
+from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
+                                  read_screen)
 
 CELLS, FAILED, GRID = "cells", "failed", "grid.json"  # the folder and file names, only here
+SCREENS, SELECTIONS = "screens", "selections"  # screens/, screens/selections/
 ROLLOUTS = "rollouts"
 _GRID_EXPECTED, _GRID_PROFILE = "expected", "profile"
 _LOG_KEY, _LOG_EPISODES = "key", "episodes"
@@ -67,6 +71,9 @@ class Results:
     skipped: list[tuple[str, str]] = field(default_factory=list)
     expected: list[str] | None = None
     grid_profile: str | None = None
+    screens: list[ScreenRecord] = field(default_factory=list)
+    screen_failures: list[ScreenFailure] = field(default_factory=list)
+    selections: list[ScreenSelection] = field(default_factory=list)
 
     @property
     def missing(self) -> list[str]:
@@ -103,6 +110,7 @@ def load_results(results_dir: str | Path) -> Results:
             continue
         if failure.cell_id not in seen:  # a later successful rerun supersedes a failure
             results.failed.append(failure)
+    _load_screens(root, results)
     if (root / GRID).exists():
         try:
             grid = _read_json(root / GRID)
@@ -111,6 +119,26 @@ def load_results(results_dir: str | Path) -> Results:
         except (OSError, ValueError, KeyError, TypeError) as err:
             results.skipped.append((GRID, f"{type(err).__name__}: {err}"))
     return results
+
+
+def _screen_file(root: Path, sid: str) -> Path:
+    return root / SCREENS / f"{sid.replace('/', '_')}.json"  # hub names may hold a slash
+
+
+def _load_screens(root: Path, results: Results) -> None:
+    """screens/*.json and screens/selections/*.json into `results` (bad files: skipped)."""
+    for path in sorted((root / SCREENS).glob("*.json")):
+        try:
+            item = read_screen(_read_json(path))
+        except (OSError, ValueError) as err:
+            results.skipped.append((str(path.relative_to(root)), f"{type(err).__name__}: {err}"))
+            continue
+        (results.screens if isinstance(item, ScreenRecord) else results.screen_failures).append(item)
+    for path in sorted((root / SCREENS / SELECTIONS).glob("*.json")):
+        try:
+            results.selections.append(ScreenSelection.from_json(_read_json(path)))
+        except (OSError, ValueError) as err:
+            results.skipped.append((str(path.relative_to(root)), f"{type(err).__name__}: {err}"))
 
 
 def load_failure(results_dir: str | Path, cell_id: str) -> Failure | None:
@@ -221,6 +249,31 @@ class ResultStore:
 
     def load_failure(self, cell_id: str) -> Failure | None:
         return load_failure(self.root, cell_id)
+
+    def load_screen(self, sid: str) -> ScreenRecord | ScreenFailure | None:
+        """The stored screen `sid` (bench.results.screen.screen_id); None when absent or invalid."""
+        path = _screen_file(self.root, sid)
+        try:
+            return read_screen(_read_json(path)) if path.is_file() else None
+        except (OSError, ValueError):
+            return None
+
+    def current_screen(self, sid: str, conditions: ScreenConditions) -> ScreenRecord | None:
+        """The stored finished screen `sid` when measured under `conditions`, else None."""
+        item = self.load_screen(sid)
+        return item if isinstance(item, ScreenRecord) and item.conditions == conditions else None
+
+    def write_screen(self, item: ScreenRecord | ScreenFailure) -> Path:
+        """A finished screen, or a failed one (replaced by the next success)."""
+        path = _screen_file(self.root, item.screen_id)
+        atomic_write_json(path, item.to_json())
+        return path
+
+    def write_selection(self, selection: ScreenSelection) -> Path:
+        name = f"{selection.backbone}-{selection.suite}.json".replace("/", "_")
+        path = self.root / SCREENS / SELECTIONS / name
+        atomic_write_json(path, selection.to_json())
+        return path
 
     def write_grid(self, expected: list[str], profile: str) -> None:
         atomic_write_json(self.root / GRID, {_GRID_EXPECTED: expected, _GRID_PROFILE: profile})

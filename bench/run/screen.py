@@ -18,7 +18,7 @@ Memory: LogME and ridge read chunked `Moments`; k-NN keeps the (N_train, D) trai
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -26,53 +26,14 @@ import torch
 from bench.analysis.agreement import Measure, Undefined, is_defined
 from bench.analysis.screening import (Moments, knn_heldout, logme_moments, norm_entropy,
                                       ridge_heldout)
+from bench.results.screen import ScreenScores  # noqa: F401  (re-exported: the screen's output)
+from bench.results.screen import ScreenSelection
 from bench.suites.windows import action_chunks
 
 FOLDS = 5  # episode folds of the training episodes that choose the ridge penalty and the k
 CHUNK = 2048  # windows read at a time
 SUPERVISED = ("logme", "ridge", "knn")
 INPUT_SETS = ("state", "state+features")
-
-
-@dataclass
-class ScreenScores:
-    """One screen cell: per supervised proxy {input set: value} and the gain; entropy; sizes."""
-
-    encoder: str
-    backbone: str
-    suite: str
-    proxies: dict[str, dict[str, Measure]] = field(default_factory=dict)
-    chosen: dict[str, object] = field(default_factory=dict)  # ridge penalty, k, per input set
-    entropy: Measure = Undefined("not computed")
-    n_train: int = 0
-    n_heldout: int = 0
-    dims: dict[str, int] = field(default_factory=dict)
-    seconds: float = 0.0
-
-    def to_json(self) -> dict:
-        """JSON-ready, one key per field; an undefined value is {"undefined": reason}."""
-        out = {f.name: getattr(self, f.name) for f in fields(self)}
-        out["proxies"] = {p: {k: _out(v) for k, v in vals.items()}
-                          for p, vals in self.proxies.items()}
-        out["entropy"] = _out(self.entropy)
-        return out
-
-    @classmethod
-    def from_json(cls, data: dict) -> "ScreenScores":
-        proxies = {p: {k: _in(v) for k, v in vals.items()} for p, vals in data["proxies"].items()}
-        return cls(**{**data, "proxies": proxies, "entropy": _in(data["entropy"])})
-
-    def score(self, proxy: str) -> Measure:
-        """The ranking score of `proxy` (higher is better): a supervised proxy's gain, or entropy."""
-        return self.entropy if proxy == "entropy" else self.proxies[proxy]["gain"]
-
-
-def _out(value: Measure):
-    return {"undefined": value.reason} if isinstance(value, Undefined) else float(value)
-
-
-def _in(value) -> Measure:
-    return Undefined(value["undefined"]) if isinstance(value, dict) else float(value)
 
 
 @dataclass
@@ -192,6 +153,18 @@ def screen_cell(ws, encoder: str, backbone: str, suite: str) -> ScreenScores:
 
 
 SCREEN_BY = SUPERVISED + ("entropy",)
+DEFAULT_SCREEN_BY = "logme"
+# Grafted whatever the screen says: the known-answer anchors (all the information in the images,
+# none of it) every ranking of a --screen run is read against.
+REFERENCES = ("pixels", "blind")
+
+
+@dataclass(frozen=True)
+class ScreenOptions:
+    """A --screen run: graft the `keep` best encoders (None: all) by proxy `by`."""
+
+    keep: int | None
+    by: str = DEFAULT_SCREEN_BY
 
 
 def parse_screen_keep(value: str) -> int | None:
@@ -208,19 +181,32 @@ def parse_screen_keep(value: str) -> int | None:
     return keep
 
 
-def select_for_graft(screens: list[ScreenScores], keep: int | None, by: str
-                     ) -> tuple[list[str], dict[str, str], str | None]:
-    """(encoders to graft, {dropped encoder: why}, note) from the screens of one backbone x
-    suite: the `keep` best by `by` (higher is better; ties: the encoder name), all if None.
-    Undefined scores are dropped with their reason; keep > screened is allowed and noted."""
-    if by not in SCREEN_BY:
-        raise ValueError(f"--screen-by {by}: choose one of {', '.join(SCREEN_BY)}")
-    defined = [(s.encoder, s.score(by)) for s in screens if is_defined(s.score(by))]
-    dropped = {s.encoder: f"{by} {s.score(by)}" for s in screens if not is_defined(s.score(by))}
+def parse_screen_by(value: str) -> str:
+    """`--screen-by` checked against SCREEN_BY; ValueError with one line naming the valid ones."""
+    if value not in SCREEN_BY:
+        raise ValueError(f"--screen-by {value}: unknown proxy; choose one of "
+                         f"{', '.join(SCREEN_BY)}")
+    return value
+
+
+def select_for_graft(backbone: str, suite: str, screens: list[ScreenScores],
+                     options: ScreenOptions, references: tuple[str, ...] = (),
+                     failed: dict[str, str] | None = None) -> ScreenSelection:
+    """What to graft on `backbone` x `suite`: the `options.keep` best non-reference screens by
+    `options.by` (higher is better; ties: the encoder name), every reference, and each dropped
+    encoder with why: its rank and score, its undefined score's reason, or its screen's failure
+    (`failed`: {encoder: error}). keep > screened is allowed and noted."""
+    by, keep = parse_screen_by(options.by), options.keep
+    candidates = [s for s in screens if s.encoder not in references]
+    defined = [(s.encoder, s.score(by)) for s in candidates if is_defined(s.score(by))]
+    dropped = {s.encoder: f"{by} {s.score(by)}" for s in candidates if not is_defined(s.score(by))}
+    dropped |= {e: f"its screen failed: {why}" for e, why in (failed or {}).items()
+                if e not in references}
     ranked = sorted(defined, key=lambda item: (-item[1], item[0]))
-    count = len(ranked) if keep is None else keep
+    count = len(ranked) if keep is None else min(keep, len(ranked))
     note = (f"--screen-keep {keep} is more than the {len(ranked)} encoder(s) with a defined "
             f"{by} score: all are grafted" if keep is not None and keep > len(ranked) else None)
-    for encoder, score in ranked[count:]:
-        dropped[encoder] = f"{by} {score:.6g}, below the top {count}"
-    return [e for e, _ in ranked[:count]], dropped, note
+    for rank, (encoder, score) in enumerate(ranked[count:], start=count + 1):
+        dropped[encoder] = f"{by} rank {rank} of {len(ranked)} ({score:.4g}), below the top {count}"
+    kept = tuple(e for e, _ in ranked[:count])
+    return ScreenSelection(backbone, suite, by, keep, kept, tuple(references), dropped, note)

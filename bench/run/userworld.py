@@ -175,7 +175,7 @@ def _check_each(policies: dict, datasets: dict, explicit: dict) -> None:
             raise ValueError(f"--policy {name}={target}: {e}") from None
         cameras.update(facts.cameras)
     for name, target in datasets.items():
-        check_dataset(name, dataset_facts(target))
+        check_dataset(name, dataset_facts(target, name))
     unknown = [p for p in explicit if p not in cameras]
     if unknown:
         raise ValueError(f"--camera-map: policy camera(s) {unknown} are no camera of "
@@ -200,7 +200,7 @@ def check_world(profile) -> list[str]:
                                  "--backbones with your --policy names only")
             if backbone in policies and suite in datasets:
                 mapping, rule = check_pair(policy_facts(backbone, policies[backbone]), suite,
-                                           dataset_facts(datasets[suite]), explicit)
+                                           dataset_facts(datasets[suite], suite), explicit)
                 lines.append(f"[graftbench] cameras of {backbone} x {suite} by {rule}: " + ", ".join(
                     f"{p} <- {d}" for p, d in mapping.items()))
     return lines

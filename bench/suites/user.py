@@ -31,8 +31,9 @@ class DatasetFacts:
     video: bool
 
 
-def locate_dataset(source: str) -> Path:
-    """The local folder of a dataset given as a path or a repo id (LeRobot's home, HF cache)."""
+def locate_dataset(source: str, name: str | None = None) -> Path:
+    """The local folder of a dataset given as a path or a repo id (LeRobot's home, HF cache);
+    `name`: the suite name it was given under, for the message (--dataset NAME=SOURCE)."""
     local = Path(source).expanduser()
     if (local / "meta" / "info.json").is_file():
         return local.resolve()
@@ -42,16 +43,17 @@ def locate_dataset(source: str) -> Path:
         found = libero.locate(source)
         if found is not None:
             return found
+    given = f"{name}={source}" if name else source
     raise SuiteUnavailable(
-        f"--dataset {source}: no LeRobotDataset there (no meta/info.json); give the dataset's "
+        f"--dataset {given}: no LeRobotDataset there (no meta/info.json); give the dataset's "
         f"folder, or a repo id in the cache (`{libero.download_command(source)}`)"
         if not local.exists() and source.count("/") == 1 else
-        f"--dataset {source}: no LeRobotDataset there (no meta/info.json); give the folder that "
+        f"--dataset {given}: no LeRobotDataset there (no meta/info.json); give the folder that "
         "holds meta/ and data/")
 
 
-def dataset_facts(source: str) -> DatasetFacts:
-    root = locate_dataset(source)
+def dataset_facts(source: str, name: str | None = None) -> DatasetFacts:
+    root = locate_dataset(source, name)
     info = json.loads((root / "meta" / "info.json").read_text())
     feats = info.get("features", {})
     cameras = tuple(k for k, f in feats.items() if f.get("dtype") in ("image", "video"))
@@ -89,7 +91,7 @@ def load_user_suite(name: str, source: str):
 
     from bench.suites import suite_from_dataset
 
-    facts = dataset_facts(source)
+    facts = dataset_facts(source, name)
     check_dataset(name, facts)
     ds = LeRobotDataset(facts.repo_id, root=facts.root)
     frames = int(ds.meta.total_frames)

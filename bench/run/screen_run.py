@@ -1,0 +1,112 @@
+"""The --screen part of one pytest run: every screen resumed or measured once, and each backbone x
+suite's graft selection decided once, after all its screens exist.
+
+A `test_screen[...]` case and a graft cell's selection both go through `ScreenRun.screen`: a
+screen the selection needs that no case ran (deselected with -k, or run on another xdist worker)
+is resumed from the store or measured by the same code. An encoder that fails to build or
+extract leaves a ScreenFailure with its one-line reason; the other screens go on, and the
+selection drops it with that reason.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+from bench.progress import say
+from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
+                                  new_screen_record, screen_id)
+from bench.run.screen import REFERENCES, ScreenOptions, screen_features, select_for_graft
+
+MEASURED, RESUMED = "measured", "resumed"
+
+
+def measure_screen(ws, encoder: str, backbone: str, suite: str,
+                   conditions: ScreenConditions) -> ScreenRecord | ScreenFailure:
+    """Screen `encoder` on `backbone` x `suite` from the workspace's feature store (built on first
+    use: its time is the record's feature_seconds). A build or extraction error is a failure."""
+    bb = ws.backbone(backbone, suite)
+    start = time.perf_counter()
+    try:
+        views = ws.features(encoder, suite, tuple(bb.info.native_grid))
+    except Exception as e:  # noqa: BLE001 - any encoder may fail; the screen goes on
+        return ScreenFailure(backbone, suite, encoder, " ".join(f"{type(e).__name__}: {e}".split()))
+    feature_seconds = time.perf_counter() - start
+    scores = screen_features(views, ws.suite(suite), ws.split(suite), bb.normalize_actions,
+                             bb.info.chunk_size, (encoder, backbone, suite))
+    return new_screen_record(scores, conditions, feature_seconds)
+
+
+class ScreenRun:
+    """Screens and selections of one run. `workspace`: a callable giving the (lazy) workspace."""
+
+    def __init__(self, options: ScreenOptions, profile, store, workspace: Callable, *,
+                 feature_dtype: str, rerun: bool = False) -> None:
+        self.options, self.profile, self.store = options, profile, store
+        self.workspace, self.feature_dtype, self.rerun = workspace, feature_dtype, rerun
+        self.outcomes: dict[str, str] = {}  # screen id -> measured | resumed | failed: line
+        self.dropped: dict[str, str] = {}  # cell id -> why the screen dropped it
+        self._screens: dict[str, ScreenRecord | ScreenFailure] = {}
+        self._selections: dict[tuple[str, str], ScreenSelection] = {}
+
+    def conditions(self, backbone: str, suite: str) -> ScreenConditions:
+        norm = self.workspace().normalizer(backbone, suite)
+        return ScreenConditions(self.profile.protocol.hash, norm.fingerprint, self.feature_dtype)
+
+    def screen(self, backbone: str, suite: str, encoder: str) -> ScreenRecord | ScreenFailure:
+        """The stored screen when it stands for this run (not under --rerun), else measured and
+        stored; once per run."""
+        sid = screen_id(backbone, suite, encoder)
+        if sid not in self._screens:
+            conditions = self.conditions(backbone, suite)
+            stored = None if self.rerun else self.store.current_screen(sid, conditions)
+            if stored is not None:
+                self._screens[sid], self.outcomes[sid] = stored, RESUMED
+            else:
+                item = measure_screen(self.workspace(), encoder, backbone, suite, conditions)
+                self.store.write_screen(item)
+                self._screens[sid] = item
+                self.outcomes[sid] = (MEASURED if isinstance(item, ScreenRecord)
+                                      else f"failed: {item.error}")
+                self._say(sid, item)
+        return self._screens[sid]
+
+    def _say(self, sid: str, item) -> None:
+        if isinstance(item, ScreenFailure):
+            text = f"screen {sid}: FAILED {item.error}"
+        else:
+            gain = item.scores.score(self.options.by)
+            shown = f"{gain:.4g}" if isinstance(gain, float) else str(gain)
+            text = (f"screen {sid}: {self.options.by} gain {shown} ({item.feature_seconds:.1f} s "
+                    f"features, {item.scores.seconds:.1f} s screen)")
+        say(self.workspace().progress, text)
+
+    def selection(self, backbone: str, suite: str) -> ScreenSelection:
+        """What is grafted on backbone x suite: decided from every listed encoder's screen
+        (missing ones measured here), stored for the report, once per run."""
+        key = (backbone, suite)
+        if key not in self._selections:
+            items = [self.screen(backbone, suite, e) for e in self.profile.encoders]
+            chosen = select_for_graft(
+                backbone, suite, [i.scores for i in items if isinstance(i, ScreenRecord)],
+                self.options, tuple(e for e in self.profile.encoders if e in REFERENCES),
+                {i.encoder: i.error for i in items if isinstance(i, ScreenFailure)})
+            self.store.write_selection(chosen)
+            self._selections[key] = chosen
+            say(self.workspace().progress,
+                f"screen {backbone} x {suite}: grafting {', '.join(chosen.kept) or 'none'} "
+                f"(best {chosen.keep or 'all'} by {chosen.by}) and the references "
+                f"{', '.join(chosen.references) or 'none'}; dropped {len(chosen.dropped)}")
+        return self._selections[key]
+
+    def dropped_reason(self, cell) -> str | None:
+        """Why the screen drops `cell` (a cell of a listed, non-reference encoder that was not
+        kept), else None. Cells without an encoder (native, native_wrapped) always run."""
+        if cell.encoder is None or cell.encoder not in self.profile.encoders:
+            return None
+        chosen = self.selection(cell.backbone, cell.suite)
+        if chosen.grafts(cell.encoder):
+            return None
+        reason = chosen.dropped.get(cell.encoder, "not kept")
+        self.dropped[cell.id] = reason
+        return reason

@@ -1,0 +1,128 @@
+"""The start-up check of a grid run, after its options are parsed (bench.options): every name
+(backbones, suites, encoders: timm names and user factories built and probed), every user path
+(--policy, --dataset, --camera-map pairs), the simulator for --rollouts and the output folders,
+each bad one a one-line `pytest.UsageError` (exit 4, no frames, no cell run)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def collects_grid(config: pytest.Config) -> bool:
+    """Whether this run collects the grid (bench/test_grid.py, or a folder above it), so its
+    names and paths are checked at start-up: `pytest tests` does not pay for them."""
+    grid = Path(__file__).with_name("test_grid.py").resolve()
+    here = Path(config.invocation_params.dir)
+    if getattr(config.option, "help", False):
+        return False
+    for arg in config.args:
+        path = (here / str(arg).split("::", 1)[0]).resolve()
+        if path == grid or path in grid.parents:
+            return True
+    return False
+
+
+def check_startup(profile, labels: dict[str, str] | None = None) -> list[str]:
+    """Every name and user path of the grid, before collection: each bad one a one-line
+    UsageError (exit 4, no cell run). Returns the camera pairing lines to print. The output
+    folders come after (the session opens --results-dir, then probes --report: the report
+    defaults to a folder inside the results dir, whose own error names the right option)."""
+    validate_names(profile, labels)
+    return check_user_world(profile)
+
+
+def validate_names(profile, labels: dict[str, str] | None = None) -> None:
+    """Unknown backbone/suite/encoder names: a UsageError naming where the name came from
+    (`labels`, option_labels) and listing the valid ones. Timm names are checked on timm's
+    registry and a meta-device build (< 0.5 s); a user's MODULE:FACTORY is built and probed."""
+    from backbones import get_entry
+    from bench.suites import SUITES
+    from encoders import get_spec
+
+    labels = labels or {}
+    policies, datasets = dict(profile.policies), dict(profile.datasets)
+    checks = [("backbones", b, get_entry) for b in profile.backbones if b not in policies]
+    checks += [("encoders", e, lambda e: get_spec(e, profile.source)) for e in profile.encoders]
+    checks += [("control_encoders", e, lambda e: get_spec(e, profile.source))
+               for e in profile.control_encoders if e not in profile.encoders]
+    for field, name, check in checks:
+        try:
+            check(name)
+        except ValueError as e:
+            raise pytest.UsageError(f"{labels.get(field, '--' + field)}: {e}") from None
+    for s in profile.suites:
+        if s not in SUITES and s not in datasets:
+            raise pytest.UsageError(f"{labels.get('suites', '--suites')}: unknown suite {s!r}; "
+                                    f"valid suites: {', '.join(SUITES)}")
+
+
+def check_user_world(profile) -> list[str]:
+    """Every --policy x --dataset pair (cameras, dims, saved stats, tasks), checked at start-up
+    before any cell runs: a mismatch is a one-line UsageError (exit 4). Returns the camera
+    pairing of each pair, one line each, for the terminal."""
+    from bench.run.userworld import check_world
+    from bench.suites.base import SuiteUnavailable
+
+    if profile.camera_map and not profile.policies:
+        given = ",".join(f"{p}={d}".replace("observation.images.", "")
+                         for p, d in profile.camera_map)
+        raise pytest.UsageError(f"--camera-map {given}: it maps the cameras of a --policy, and "
+                                "none is given; fix: add --policy NAME=FOLDER or drop --camera-map")
+    if not profile.policies and not profile.datasets:
+        return []
+    try:
+        return check_world(profile)
+    except (ValueError, SuiteUnavailable) as e:
+        raise pytest.UsageError(str(e)) from None
+
+
+def offline_env(offline: bool) -> None:
+    if not offline:
+        return
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    os.environ["TRANSFORMERS_OFFLINE"] = "1"
+    os.environ["HF_DATASETS_OFFLINE"] = "1"
+    if "huggingface_hub.constants" in sys.modules:  # imported before us: patch the cached flag
+        sys.modules["huggingface_hub.constants"].HF_HUB_OFFLINE = True
+
+
+def check_rollouts_possible(profile, rollouts: int) -> None:
+    """--rollouts needs LIBERO scenes behind the suites, the simulator installed, and rollout
+    init states that no demonstration used."""
+    if profile.data_source == "tiny":
+        raise pytest.UsageError(
+            f"--rollouts: profile {profile.name!r} uses generated synthetic suites, which have no "
+            "simulator; use --profile sim (scripted demos in LIBERO scenes) or --profile paper")
+    from bench.sim.env import INSTALL_HINT, libero_available
+
+    if not libero_available():
+        raise pytest.UsageError(f"--rollouts {rollouts}: the LIBERO simulator (the libero "
+                                f"extra) is not installed; fix: {INSTALL_HINT}")
+    if profile.data_source == "sim":
+        from bench.sim.demos import demo_spec
+
+        for suite in profile.suites:
+            spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos)
+            # demos use init states 0.. (at most max_attempts), rollouts 49, 48, ...: disjoint
+            if spec.max_attempts + rollouts > 50:
+                raise pytest.UsageError(
+                    f"--rollouts {rollouts}: with {spec.episodes_per_task} demonstrations per "
+                    f"task (init states 0..{spec.max_attempts - 1}) rollouts would reuse a "
+                    f"demonstration's init state; give --rollouts <= {50 - spec.max_attempts}")
+
+
+def check_writable(option: str, folder: Path) -> None:
+    """A UsageError naming the option when `folder` cannot be created or written."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
+            pass
+    except OSError as e:
+        raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
+                                "pass a writable folder") from None

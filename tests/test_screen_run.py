@@ -1,0 +1,123 @@
+"""`pytest bench --screen` (bench.run.screen_run, bench.plugin, the report's screen section) on the
+tiny world: screens stored before the grafts and resumed by a rerun, only the best K grafted
+beside the pixels/blind references, the dropped cells skipped saying why, REPORT.md's section;
+an encoder whose extraction fails is a failed screen and the screen goes on."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from bench.grid.cells import CellSpec
+from bench.grid.kinds import GRAFT
+from bench.grid.protocol import TINY
+from bench.results.screen import ScreenFailure, ScreenRecord
+from bench.results.store import ResultStore, load_results
+from bench.run.screen import ScreenOptions
+from bench.run.screen_run import ScreenRun
+
+SCREENED = ("dinov2_s", "fastvit", "repvit")  # ranked by the screen; pixels, blind: references
+# Steps kept small: no margin between encoders is read here, only which cells ran.
+ARGS = ("--screen", "--encoders", ",".join(("pixels", "blind") + SCREENED), "--backbones",
+        "smolvla", "--suites", "spatial", "--seeds", "0", "--controls", "none", "--steps", "12",
+        "-v", "-rs")
+
+
+@pytest.fixture(scope="module")
+def keep_two(tmp_path_factory):
+    """A --screen-keep 2 run and its rerun, on one results dir."""
+    from tests.bench_inprocess import run_bench
+
+    folder = tmp_path_factory.mktemp("screen")
+    where = ("--results-dir", str(folder / "results"), "--report", str(folder / "REPORT.md"))
+    first = run_bench(*where, *ARGS, "--screen-keep", "2")
+    again = run_bench(*where, *ARGS, "--screen-keep", "2")
+    return folder, first, again
+
+
+def test_the_best_two_by_logme_are_grafted_with_the_references(keep_two):
+    folder, first, _ = keep_two
+    assert first.returncode == 0, first.stdout[-3000:]
+    results = load_results(folder / "results")
+    gains = {s.scores.encoder: s.scores.score("logme") for s in results.screens}
+    assert set(gains) == {"pixels", "blind", *SCREENED} and not results.screen_failures
+    best = sorted(SCREENED, key=lambda e: -gains[e])  # the planted rule, computed here
+    grafted = {r.encoder for r in results.records if r.kind == GRAFT}
+    assert grafted == {"pixels", "blind", *best[:2]}, (gains, grafted)
+    [chosen] = results.selections
+    assert chosen.kept == tuple(best[:2]) and chosen.by == "logme"
+    dropped = f"smolvla-spatial-{best[2]}-seed0"
+    assert "SKIPPED" in first.stdout and "dropped by the screen: logme rank 3 of 3" in first.stdout
+    assert f"dropped {dropped}: logme rank 3 of 3" in first.stdout
+    screen_at = first.stdout.index("test_screen[smolvla-spatial-pixels]")
+    assert screen_at < first.stdout.index("test_graft[smolvla-spatial-pixels-seed0]")
+    assert dropped not in load_results(folder / "results").expected  # grid.json: what ran
+
+
+def test_a_rerun_resumes_every_screen_and_graft(keep_two):
+    _, _, again = keep_two
+    assert again.returncode == 0, again.stdout[-3000:]
+    assert "screens 5: measured 0, resumed from store 5, failed 0" in again.stdout
+    assert "measured 0, resumed from store 4, failed 0" in again.stdout
+
+
+def test_the_report_shows_the_screen_its_cost_and_what_it_dropped(keep_two):
+    folder, _, _ = keep_two
+    text = (folder / "REPORT.md").read_text()
+    section = text[text.index("## Screening many encoders"):]
+    section = section[:section.index("\n## ", 1)]
+    assert "| LogME gain" in section and "Cost per encoder" in section
+    assert "not measured: 4 encoder(s) have both a logme score" in section  # < 6: no agreement
+    assert "logme rank 3 of 3" in section and "references pixels, blind" in section
+    assert "screen_scatter.png" in section
+
+
+def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, tmp_path):
+    class OneEncoderBreaks:
+        """The tiny workspace, except that dinov2_s's extraction fails."""
+
+        def __getattr__(self, name):
+            return getattr(tiny_ws, name)
+
+        def features(self, encoder, *args, **kwargs):
+            if encoder == "dinov2_s":
+                raise RuntimeError("CUDA out of memory\n while extracting")
+            return tiny_ws.features(encoder, *args, **kwargs)
+
+    store, ws = ResultStore(tmp_path), OneEncoderBreaks()
+    profile = dataclasses.replace(TINY, encoders=("pixels", "blind", "dinov2_s"))
+    run = ScreenRun(ScreenOptions(1), profile, store, lambda: ws, feature_dtype="fp16")
+    chosen = run.selection("smolvla", "spatial")
+    failure = store.load_screen("smolvla-spatial-dinov2_s")
+    assert isinstance(failure, ScreenFailure)
+    assert failure.error == "RuntimeError: CUDA out of memory while extracting"
+    assert isinstance(store.load_screen("smolvla-spatial-blind"), ScreenRecord)
+    assert chosen.kept == () and chosen.references == ("pixels", "blind")
+    cell = CellSpec(GRAFT, "smolvla", "spatial", 0, "dinov2_s")
+    assert run.dropped_reason(cell) == "its screen failed: " + failure.error
+    assert run.dropped_reason(CellSpec(GRAFT, "smolvla", "spatial", 0, "pixels")) is None
+    later = ScreenRun(ScreenOptions(1), profile, store, lambda: tiny_ws, feature_dtype="fp16")
+    assert isinstance(later.screen("smolvla", "spatial", "dinov2_s"), ScreenRecord)  # re-screened
+    later.screen("smolvla", "spatial", "blind")
+    assert later.outcomes == {"smolvla-spatial-dinov2_s": "measured",
+                              "smolvla-spatial-blind": "resumed"}
+    other_dtype = dataclasses.replace(later.conditions("smolvla", "spatial"), feature_dtype="bf16")
+    assert store.current_screen("smolvla-spatial-blind", other_dtype) is None
+
+
+def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path):
+    """pixels_res8..1, blind (encoders.known.LADDER): information falls by construction,
+    and every supervised proxy recovers that order exactly; the entropy is only measured."""
+    from bench.analysis.agreement import kendall_tau_b
+    from bench.run.screen import SUPERVISED
+    from encoders.known import LADDER
+
+    profile = dataclasses.replace(TINY, encoders=LADDER)
+    run = ScreenRun(ScreenOptions(None), profile, ResultStore(tmp_path), lambda: tiny_ws,
+                    feature_dtype="fp16")
+    screens = [run.screen("smolvla", "spatial", e).scores for e in LADDER]
+    planted = list(range(len(LADDER), 0, -1))  # higher is better: pixels first
+    for proxy in SUPERVISED:
+        scores = [s.score(proxy) for s in screens]
+        assert kendall_tau_b(scores, planted) == pytest.approx(1.0), (proxy, scores)
