@@ -26,7 +26,7 @@ AGREEMENT_ROWS = (("tau_b", "Kendall tau-b"), ("weighted_tau", "weighted tau"),
                   ("top1_regret", "top-1 regret"))
 
 
-def measure(value, digits: int = 2) -> str:
+def stat_text(value, digits: int = 2) -> str:
     """A statistic from bench.analysis.agreement: its number, or 'undefined (reason)'."""
     return str(value) if isinstance(value, Undefined) else num(value, digits)
 
@@ -39,7 +39,7 @@ def agreement_summary(cl) -> str:
     tau = cl.agreement["tau_b"]
     if isinstance(tau, Undefined):
         return f"{where}: Kendall tau-b {tau} over {len(cl.items)} items"
-    shown = [f"{label.split(' (')[0]} {measure(cl.agreement[k])} "
+    shown = [f"{label.split(' (')[0]} {stat_text(cl.agreement[k])} "
              f"{interval(cl.interval_of(k), 2)}" for k, label in AGREEMENT_ROWS[:4]]
     return f"{where} ({len(cl.items)} items): " + ", ".join(shown)
 
@@ -78,11 +78,11 @@ def closed_loop_section(ctx: ReportContext) -> str:
             for key, label in AGREEMENT_ROWS:
                 ci = cl.intervals.get(key)
                 kept = f"{ci.replicates} of {cl.n_resamples}" if isinstance(ci, Interval) else "0"
-                stats.append([label, measure(cl.agreement[key]),
+                stats.append([label, stat_text(cl.agreement[key]),
                               interval(cl.interval_of(key), 2) if isinstance(ci, Interval)
-                              else measure(ci), kept])
+                              else stat_text(ci), kept])
             head += (f"\n\nAgreement over {len(cl.items)} items (Kendall p="
-                     f"{measure(cl.agreement['p_value'], 3)}):\n\n"
+                     f"{stat_text(cl.agreement['p_value'], 3)}):\n\n"
                      + table(stats, ["statistic", "value", f"{CONFIDENCE:.0%} bootstrap CI",
                                      "replicates defined"]))
         parts.append(head)

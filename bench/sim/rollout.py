@@ -142,11 +142,16 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
     done = {(int(e["task"]), int(e["episode"])): e for e in finished}
     descriptions = scenes.descriptions(spec.suite)
     episodes = []
+
+    def kept() -> str:  # what a crash leaves for the rerun
+        return (f"{len(episodes)} episode(s) finished before it are kept; rerun to resume"
+                if on_episode is not None else "no episode log: a rerun starts over")
+
     for task in spec.tasks:
         todo = [e for e in range(spec.episodes_per_task) if (task, e) not in done]
         env = _crash_named(lambda: scenes.make_env(spec.suite, task, render,
                                                    max_steps=spec.max_steps),
-                           f"{spec.suite} task {task}: building its env", len(episodes)) \
+                           f"{spec.suite} task {task}: building its env", kept()) \
             if todo else None
         try:
             for episode in range(spec.episodes_per_task):
@@ -160,7 +165,7 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
                                         spec.max_steps, spec.n_action_steps,
                                         descriptions[task], scenes),
                     f"{spec.suite} task {task} episode {episode} (init state {init_state})",
-                    len(episodes))}
+                    kept())}
                 if on_episode is not None:
                     on_episode(row)
                 episodes.append(row)
@@ -175,14 +180,12 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
     return episodes
 
 
-def _crash_named(step: Callable, where: str, n_finished: int):
+def _crash_named(step: Callable, where: str, kept: str):
     """`step()`, with an exception turned into RolloutCrashed naming where it happened."""
     try:
         return step()
     except Exception as e:
-        raise RolloutCrashed(f"rollout crashed in {where}: {type(e).__name__}: {e} "
-                             f"({n_finished} episode(s) finished before it are kept; rerun "
-                             "to resume)") from e
+        raise RolloutCrashed(f"rollout crashed in {where}: {type(e).__name__}: {e} ({kept})") from e
 
 
 def replay(actions: np.ndarray, suite: str, task: int, init_state: int, env_seed: int,
