@@ -189,13 +189,18 @@ def bootstrap_agreement(predicted: np.ndarray, actual: np.ndarray, n_resamples: 
         w = rng.integers(0, actual.shape[1], actual.shape[1])
         s = predicted[:, w].mean(axis=1) if predicted.ndim == 2 else predicted
         a = agreement(s, actual[:, w].mean(axis=1))
-        for k in STATISTICS:
-            v = getattr(a, k)
-            if isinstance(v, Undefined):
-                reasons.setdefault(k, v.reason)
-            else:
-                values[k].append(v)
+        _keep(values, reasons, {k: getattr(a, k) for k in STATISTICS})
     return _percentile_intervals(values, reasons, n_resamples, confidence)
+
+
+def _keep(values: dict[str, list[float]], reasons: dict[str, str],
+          replicate: dict[str, Measure]) -> None:
+    """One bootstrap replicate's statistics: a defined value kept, an undefined one's reason."""
+    for k, v in replicate.items():
+        if isinstance(v, Undefined):
+            reasons.setdefault(k, v.reason)
+        else:
+            values[k].append(v)
 
 
 def _percentile_intervals(values: dict[str, list[float]], reasons: dict[str, str],
@@ -239,10 +244,6 @@ def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: i
         e = rng.integers(0, actual.shape[1], actual.shape[1])
         s, r = predicted[:, w].mean(axis=1), actual[:, e].mean(axis=1)
         stats = agreement(s, r)
-        for k in WITH_PEARSON:
-            v = pearson_r(s, r) if k == "pearson_r" else getattr(stats, k)
-            if isinstance(v, Undefined):
-                reasons.setdefault(k, v.reason)
-            else:
-                values[k].append(v)
+        _keep(values, reasons, {k: pearson_r(s, r) if k == "pearson_r" else getattr(stats, k)
+                                for k in WITH_PEARSON})
     return _percentile_intervals(values, reasons, n_resamples, confidence)
