@@ -84,6 +84,8 @@ def xdist_group(nodeid: str) -> str:
 
 @pytest.hookimpl(tryfirst=True, optionalhook=True)  # before bench.plugin's (grid cells only)
 def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    if config.getvalue("dist") != "loadgroup":  # -n alone means loadgroup (bench.plugin)
+        return None
     from xdist.scheduler import LoadScopeScheduling
 
     class ModuleScheduling(LoadScopeScheduling):
