@@ -84,8 +84,9 @@ def _add_screen_options(g) -> None:
                 help=f"with --screen: encoders grafted per backbone x suite (default "
                      f"{DEFAULT_SCREEN_KEEP}); all: every screened one (the calibration study)")
     g.addoption("--screen-by", metavar="PROXY",
-                help="with --screen: the proxy that ranks them, logme (default), ridge, knn or "
-                     "entropy")
+                help="with --screen: the proxy that ranks them, logme (default), ridge, knn, "
+                     "entropy, or short (the 1/4-steps short graft's MSE, lower is better: the "
+                     "selection then waits for every short graft)")
 
 
 DEFAULT_SCREEN_KEEP = 3
