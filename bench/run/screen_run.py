@@ -25,7 +25,7 @@ from bench.grid.kinds import SHORT_BY_VARIANT, SHORT_GRAFT
 from bench.progress import say
 from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
                                   new_screen_record, screen_id)
-from bench.run.screen import (REFERENCES, SHORT, ScreenOptions, ShortScores, screen_features,
+from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions, ShortScores, screen_features,
                               select_for_graft)
 from bench.stats import Undefined
 
@@ -89,9 +89,10 @@ class ScreenRun:
         if isinstance(item, ScreenFailure):
             text = f"screen {sid}: FAILED {item.error}"
         else:
-            gain = item.scores.score(self.options.by)
+            by = DEFAULT_SCREEN_BY if self.options.by == SHORT else self.options.by  # a proxy
+            gain = item.scores.score(by)
             shown = f"{gain:.4g}" if isinstance(gain, float) else str(gain)
-            text = (f"screen {sid}: {self.options.by} gain {shown} ({item.feature_seconds:.1f} s "
+            text = (f"screen {sid}: {by} gain {shown} ({item.feature_seconds:.1f} s "
                     f"features, {item.scores.seconds:.1f} s screen)")
         say(self.workspace().progress, text)
 
