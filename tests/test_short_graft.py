@@ -110,3 +110,13 @@ def test_the_report_shows_the_short_tier_and_its_cost(by_short):
     cost = next(line for line in section.splitlines() if line.startswith("| smolvla")
                 and "no graft record" not in line and line.count("|") > 9)
     assert "no record" not in cost, cost
+    assert (folder / "REPORT_plots" / "screen_scatter.png").exists()
+
+
+def test_the_scatter_has_a_panel_per_short_tier(by_short):
+    from bench.report.screen import scatter_points
+
+    results = load_results(by_short[0] / "results")
+    titles = [t for t, *_ in scatter_points([r.scores for r in results.screens], results.records)]
+    assert "smolvla x spatial: short_1_4 (-MSE)" in titles
+    assert "smolvla x spatial: short_1_8 (-MSE)" in titles

@@ -85,7 +85,8 @@ def screen_agreements(screens: Sequence, records: Sequence, n_resamples: int,
 
 def scatter_points(screens: Sequence, records: Sequence) -> list[tuple[str, list, list, list]]:
     """[(panel title, proxy scores, graft MSE, encoder names)] per backbone x suite x proxy, over
-    the encoders with a defined score and a graft (mean over seeds and windows)."""
+    the encoders with a defined score and a graft (mean over seeds and windows); then each short
+    graft tier with its -MSE as the score (higher is better, as a proxy's)."""
     panels = []
     for backbone, suite in _panels(screens):
         per_window, _ = graft_per_window(records, backbone, suite)
@@ -98,6 +99,13 @@ def scatter_points(screens: Sequence, records: Sequence) -> list[tuple[str, list
                                [float(s.score(proxy)) for s in both],
                                [float(per_window[s.encoder].mean()) for s in both],
                                [s.encoder for s in both]))
+        for variant in get_kind(SHORT_GRAFT).variants:
+            short, _ = graft_per_window(records, backbone, suite, SHORT_GRAFT, variant)
+            both = sorted(e for e in short if e in per_window)
+            if both:
+                panels.append((f"{backbone} x {suite}: {short_tier(variant)} (-MSE)",
+                               [-float(short[e].mean()) for e in both],
+                               [float(per_window[e].mean()) for e in both], both))
     return panels
 
 
