@@ -120,3 +120,17 @@ def test_the_scatter_has_a_panel_per_short_tier(by_short):
     titles = [t for t, *_ in scatter_points([r.scores for r in results.screens], results.records)]
     assert "smolvla x spatial: short_1_4 (-MSE)" in titles
     assert "smolvla x spatial: short_1_8 (-MSE)" in titles
+
+
+def test_screen_by_short_is_accepted_at_start_up_and_collects_the_tier(bench_cli, tmp_path):
+    out = bench_cli(tmp_path, "--screen", "--screen-by", "short", "--encoders", "dinov2_s",
+                    "--backbones", "smolvla", "--suites", "spatial", "--seeds", "0",
+                    "--collect-only", "-q")
+    assert out.returncode == 0, out.stdout[-2000:]
+    assert "grafted: the best 3 by short" in out.stdout
+    ids = [line.split("::", 1)[1] for line in out.stdout.splitlines() if "::test_" in line]
+    shorts = [i for i in ids if i.startswith("test_short_graft[")]
+    assert len(shorts) == 3 * 2  # dinov2_s, pixels, blind x 1/8, 1/4
+    assert "test_short_graft[smolvla-spatial-dinov2_s-short_1_4-seed0]" in shorts
+    first_graft = next(n for n, i in enumerate(ids) if i.startswith("test_graft["))
+    assert max(ids.index(i) for i in shorts) < first_graft  # the tier runs before the grafts
