@@ -84,8 +84,9 @@ def _add_screen_options(g) -> None:
                 help=f"with --screen: encoders grafted per backbone x suite (default "
                      f"{DEFAULT_SCREEN_KEEP}); all: every screened one (the calibration study)")
     g.addoption("--screen-by", metavar="PROXY",
-                help="with --screen: the proxy that ranks them, logme (default), ridge, knn or "
-                     "entropy")
+                help="with --screen: the proxy that ranks them, logme (default), ridge, knn, "
+                     "entropy, or short (the 1/4-steps short graft's MSE, lower is better: the "
+                     "selection then waits for every short graft)")
 
 
 DEFAULT_SCREEN_KEEP = 3
@@ -104,7 +105,7 @@ def screen_options(config: pytest.Config, profile):
         return profile, None, []
     import dataclasses
 
-    from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, ScreenOptions,
+    from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
                                   parse_screen_by, parse_screen_keep)
 
     try:
@@ -112,6 +113,13 @@ def screen_options(config: pytest.Config, profile):
                                 parse_screen_by(by) if by is not None else DEFAULT_SCREEN_BY)
     except ValueError as e:
         raise pytest.UsageError(str(e)) from None
+    executor = config.getoption("--executor")
+    if options.by == SHORT and executor != "local":
+        # The job array is submitted from the selection, which would wait on short grafts that
+        # are themselves in the array: not supported yet.
+        raise pytest.UsageError(f"--screen-by short with --executor {executor}: the selection "
+                                "waits for short grafts run in this process; fix: --executor "
+                                "local, or rank by a proxy (logme, ridge, knn, entropy)")
     added = tuple(r for r in REFERENCES if r not in profile.encoders)
     screened = [e for e in profile.encoders if e not in REFERENCES]
     lines = [f"[graftbench] --screen: {len(screened)} encoder(s) screened per backbone x suite; "

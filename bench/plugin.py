@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.grid.cells import CellSpec, ScreenCase, control_cells, graft_cells, screen_cases
+from bench.grid.cells import (CellSpec, ScreenCase, control_cells, graft_cells, grid_cells,
+                              screen_cases, tier_cells)
 from bench.options import pytest_addoption  # noqa: F401  (the hook, found here by name)
 from bench.session import GraftSession
 from bench.startup import check_startup, check_writable
@@ -85,7 +86,8 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
     from xdist.scheduler import LoadScopeScheduling
 
     gs: GraftSession = config.stash[SESSION_KEY]
-    backbone_of = {c.id: c.backbone for c in graft_cells(gs.profile) + control_cells(gs.profile)}
+    backbone_of = {c.id: c.backbone
+                   for c in grid_cells(gs.profile, gs.screen_options is not None)}
 
     class BackboneScheduling(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
@@ -110,7 +112,7 @@ def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
     gs: GraftSession = node.config.stash[SESSION_KEY]
     if gs.selected:
         return  # every worker collects the same items
-    known = {c.id: c for c in graft_cells(gs.profile) + control_cells(gs.profile)}
+    known = {c.id: c for c in grid_cells(gs.profile, gs.screen_options is not None)}
     gs.selected = [c for c in map(cell_id_of, ids) if c in known]
     screens = {c.id for c in screen_cases(gs.profile)} if gs.screen_options else set()
     gs.screens_selected = [c for c in map(cell_id_of, ids) if c in screens]
@@ -124,8 +126,9 @@ def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_pycollect_makeitem(collector, name: str, obj):
-    """The grid's `test_screen` exists only under --screen (no empty-parameter case without)."""
-    if name == "test_screen" and collector.path == GRID_MODULE:
+    """The grid's `test_screen` and `test_short_graft` exist only under --screen (no
+    empty-parameter case without)."""
+    if name in ("test_screen", "test_short_graft") and collector.path == GRID_MODULE:
         gs: GraftSession = collector.config.stash[SESSION_KEY]
         return [] if gs.screen_options is None else None
     return None
@@ -138,6 +141,11 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         metafunc.parametrize("screen_case", [
             pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))
             for c in screen_cases(session.profile)])
+        return
+    if "tier_cell" in names:  # --screen: the short grafts, after the screens
+        metafunc.parametrize("tier_cell", [
+            pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))
+            for c in tier_cells(session.profile)])
         return
     if "graft_cell" not in names and "control_cell" not in names:
         return
@@ -160,7 +168,7 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
     cells = []
     for item in items:
         params = getattr(getattr(item, "callspec", None), "params", {})
-        cell = params.get("graft_cell", params.get("control_cell"))
+        cell = params.get("graft_cell", params.get("control_cell", params.get("tier_cell")))
         if isinstance(cell, CellSpec):
             gs.selected.append(cell.id)
             cells.append(cell)

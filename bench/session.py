@@ -64,6 +64,7 @@ class GraftSession:
         self._workspace = None
         self._store = None
         self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
+        self.records: dict = {}  # cell id -> the Record this run measured or resumed
         self.selected: list[str] = []
         self.screens_selected: list[str] = []  # test_screen cases collected (screen ids)
         self._screening = None
@@ -119,7 +120,7 @@ class GraftSession:
 
             self._screening = ScreenRun(self.screen_options, self.profile, self.store,
                                         self.workspace, feature_dtype=self.feature_dtype,
-                                        rerun=self.rerun)
+                                        rerun=self.rerun, run_cell=self.run)
         return self._screening
 
     # --- one cell: plan, then run ------------------------------------------------------------
@@ -132,6 +133,8 @@ class GraftSession:
             from bench.run.screen_run import DROPPED
 
             pytest.skip(DROPPED + why)
+        if cell.id in self.records:  # a short graft the selection ran before its own case
+            return self.records[cell.id]
         cell_plan = self.plan(cell)
         if cell_plan.resume is not None:
             record = cell_plan.resume
@@ -140,6 +143,7 @@ class GraftSession:
             record = self._measure(cell_plan)
             self.outcomes[cell.id] = "measured"
         self.baseline.check_cell(cell, record)
+        self.records[cell.id] = record
         return record
 
     @property
@@ -230,7 +234,8 @@ class GraftSession:
                                          self.options.slurm)
             items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
             params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
-            cells = [p.get("graft_cell", p.get("control_cell")) for p in params]
+            cells = [p.get("graft_cell", p.get("control_cell", p.get("tier_cell")))
+                     for p in params]
             todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None
                     and not (self.screening and self.screening.dropped_reason(c))]
             paths = (str(self.results_dir), str(cache_dir()))

@@ -1,7 +1,8 @@
 """The grid. One parametrised case per cell; ids read as the cell, so
 `pytest bench -k "pi05 and spatial"` selects exactly that slice.
 
-Under --screen, `test_screen[backbone-suite-encoder]` cases come first (bench.run.screen_run).
+Under --screen, `test_screen[backbone-suite-encoder]` cases come first (bench.run.screen_run),
+then the short grafts `test_short_graft[...-short_1_8-seed0]` (a tier of the ladder).
 A case asserts what must hold of any cell (finite loss that went down, the freeze, a finite
 recorded MSE); it never asserts a ranking: rankings are the report's business.
 """
@@ -38,6 +39,13 @@ def test_screen(screen_case, graft_session, record_property):
         pytest.fail(f"{screen_case.id}: {item.error}", pytrace=False)
     assert item.screen_id == screen_case.id
     record_property(OUTCOME_PROPERTY, graft_session.screening.outcomes.get(screen_case.id))
+
+
+def test_short_graft(tier_cell, graft_session, record_property):
+    """--screen only, after the screens and before the grafts: the graft at a fraction of its
+    steps (bench.grid.kinds short_graft), for every listed encoder whatever the selection."""
+    _check_record(graft_session.run(tier_cell), tier_cell)
+    record_property(OUTCOME_PROPERTY, graft_session.outcomes.get(tier_cell.id))
 
 
 def test_graft(graft_cell, graft_session, record_property):

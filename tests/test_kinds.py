@@ -10,8 +10,9 @@ import re
 import pytest
 
 from bench.grid import kinds
-from bench.grid.cells import CellSpec, control_cells, graft_cells
-from bench.grid.kinds import CELL_KINDS, CellKind, control_kinds, register_kind, unregister_kind
+from bench.grid.cells import CellSpec, control_cells, graft_cells, tier_cells
+from bench.grid.kinds import (CELL_KINDS, CellKind, control_kinds, register_kind, tier_kinds,
+                              unregister_kind)
 from external.paths import REPO_ROOT
 from bench.grid.protocol import TINY_FULL, with_overrides
 from bench.results.record import validate_record
@@ -27,21 +28,24 @@ def test_every_consumer_knows_the_same_kinds():
     table = set(CELL_KINDS)
     everything = dataclasses.replace(TINY_FULL, controls=control_kinds(),
                                      control_encoders=("pixels",))
-    in_cells = {c.kind for c in graft_cells(everything) + control_cells(everything)}
+    in_cells = {c.kind for c in graft_cells(everything) + control_cells(everything)
+                + tier_cells(everything)}
     assert in_cells == table
+    tiers = {k.name for k in tier_kinds()}  # --screen's ladder: never a --controls name
 
     class Config:  # what build_profile reads of pytest's config
         def getoption(self, name):
             return {"--profile": "tiny", "--controls": ",".join(control_kinds())}.get(name)
 
-    assert set(build_profile(Config()).controls) | {kinds.GRAFT} == table
+    assert set(build_profile(Config()).controls) | {kinds.GRAFT} | tiers == table
 
     records = [make_record(kind=c.kind, encoder=c.encoder, variant=c.variant)
-               for c in graft_cells(everything)[:1] + control_cells(everything)]
+               for c in graft_cells(everything)[:1] + control_cells(everything)
+               + tier_cells(everything)]
     for r in records:
         validate_record(r)  # every kind is a valid record kind
     compared = {cd.kind for cd in control_deltas(records)}
-    assert compared == {k.name for k in CELL_KINDS.values() if k.control}
+    assert compared == {k.name for k in CELL_KINDS.values() if k.control and not k.tier}
     with pytest.raises(ValueError, match="unknown cell kind"):
         validate_record({**records[0].to_json(), "kind": "retrained"})
 

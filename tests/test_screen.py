@@ -118,5 +118,16 @@ def test_select_for_graft_keeps_the_top_and_says_what_it_dropped():
     assert chosen.kept == ("b", "c", "a", "pixels") and "more than the 4" in chosen.note
     assert select_for_graft("smolvla", SUITE, screens, ScreenOptions(None, "knn")).kept == (
         "b", "c", "a", "pixels")
-    with pytest.raises(ValueError, match="--screen-by short: unknown proxy; choose one of"):
-        select_for_graft("smolvla", SUITE, screens, ScreenOptions(1, "short"))
+    with pytest.raises(ValueError, match="--screen-by shortest: unknown proxy; choose one of"):
+        select_for_graft("smolvla", SUITE, screens, ScreenOptions(1, "shortest"))
+
+
+def test_select_by_short_keeps_the_lowest_short_graft_mse():
+    from bench.run.screen import ShortScores
+
+    shorts = [ShortScores("a", 0.30), ShortScores("b", 0.10), ShortScores("c", 0.20),
+              ShortScores("d", Undefined("its short graft failed: boom"))]
+    chosen = select_for_graft("smolvla", SUITE, shorts, ScreenOptions(1, "short"))
+    assert chosen.kept == ("b",) and chosen.by == "short"
+    assert chosen.dropped["a"] == "short rank 3 of 3 (MSE 0.3), below the top 1"
+    assert "boom" in chosen.dropped["d"]

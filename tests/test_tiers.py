@@ -99,3 +99,26 @@ def test_the_report_section_from_a_store_of_screens(tmp_path):
     assert "`smolvla-spatial-timm:broken`: OSError: no file" in section
     assert f"dropped `{ENCODERS[6]}`: ridge rank 7 of 7" in section
     assert "screen_scatter.png" in section and (tmp_path / "REPORT_plots" / "screen_scatter.png").is_file()
+
+
+def test_the_short_graft_tier_against_the_graft_by_hand():
+    """Short grafts (kind short_graft) whose MSE keeps the graft's order, but for one swap at
+    1/8: tau-b 1 at 1/4; at 1/8 one discordant pair of 21 and the regret of its wrong pick."""
+    from bench.analysis.tiers import short_graft_agreement
+    from bench.grid.kinds import SHORT_GRAFT
+
+    swapped = {**LEVELS, "timm:model_0": 0.061, "timm:model_1": 0.06}  # 1/8 picks model_1
+    shorts = [make_record(kind=SHORT_GRAFT, encoder=e, variant=v, level=2 * levels[e],
+                          noise=0.001)
+              for v, levels in (("1_4", LEVELS), ("1_8", swapped)) for e in ENCODERS]
+    records = grafts(seeds=(0,)) + shorts
+    quarter = short_graft_agreement(records, "smolvla", "spatial", "1_4", n_resamples=100)
+    assert quarter.tier == "short_1_4" and quarter.missing is None
+    assert quarter.point.tau_b == pytest.approx(1.0) and quarter.point.top1_regret == 0.0
+    assert quarter.predicted[0] == pytest.approx(-0.10)  # -(its MSE): higher is better
+    assert "tau_b" in quarter.intervals
+    eighth = short_graft_agreement(records, "smolvla", "spatial", "1_8", n_resamples=100)
+    assert eighth.point.tau_b == pytest.approx(1 - 2 / 21)  # (20 - 1) / 21
+    assert eighth.point.top1_regret == pytest.approx(0.01)  # model_1's graft 0.06 - 0.05
+    assert short_graft_agreement(grafts(), "smolvla", "spatial", "1_4").missing.startswith(
+        "not measured: 0 encoder(s)")

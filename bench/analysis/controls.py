@@ -77,7 +77,7 @@ def control_deltas(records: Sequence[dict]) -> list[ControlDelta]:
     out = []
     for r in sorted(records, key=lambda r: (r.backbone, r.suite, r.kind, r.cell_id)):
         kind = kind_of(r)
-        if kind is None or not kind.control:
+        if kind is None or not kind.control or kind.tier:  # a tier: bench.analysis.tiers
             continue
         ref, ref_id = find_reference(r, records)
         cd = ControlDelta(cell_id=r.cell_id, kind=r.kind, backbone=r.backbone,

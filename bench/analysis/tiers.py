@@ -1,7 +1,8 @@
 """A cheaper tier against the full graft, per backbone x suite: rank agreement with intervals.
 
 The items are the encoders that have both a defined score of the cheaper tier (a screen proxy:
-higher is better) and at least one graft record on the backbone x suite. The graft's score of an
+higher is better; a short graft: -its MSE, mean over seeds) and at least one graft record on the
+backbone x suite. The graft's score of an
 encoder is its normalised held-out MSE averaged over its seeds, per window, so the paired window
 bootstrap (bench.analysis.agreement.bootstrap_agreement) draws the same windows for every
 encoder. Fewer than MIN_ENCODERS such encoders: "not measured", with the reason.
@@ -17,7 +18,7 @@ import numpy as np
 from bench.analysis.agreement import (Agreement, Interval, Measure, Undefined, agreement,
                                       bootstrap_agreement, is_defined)
 from bench.analysis.rankings import PRIMARY
-from bench.grid.kinds import GRAFT
+from bench.grid.kinds import GRAFT, SHORT_GRAFT, get_kind
 
 MIN_ENCODERS = 6
 
@@ -38,11 +39,12 @@ class TierAgreement:
     missing: str | None = None
 
 
-def graft_per_window(records: Sequence, backbone: str, suite: str
-                     ) -> tuple[dict[str, np.ndarray], str | None]:
-    """({encoder: (W,) normalised MSE per window, mean over seeds}, problem or None)."""
-    grafts = [r for r in records
-              if r.kind == GRAFT and r.backbone == backbone and r.suite == suite]
+def graft_per_window(records: Sequence, backbone: str, suite: str, kind: str = GRAFT,
+                     variant: str | None = None) -> tuple[dict[str, np.ndarray], str | None]:
+    """({encoder: (W,) normalised MSE per window, mean over seeds}, problem or None) of the
+    `kind` x `variant` records (the graft's, or a short graft's) on backbone x suite."""
+    grafts = [r for r in records if r.kind == kind and r.variant == variant
+              and r.backbone == backbone and r.suite == suite]
     if not grafts:
         return {}, None
     windows = grafts[0].scores.window_ids
@@ -57,9 +59,12 @@ def graft_per_window(records: Sequence, backbone: str, suite: str
 
 
 def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: str, suite: str,
-                   tier: str, n_resamples: int = 1000, seed: int = 0) -> TierAgreement:
+                   tier: str, n_resamples: int = 1000, seed: int = 0,
+                   scores_per_window: Mapping[str, np.ndarray] | None = None) -> TierAgreement:
     """Agreement of the cheaper tier's `scores` {encoder: score, higher is better} with the
-    graft records of backbone x suite, with paired window bootstrap intervals."""
+    graft records of backbone x suite, with paired window bootstrap intervals.
+    `scores_per_window` {encoder: (W,)}, higher is better, on the graft's windows: a tier scored
+    per window (a short graft), resampled with the graft's windows instead of held fixed."""
     out = TierAgreement(backbone, suite, tier)
     per_window, problem = graft_per_window(records, backbone, suite)
     if problem:
@@ -84,5 +89,31 @@ def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: s
     windows = np.array([per_window[e] for e in out.encoders])  # (n, W)
     out.graft_mse = windows.mean(axis=1).tolist()
     out.point = agreement(out.predicted, [-m for m in out.graft_mse])
-    out.intervals = bootstrap_agreement(np.array(out.predicted), -windows, n_resamples, seed)
+    predicted = (np.array([scores_per_window[e] for e in out.encoders])
+                 if scores_per_window is not None else np.array(out.predicted))
+    out.intervals = bootstrap_agreement(predicted, -windows, n_resamples, seed)
     return out
+
+
+def short_tier(variant: str) -> str:
+    """The tier's name in tables: short_1_8."""
+    return get_kind(SHORT_GRAFT).tag.format(variant=variant)
+
+
+def short_graft_agreement(records: Sequence, backbone: str, suite: str, variant: str,
+                          n_resamples: int = 1000, seed: int = 0) -> TierAgreement:
+    """The short-graft tier at `variant` against the full graft: score -MSE (mean over seeds),
+    per window when both were scored on the same windows (the paired bootstrap draws both)."""
+    tier = short_tier(variant)
+    short, problem = graft_per_window(records, backbone, suite, SHORT_GRAFT, variant)
+    if problem:
+        return TierAgreement(backbone, suite, tier, missing=problem)
+    grafts = [r for r in records if r.kind == GRAFT and (r.backbone, r.suite) == (backbone, suite)]
+    shorts = [r for r in records if r.kind == SHORT_GRAFT and r.variant == variant
+              and (r.backbone, r.suite) == (backbone, suite)]
+    if grafts and shorts and grafts[0].scores.window_ids != shorts[0].scores.window_ids:
+        return TierAgreement(backbone, suite, tier, missing=(
+            f"{shorts[0].cell_id} was scored on other windows than {grafts[0].cell_id}: "
+            "not paired, no agreement computed"))
+    return tier_agreement({e: -float(v.mean()) for e, v in short.items()}, records, backbone,
+                          suite, tier, n_resamples, seed, {e: -v for e, v in short.items()})

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, CellKind, cell_id, get_kind
+from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, CellKind, cell_id, get_kind, tier_kinds
 from bench.grid.protocol import Profile
 
 
@@ -77,6 +77,19 @@ def control_cells(profile: Profile) -> list[CellSpec]:
     return cells
 
 
+def tier_cells(profile: Profile) -> list[CellSpec]:
+    """--screen only: each tier kind's cells (the short grafts) of every listed encoder, seed and
+    variant, whatever the screen selects (a tier is measured against the graft on all of them)."""
+    return [CellSpec(k.name, b, s, seed, e, v)
+            for b in profile.backbones for s in profile.suites for e in profile.encoders
+            for seed in profile.seeds for k in tier_kinds() for v in k.variants]
+
+
+def grid_cells(profile: Profile, screen: bool) -> list[CellSpec]:
+    """Every cell a run of `profile` may collect: the tiers' (under --screen), grafts, controls."""
+    return (tier_cells(profile) if screen else []) + graft_cells(profile) + control_cells(profile)
+
+
 @dataclass(frozen=True)
 class ScreenCase:
     """One screen (--screen): an encoder's zero-training proxies on backbone x suite. No seed: a
@@ -98,4 +111,4 @@ def screen_cases(profile: Profile) -> list[ScreenCase]:
 
 
 __all__ = ["CellSpec", "GRAFT", "NATIVE", "ScreenCase", "graft_cells", "control_cells",
-           "screen_cases"]
+           "screen_cases", "tier_cells", "grid_cells"]

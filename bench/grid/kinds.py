@@ -14,6 +14,7 @@ This module imports nothing heavy: records, analysis and report read it without 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -65,6 +66,12 @@ class CellKind:
     tag: str | None = None
     # A control kind (compared against its reference) or a cell of the rankings (graft, native).
     control: bool = True
+    # Training steps per variant as a fraction (numerator, denominator) of the protocol's (missing
+    # variant: all of them); the warm-up shrinks with them (one whole schedule, compressed).
+    train_fraction: tuple[tuple[str | None, tuple[int, int]], ...] = ()
+    # A tier of the --screen ladder (short_graft): runs only under --screen, for every screened
+    # encoder whatever the selection; not a control (--controls cannot name it, no control delta).
+    tier: bool = False
 
     def __post_init__(self) -> None:
         if self.encoder not in ("required", "none", "optional"):
@@ -97,11 +104,18 @@ class CellKind:
     def train_rule(self, variant: str | None) -> str:
         return dict(self.train_inputs).get(variant, SAME)
 
+    def scaled_steps(self, steps: int, variant: str | None) -> int:
+        """`steps` (the protocol's steps or warm-up) at the variant's fraction, rounded up; 0 stays
+        0, anything else trains at least one step: 600 at 1/8 -> 75, 12 at 1/8 -> 2."""
+        numerator, denominator = dict(self.train_fraction).get(variant, (1, 1))
+        return 0 if steps <= 0 else max(1, math.ceil(steps * numerator / denominator))
+
     def shares_graft_training(self, encoder: str | None, variant: str | None) -> bool:
         """Trains exactly its graft's projector (same encoder, grid, inputs, LM): it takes the
         graft's trained projector instead of training it again; only evaluation differs."""
         return (encoder is not None and not self.lora and not self.tower
-                and self.grid is _same_grid and self.train_rule(variant) == SAME)
+                and self.grid is _same_grid and self.train_rule(variant) == SAME
+                and self.scaled_steps(1000, variant) == 1000)
 
     def reference(self, encoder: str | None) -> str | None:
         """The kind of the cell a control is compared against: its graft, or the native policy."""
@@ -156,7 +170,12 @@ def get_kind(name: str) -> CellKind:
 
 def control_kinds() -> tuple[str, ...]:
     """The kinds `--controls` may name, in table order."""
-    return tuple(k.name for k in CELL_KINDS.values() if k.name != GRAFT)
+    return tuple(k.name for k in CELL_KINDS.values() if k.name != GRAFT and not k.tier)
+
+
+def tier_kinds() -> tuple[CellKind, ...]:
+    """The kinds that are tiers of the --screen ladder (run under --screen only), in table order."""
+    return tuple(k for k in CELL_KINDS.values() if k.tier)
 
 
 # Table order is the order of control cells in the grid (and of --controls' help).
@@ -178,6 +197,15 @@ register_kind(CellKind("zero_image", "all-zero images at evaluation (eval) or al
                        tag="zero_image_{variant}"))
 register_kind(CellKind("shuffled_image", "another held-out window's images at evaluation",
                        encoder="optional", eval_inputs=SHUFFLED))
+# The short-graft tier of the --screen ladder: the graft trained for 1/8 or 1/4 of its steps.
+SHORT_GRAFT = "short_graft"
+# The fraction `--screen-by short` ranks by: the longer one (the closer to the graft it stands
+# for; twice 1/8's cost, still a quarter of a graft's training). 1/8's agreement is reported too.
+SHORT_BY_VARIANT = "1_4"
+register_kind(CellKind(SHORT_GRAFT, "the graft trained for 1/8 or 1/4 of its steps (--screen's "
+                       "short-graft tier)", variants=("1_8", SHORT_BY_VARIANT),
+                       train_fraction=(("1_8", (1, 8)), (SHORT_BY_VARIANT, (1, 4))),
+                       tag="short_{variant}", tier=True))
 
 
 def cell_id(kind: str, backbone: str, suite: str, encoder: str | None, seed: int,

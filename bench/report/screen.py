@@ -10,8 +10,9 @@ from __future__ import annotations
 from typing import Sequence
 
 from bench.analysis.agreement import STATISTICS, TIE_RULE, Interval, Undefined
-from bench.analysis.tiers import MIN_ENCODERS, graft_per_window, tier_agreement
-from bench.grid.kinds import GRAFT
+from bench.analysis.tiers import (MIN_ENCODERS, graft_per_window, short_graft_agreement,
+                                  short_tier, tier_agreement)
+from bench.grid.kinds import GRAFT, SHORT_GRAFT, get_kind
 from bench.report.format import num, table
 
 # bench.run.screen.SCREEN_BY, spelled here so the report does not import torch.
@@ -77,12 +78,15 @@ def screen_agreements(screens: Sequence, records: Sequence, n_resamples: int,
         for proxy in SCREEN_BY:
             scores = {s.encoder: s.score(proxy) for s in mine}
             out.append(tier_agreement(scores, records, backbone, suite, proxy, n_resamples, seed))
+        out += [short_graft_agreement(records, backbone, suite, v, n_resamples, seed)
+                for v in get_kind(SHORT_GRAFT).variants]
     return out
 
 
 def scatter_points(screens: Sequence, records: Sequence) -> list[tuple[str, list, list, list]]:
     """[(panel title, proxy scores, graft MSE, encoder names)] per backbone x suite x proxy, over
-    the encoders with a defined score and a graft (mean over seeds and windows)."""
+    the encoders with a defined score and a graft (mean over seeds and windows); then each short
+    graft tier with its -MSE as the score (higher is better, as a proxy's)."""
     panels = []
     for backbone, suite in _panels(screens):
         per_window, _ = graft_per_window(records, backbone, suite)
@@ -95,25 +99,44 @@ def scatter_points(screens: Sequence, records: Sequence) -> list[tuple[str, list
                                [float(s.score(proxy)) for s in both],
                                [float(per_window[s.encoder].mean()) for s in both],
                                [s.encoder for s in both]))
+        for variant in get_kind(SHORT_GRAFT).variants:
+            short, _ = graft_per_window(records, backbone, suite, SHORT_GRAFT, variant)
+            both = sorted(e for e in short if e in per_window)
+            if both:
+                panels.append((f"{backbone} x {suite}: {short_tier(variant)} (-MSE)",
+                               [-float(short[e].mean()) for e in both],
+                               [float(per_window[e].mean()) for e in both], both))
     return panels
 
 
 def cost_table(stored: Sequence, records: Sequence) -> str:
     """Seconds per encoder of each tier per backbone x suite: the screen's solve, the feature
-    extraction it ran (0 when the store already held them: the graft needs them too), the graft."""
+    extraction it ran (0 when the store already held them: the graft needs them too), each short
+    graft's cell (measured wall time, per seed), the graft's."""
+    variants = get_kind(SHORT_GRAFT).variants
     rows = []
     for backbone, suite in _panels([r.scores for r in stored]):
         mine = [r for r in stored if (r.scores.backbone, r.scores.suite) == (backbone, suite)]
-        grafts = [r.run.total_s for r in records if r.kind == GRAFT and r.backbone == backbone
-                  and r.suite == suite and r.run.total_s is not None]
         solve = sum(r.scores.seconds for r in mine) / len(mine)
+        graft = _mean_seconds(records, backbone, suite, GRAFT, None)
+        shorts = [_mean_seconds(records, backbone, suite, SHORT_GRAFT, v) for v in variants]
         rows.append([backbone, suite, len(mine), num(solve, 3),
-                     num(sum(r.feature_seconds for r in mine) / len(mine), 3),
-                     num(sum(grafts) / len(grafts), 3) if grafts else "no graft record",
-                     f"{100 * solve / (sum(grafts) / len(grafts)):.2g}%" if grafts else "n/a"])
+                     num(sum(r.feature_seconds for r in mine) / len(mine), 3)]
+                    + [num(s, 3) if s is not None else "no record" for s in shorts]
+                    + [num(graft, 3) if graft is not None else "no graft record",
+                       f"{100 * solve / graft:.2g}%" if graft else "n/a"])
     return table(rows, ["backbone", "suite", "screens", "screen s / encoder",
-                        "features s / encoder (extraction, when the screen ran it)", "graft s / cell",
-                        "screen / graft"])
+                        "features s / encoder (extraction, when the screen ran it)"]
+                 + [f"{short_tier(v)} s / cell" for v in variants]
+                 + ["graft s / cell", "screen / graft"])
+
+
+def _mean_seconds(records: Sequence, backbone: str, suite: str, kind: str,
+                  variant: str | None) -> float | None:
+    """Mean measured wall seconds of the kind x variant's records on backbone x suite."""
+    seconds = [r.run.total_s for r in records if r.kind == kind and r.variant == variant
+               and (r.backbone, r.suite) == (backbone, suite) and r.run.total_s is not None]
+    return sum(seconds) / len(seconds) if seconds else None
 
 
 def dropped_lines(selections: Sequence) -> list[str]:
@@ -141,7 +164,9 @@ def screen_section(ctx) -> str | None:
     parts = ["Zero-training proxies per encoder from the stored features (`pytest bench "
              "--screen`): each supervised proxy's score is the gain of [state, features] over "
              "[state] alone on the grafts' held-out windows (higher is better); entropy is "
-             "label-free. A screen averages each camera's token grid: what an encoder carries in "
+             "label-free. The short-graft tiers (short_1_8, short_1_4) are the graft trained "
+             "for 1/8 and 1/4 of its steps (whole schedule, compressed), ranked by their own "
+             "held-out MSE; `--screen-by short` ranks by short_1_4. A screen averages each camera's token grid: what an encoder carries in "
              "where things are is lost here, not in the graft (README: the tiny ladder).", screen_table(screens) if screens else "_No finished screen._"]
     if res.screen_failures:
         parts.append("Screens that failed (their grafts are dropped): " + "; ".join(

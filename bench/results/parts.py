@@ -12,7 +12,7 @@ NORMALIZED, RAW = "normalized", "raw"  # the two action spaces every score is gi
 SPACES = (NORMALIZED, RAW)
 # Written only when set (absent from records that have none; every other field is always written).
 _OMITTED_WHEN_NONE = {"feature_dtype", "feature_transform", "grid_file", "camera_map", "dataset",
-                      "rollouts", "projector_file", "projector_sha256"}
+                      "rollouts", "projector_file", "projector_sha256", "train_steps"}
 
 
 def flat(part) -> dict:
@@ -141,6 +141,9 @@ class Training:
     # the results dir and the file's sha256.
     projector_file: str | None = None
     projector_sha256: str | None = None
+    # The optimiser steps the projector took (a short graft: a fraction of the protocol's steps);
+    # None: trained nothing, or a record from before this field.
+    train_steps: int | None = None
 
     @property
     def probe_before_after(self) -> tuple[float, float] | None:

@@ -93,7 +93,7 @@ class CellPlan:
             return "no training,"
         if self.context.reuse is not None:
             return "its graft's trained projector, then"
-        return f"{steps} projector steps, then"
+        return f"{self.cell.spec.scaled_steps(steps, self.cell.variant)} projector steps, then"
 
 
 def plan(cell: CellSpec, store, run: RunConditions, *,

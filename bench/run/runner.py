@@ -91,6 +91,7 @@ class Training:
     curve: list
     probe_losses: dict | None = None
     projector_from: str | None = None  # the graft cell whose trained projector this cell took
+    steps: int | None = None  # optimiser steps the projector took (its graft's, when taken)
 
 
 def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache", *,
@@ -209,12 +210,14 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
     if reused is not None:
         graft.projector.load_state_dict(load_file(reused.path, device=str(device)))
         graft.projector.eval()
-        return Training(reused.curve, reused.probe_losses, reused.cell_id), None
+        return Training(reused.curve, reused.probe_losses, reused.cell_id, p.steps), None
     probe = probe_frames(split.train_frames)
     before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
     params = list(graft.projector.parameters()) + [
         q for q in backbone.policy.parameters() if q.requires_grad]
-    fit_cfg = FitConfig(p.steps, p.batch_size, p.lr, p.weight_decay, p.warmup_steps,
+    # A short graft (bench.grid.kinds train_fraction) runs the whole schedule, compressed.
+    steps, warmup = (cell.spec.scaled_steps(n, cell.variant) for n in (p.steps, p.warmup_steps))
+    fit_cfg = FitConfig(steps, p.batch_size, p.lr, p.weight_decay, warmup,
                         p.grad_clip, p.loss_log_every)
     curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
                 feed=graft.feed, label=cell.id, progress=ws.progress)
@@ -227,7 +230,7 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
                    for k, v in graft.projector.state_dict().items()}, path)
         kept = TrainedProjector(path, curve, probe_losses, cell.id)
     graft.projector.eval()
-    return Training(curve, probe_losses), kept
+    return Training(curve, probe_losses, steps=fit_cfg.steps), kept
 
 
 def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
@@ -280,6 +283,7 @@ def training_fields(backbone, graft: Graft | None, training: Training, encoder,
         probe_loss=training.probe_losses,
         encoder_weights=getattr(encoder, "weights_id", None),
         projector_file=projector_kept[0], projector_sha256=projector_kept[1],
+        train_steps=training.steps,
     )
 
 

@@ -152,7 +152,8 @@ def screen_cell(ws, encoder: str, backbone: str, suite: str) -> ScreenScores:
                            bb.info.chunk_size, (encoder, backbone, suite))
 
 
-SCREEN_BY = SUPERVISED + ("entropy",)
+SHORT = "short"  # --screen-by short: the short-graft tier (bench.grid.kinds SHORT_BY_VARIANT)
+SCREEN_BY = SUPERVISED + ("entropy", SHORT)
 DEFAULT_SCREEN_BY = "logme"
 # Grafted whatever the screen says: the known-answer anchors (all the information in the images,
 # none of it) every ranking of a --screen run is read against.
@@ -165,6 +166,22 @@ class ScreenOptions:
 
     keep: int | None
     by: str = DEFAULT_SCREEN_BY
+
+
+@dataclass(frozen=True)
+class ShortScores:
+    """An encoder's short-graft score for `select_for_graft`: its normalised held-out MSE at the
+    ranking fraction, mean over seeds (lower is better; the score is -MSE, higher is better)."""
+
+    encoder: str
+    mse: Measure
+
+    def score(self, proxy: str) -> Measure:
+        return -self.mse if is_defined(self.mse) else self.mse
+
+
+def _shown(by: str, score: float) -> str:
+    return f"MSE {-score:.4g}" if by == SHORT else f"{score:.4g}"
 
 
 def parse_screen_keep(value: str) -> int | None:
@@ -193,7 +210,8 @@ def select_for_graft(backbone: str, suite: str, screens: list[ScreenScores],
                      options: ScreenOptions, references: tuple[str, ...] = (),
                      failed: dict[str, str] | None = None) -> ScreenSelection:
     """What to graft on `backbone` x `suite`: the `options.keep` best non-reference screens by
-    `options.by` (higher is better; ties: the encoder name), every reference, and each dropped
+    `options.by` (anything with `.encoder` and `.score(by)`: ScreenScores, or ShortScores for
+    --screen-by short; higher is better; ties: the encoder name), every reference, and each dropped
     encoder with why: its rank and score, its undefined score's reason, or its screen's failure
     (`failed`: {encoder: error}). keep > screened is allowed and noted."""
     by, keep = parse_screen_by(options.by), options.keep
@@ -207,6 +225,7 @@ def select_for_graft(backbone: str, suite: str, screens: list[ScreenScores],
     note = (f"--screen-keep {keep} is more than the {len(ranked)} encoder(s) with a defined "
             f"{by} score: all are grafted" if keep is not None and keep > len(ranked) else None)
     for rank, (encoder, score) in enumerate(ranked[count:], start=count + 1):
-        dropped[encoder] = f"{by} rank {rank} of {len(ranked)} ({score:.4g}), below the top {count}"
+        dropped[encoder] = (f"{by} rank {rank} of {len(ranked)} ({_shown(by, score)}), below "
+                            f"the top {count}")
     kept = tuple(e for e, _ in ranked[:count])
     return ScreenSelection(backbone, suite, by, keep, kept, tuple(references), dropped, note)

@@ -6,6 +6,11 @@ screen the selection needs that no case ran (deselected with -k, or run on anoth
 is resumed from the store or measured by the same code. An encoder that fails to build or
 extract leaves a ScreenFailure with its one-line reason; the other screens go on, and the
 selection drops it with that reason.
+
+Under `--screen-by short` the selection waits for the short grafts (kind short_graft, variant
+SHORT_BY_VARIANT) of every listed encoder and seed instead: each is run or resumed through
+`run_cell` (the session's own `run`: the same plan, store and records as its
+`test_short_graft` case); one that fails drops its encoder with the failure's line.
 """
 
 from __future__ import annotations
@@ -13,10 +18,16 @@ from __future__ import annotations
 import time
 from typing import Callable
 
+import pytest
+
+from bench.grid.cells import CellSpec
+from bench.grid.kinds import SHORT_BY_VARIANT, SHORT_GRAFT
 from bench.progress import say
 from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
                                   new_screen_record, screen_id)
-from bench.run.screen import REFERENCES, ScreenOptions, screen_features, select_for_graft
+from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions, ShortScores, screen_features,
+                              select_for_graft)
+from bench.stats import Undefined
 
 MEASURED, RESUMED = "measured", "resumed"
 DROPPED = "dropped by the screen: "  # the skip line of a cell the screen dropped
@@ -42,9 +53,11 @@ class ScreenRun:
     """Screens and selections of one run. `workspace`: a callable giving the (lazy) workspace."""
 
     def __init__(self, options: ScreenOptions, profile, store, workspace: Callable, *,
-                 feature_dtype: str, rerun: bool = False) -> None:
+                 feature_dtype: str, rerun: bool = False,
+                 run_cell: Callable | None = None) -> None:
         self.options, self.profile, self.store = options, profile, store
         self.workspace, self.feature_dtype, self.rerun = workspace, feature_dtype, rerun
+        self.run_cell = run_cell  # CellSpec -> Record (the session's run), for --screen-by short
         self.outcomes: dict[str, str] = {}  # screen id -> measured | resumed | failed: line
         self.dropped: dict[str, str] = {}  # cell id -> why the screen dropped it
         self._screens: dict[str, ScreenRecord | ScreenFailure] = {}
@@ -76,9 +89,10 @@ class ScreenRun:
         if isinstance(item, ScreenFailure):
             text = f"screen {sid}: FAILED {item.error}"
         else:
-            gain = item.scores.score(self.options.by)
+            by = DEFAULT_SCREEN_BY if self.options.by == SHORT else self.options.by  # a proxy
+            gain = item.scores.score(by)
             shown = f"{gain:.4g}" if isinstance(gain, float) else str(gain)
-            text = (f"screen {sid}: {self.options.by} gain {shown} ({item.feature_seconds:.1f} s "
+            text = (f"screen {sid}: {by} gain {shown} ({item.feature_seconds:.1f} s "
                     f"features, {item.scores.seconds:.1f} s screen)")
         say(self.workspace().progress, text)
 
@@ -87,11 +101,14 @@ class ScreenRun:
         (missing ones measured here), stored for the report, once per run."""
         key = (backbone, suite)
         if key not in self._selections:
-            items = [self.screen(backbone, suite, e) for e in self.profile.encoders]
-            chosen = select_for_graft(
-                backbone, suite, [i.scores for i in items if isinstance(i, ScreenRecord)],
-                self.options, tuple(e for e in self.profile.encoders if e in REFERENCES),
-                {i.encoder: i.error for i in items if isinstance(i, ScreenFailure)})
+            references = tuple(e for e in self.profile.encoders if e in REFERENCES)
+            if self.options.by == SHORT:
+                scores, failed = self.short_scores(backbone, suite), {}
+            else:
+                items = [self.screen(backbone, suite, e) for e in self.profile.encoders]
+                scores = [i.scores for i in items if isinstance(i, ScreenRecord)]
+                failed = {i.encoder: i.error for i in items if isinstance(i, ScreenFailure)}
+            chosen = select_for_graft(backbone, suite, scores, self.options, references, failed)
             self.store.write_selection(chosen)
             self._selections[key] = chosen
             say(self.workspace().progress,
@@ -100,6 +117,25 @@ class ScreenRun:
                 "references "
                 f"{', '.join(chosen.references) or 'none'}; dropped {len(chosen.dropped)}")
         return self._selections[key]
+
+    def short_scores(self, backbone: str, suite: str) -> list[ShortScores]:
+        """Each listed non-reference encoder's short graft at SHORT_BY_VARIANT, normalised MSE
+        mean over the seeds: every one run or resumed here first (through `run_cell`)."""
+        if self.run_cell is None:
+            raise RuntimeError("--screen-by short needs the session's run_cell")
+        out = []
+        for encoder in (e for e in self.profile.encoders if e not in REFERENCES):
+            mses, error = [], None
+            for seed in self.profile.seeds:
+                cell = CellSpec(SHORT_GRAFT, backbone, suite, seed, encoder, SHORT_BY_VARIANT)
+                try:
+                    mses.append(self.run_cell(cell).mse_in())
+                except (Exception, pytest.fail.Exception) as e:  # noqa: BLE001 - the rest go on
+                    error = " ".join(str(e).split()) or type(e).__name__
+                    break
+            out.append(ShortScores(encoder, Undefined(f"its short graft failed: {error}")
+                                   if error else sum(mses) / len(mses)))
+        return out
 
     def note_report(self, case_id: str, report) -> None:
         """What a pytest report says of a screen case (its outcome, a property) or of a cell the
@@ -120,7 +156,8 @@ class ScreenRun:
     def dropped_reason(self, cell) -> str | None:
         """Why the screen drops `cell` (a cell of a listed, non-reference encoder that was not
         kept), else None. Cells without an encoder (native, native_wrapped) always run."""
-        if cell.encoder is None or cell.encoder not in self.profile.encoders:
+        if (cell.encoder is None or cell.encoder not in self.profile.encoders
+                or cell.spec.tier):  # a tier runs for every screened encoder
             return None
         chosen = self.selection(cell.backbone, cell.suite)
         if chosen.grafts(cell.encoder):
