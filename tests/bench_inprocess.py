@@ -41,17 +41,33 @@ def lent(session):
                           rollouts=session.rollouts, feature_dtype=session.feature_dtype)
 
 
+def report_without_figures(results_dir, path, extra_sections=()):
+    """The session's report, its PNG figures left out (`python -m bench.report --no-plots`)."""
+    from bench.report.build import build_report
+
+    return build_report(results_dir, path, extra_sections=list(extra_sections), plots=False)
+
+
 class _LendWorkspace:
+    def __init__(self, figures: bool) -> None:
+        self.figures = figures
+
     @pytest.hookimpl(trylast=True)  # after bench.plugin built the session
     def pytest_configure(self, config):
-        config.stash[SESSION_KEY].workspace_factory = lent
+        session = config.stash[SESSION_KEY]
+        session.workspace_factory = lent
+        if not self.figures:
+            session.report_builder = report_without_figures
 
 
-def run_bench(*args: str, shared: bool = True, env: dict[str, str | None] | None = None) -> BenchRun:
+def run_bench(*args: str, shared: bool = True, figures: bool = False,
+              env: dict[str, str | None] | None = None) -> BenchRun:
     """`pytest bench -p no:cacheprovider *args` in this process; `env` sets (None: unsets)
-    variables for the run. Torch's thread count is restored afterwards."""
+    variables for the run. Torch's thread count is restored afterwards. Shared runs draw the
+    report's figures only with `figures=True` (~1.2 s a report; the figures have their own
+    tests in test_report and the screen modules, and the ~30 in-process runs check text)."""
     threads = torch.get_num_threads()
-    plugins = [_LendWorkspace()] if shared else []
+    plugins = [_LendWorkspace(figures)] if shared else []
     out, err = io.StringIO(), io.StringIO()
     with pytest.MonkeyPatch.context() as patch:
         for name, value in (env or {}).items():

@@ -33,7 +33,7 @@ def keep_two(tmp_path_factory):
     where = ("--results-dir", str(folder / "results"), "--report", str(folder / "REPORT.md"))
     screens = run_bench(*where, *ARGS, "-k", "test_screen")
     screens_report = (folder / "REPORT.md").read_text() if (folder / "REPORT.md").exists() else ""
-    first = run_bench(*where, *ARGS, "--screen-keep", "2")
+    first = run_bench(*where, *ARGS, "--screen-keep", "2", figures=True)
     again = run_bench(*where, *ARGS, "--screen-keep", "2")
     return folder, first, again, (screens, screens_report)
 

@@ -59,7 +59,7 @@ def by_short(tmp_path_factory):
     folder = tmp_path_factory.mktemp("short")
     where = ("--results-dir", str(folder / "results"), "--report", str(folder / "REPORT.md"))
     grafts_only = run_bench(*where, *ARGS, "-k", "test_graft")
-    whole = run_bench(*where, *ARGS)
+    whole = run_bench(*where, *ARGS, figures=True)
     return folder, grafts_only, whole
 
 
