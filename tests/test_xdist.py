@@ -57,7 +57,7 @@ def serial_and_parallel(tmp_path_factory, one_torch_thread):
     root = tmp_path_factory.mktemp("xdist")
     serial = root / "serial"
     done = run_bench(*SLICE, "-q", "--results-dir", str(serial), "--report",
-                     str(serial / "REPORT.md"), env={"GRAFTBENCH_QUIET": "1"})
+                     str(serial / "REPORT.md"), figures=True, env={"GRAFTBENCH_QUIET": "1"})
     assert done.returncode == 0, done.stdout[-3000:]
     serial_out = done.stdout
     parallel_out = run_grid(root / "parallel", "-n", "2", "-v")
