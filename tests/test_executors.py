@@ -28,16 +28,6 @@ SLICE = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels,bli
          "--seeds", "0", "--controls", "none", "--steps", "5"]
 
 
-def run_grid(results: Path, *extra: str) -> subprocess.CompletedProcess:
-    """`pytest bench` on the cheap slice in a subprocess, results and report under `results`."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1", "HF_HUB_OFFLINE": "1"}
-    cmd = [sys.executable, "-m", "pytest", "bench", "-q", "-p", "no:randomly",
-           "-p", "no:cacheprovider", *SLICE, "--results-dir", str(results), "--report", str(results / "REPORT.md"), *extra]
-    done = subprocess.run(cmd, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    return done
-
-
 def records(results: Path) -> dict[str, dict]:
     return {p.stem: json.loads(p.read_text()) for p in sorted((results / "cells").glob("*.json"))}
 
@@ -48,20 +38,24 @@ def measured(record: dict) -> dict:
     return {k: record[k] for k in keys}
 
 
-@pytest.mark.slow  # three fresh interpreters: the controller and two submitit tasks
+@pytest.mark.slow  # two fresh interpreters: the submitit tasks
 def test_submitit_local_gives_the_local_records(tmp_path, bench_cli, one_torch_thread):
-    """The local reference runs in this process (one torch thread, as the tasks' OMP_NUM_THREADS=1),
-    the submitit run in fresh interpreters: same numbers."""
+    """The local reference and the submitit controller run in this process (one torch thread, as
+    the tasks' OMP_NUM_THREADS=1); the cells of the submitit run in its tasks' fresh
+    interpreters: same numbers."""
     local_run = bench_cli(tmp_path / "local", *SLICE, "-q")
     assert local_run.returncode == 0, local_run.stdout[-3000:]
-    done = run_grid(tmp_path / "submitit", "--executor", "submitit-local")
-    local, submitted = records(tmp_path / "local" / "results"), records(tmp_path / "submitit")
+    done = bench_cli(tmp_path / "submitit", *SLICE, "-q", "--executor", "submitit-local",
+                     env={"OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1", "HF_HUB_OFFLINE": "1"})
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    local = records(tmp_path / "local" / "results")
+    submitted = records(tmp_path / "submitit" / "results")
     assert sorted(local) == sorted(submitted) == ["pi05-spatial-blind-seed0",
                                                   "pi05-spatial-pixels-seed0"]
     for cell_id in local:
         assert measured(submitted[cell_id]) == measured(local[cell_id]), cell_id
     # Each cell ran in its own submitit task (a log folder per job), not in the pytest process.
-    logs = list((tmp_path / "submitit" / "submitit").glob("*_result.pkl"))
+    logs = list((tmp_path / "submitit" / "results" / "submitit").glob("*_result.pkl"))
     assert len(logs) == 2, done.stdout[-2000:]
 
 

@@ -100,15 +100,26 @@ def test_removing_any_one_artifact_makes_the_preflight_name_exactly_it(in_world,
         assert absent[0].fix.startswith("hf download ") and repo_id in absent[0].fix
 
 
-@pytest.mark.slow  # `pytest bench` in a fresh interpreter that reads the world at import
+@pytest.mark.slow  # the -n 2 case: `pytest bench` in fresh interpreters (xdist's workers)
 @pytest.mark.parametrize("extra", [(), ("-n", "2")], ids=["serial", "xdist"])
-def test_a_missing_artifact_stops_the_run_in_one_line_before_any_cell(world, tmp_path, extra):
-    """Under -n the xdist controller collects nothing: it checks what its workers collected."""
+def test_a_missing_artifact_stops_the_run_in_one_line_before_any_cell(world, tmp_path, extra,
+                                                                      request):
+    """Under -n the xdist controller collects nothing: it checks what its workers collected.
+    The serial run stops at start-up, before anything reads the hub: it runs in this process,
+    looking at the world (`in_world`)."""
     tokenizer = _artifact_paths(Path(world["HF_HUB_CACHE"]))["google/paligemma-3b-pt-224"]
     aside = tmp_path / "aside"
     shutil.move(tokenizer, aside)
     try:
-        out = run_bench(world, tmp_path, *extra)
+        if extra:
+            out = run_bench(world, tmp_path, *extra)
+        else:
+            from tests.bench_inprocess import run_bench as run_here
+
+            request.getfixturevalue("in_world")
+            out = run_here(*SLICE, "-q", "--results-dir", str(tmp_path / "results"),
+                           "--report", str(tmp_path / "REPORT.md"), shared=False,
+                           env={**world, "GRAFTBENCH_QUIET": "1"})
     finally:
         shutil.move(aside, tokenizer)
     assert out.returncode == 4, out.stdout[-2000:]  # pytest's usage error: nothing ran
