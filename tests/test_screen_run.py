@@ -26,15 +26,20 @@ ARGS = ("--screen", "--encoders", ",".join(("pixels", "blind") + SCREENED), "--b
 
 @pytest.fixture(scope="module")
 def keep_two(tmp_path_factory):
-    """On one results dir: the screens alone (-k), then a --screen-keep 2 run, then its rerun."""
+    """On one results dir: the screens alone (-k), then a --screen-keep 2 run naming a
+    calibration study (fabricated: 7 encoders, a perfect screen), then its rerun."""
     from tests.bench_inprocess import run_bench
+    from tests.factories import make_calibration_study
 
     folder = tmp_path_factory.mktemp("screen")
     where = ("--results-dir", str(folder / "results"), "--report", str(folder / "REPORT.md"))
     screens = run_bench(*where, *ARGS, "-k", "test_screen")
     screens_report = (folder / "REPORT.md").read_text() if (folder / "REPORT.md").exists() else ""
-    first = run_bench(*where, *ARGS, "--screen-keep", "2", figures=True)
-    again = run_bench(*where, *ARGS, "--screen-keep", "2")
+    make_calibration_study(folder / "calib", {f"timm:model_{i}": 0.05 + 0.01 * i
+                                              for i in range(7)})
+    top_two = ("--screen-keep", "2", "--screen-calibration", str(folder / "calib"))
+    first = run_bench(*where, *ARGS, *top_two, figures=True)
+    again = run_bench(*where, *ARGS, *top_two)
     return folder, first, again, (screens, screens_report)
 
 
@@ -82,6 +87,19 @@ def test_the_report_shows_the_screen_its_cost_and_what_it_dropped(keep_two):
     assert "not measured: 4 encoder(s) have both the logme score" in section  # < 6: no agreement
     assert "logme rank 3 of 3" in section and "references pixels, blind" in section
     assert "screen_scatter.png" in section
+
+
+def test_the_top_k_report_quotes_the_calibration_study_it_names(keep_two):
+    folder, _, _, _ = keep_two
+    [chosen] = load_results(folder / "results").selections
+    assert chosen.calibration == str((folder / "calib").resolve())
+    text = (folder / "REPORT.md").read_text()
+    part = text[text.index("**The agreement of the calibration study this run names**"):]
+    part = part[:part.index("\n## ", 1)]
+    assert f"as measured by the calibration study `{chosen.calibration}` over its 7" in part
+    assert "0 of this run's 5 encoder(s) are among them" in part  # said, not hidden
+    logme = next(line for line in part.splitlines() if "| logme " in line)
+    assert [c.strip() for c in logme.strip("|").split("|")][3:5] == ["7", "1 [1, 1]"]  # tau-b
 
 
 def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, tmp_path):

@@ -16,6 +16,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bench.grid.kinds import GRAFT
 from bench.results.current import RunConditions, is_current
 from bench.results.record import Failure, Record
 from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
@@ -139,6 +140,24 @@ def _load_screens(root: Path, results: Results) -> None:
             results.selections.append(ScreenSelection.from_json(_read_json(path)))
         except (OSError, ValueError) as err:
             results.skipped.append((str(path.relative_to(root)), f"{type(err).__name__}: {err}"))
+
+
+def load_calibration(results_dir: str | Path) -> Results:
+    """The results of a calibration study (a `--screen --screen-keep all` run's results dir):
+    ValueError, one line, when the folder is missing, holds no finished screen, or holds no
+    graft record of an encoder it screened on the same backbone x suite (nothing to agree with)."""
+    root = Path(results_dir)
+    if not root.is_dir():
+        raise ValueError("no such results dir")
+    results = load_results(root)
+    if not results.screens:
+        raise ValueError(f"no screen record there ({SCREENS}/*.json: it was not a --screen run)")
+    screened = {(s.scores.backbone, s.scores.suite, s.scores.encoder) for s in results.screens}
+    if not any(r.kind == GRAFT and (r.backbone, r.suite, r.encoder) in screened
+               for r in results.records):
+        raise ValueError(f"{len(results.screens)} screen(s) but no graft of a screened encoder "
+                         f"there ({CELLS}/*.json): no agreement to quote")
+    return results
 
 
 def load_failure(results_dir: str | Path, cell_id: str) -> Failure | None:
