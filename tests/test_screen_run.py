@@ -135,6 +135,31 @@ def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, 
     assert store.current_screen("smolvla-spatial-blind", other_dtype) is None
 
 
+def test_a_screen_another_worker_is_measuring_is_waited_for_and_resumed(tiny_ws, tmp_path):
+    """-n N: a worker whose selection needs a screen that another worker is measuring waits on
+    the screen's lock (ResultStore.screen_lock), then resumes what that worker stored."""
+    import threading
+
+    from bench.results.screen import ScreenScores, new_screen_record
+
+    store = ResultStore(tmp_path)
+    profile = dataclasses.replace(TINY, encoders=("pixels", "blind"))
+    run = ScreenRun(ScreenOptions(None), profile, store, lambda: tiny_ws, feature_dtype="fp16")
+    theirs = ScreenScores("blind", "smolvla", "spatial", seconds=9.0)
+    theirs.proxies = {p: {"gain": 0.0} for p in ("logme", "ridge", "knn")}
+    theirs = new_screen_record(theirs, run.conditions("smolvla", "spatial"), 1.0)
+    got = []
+    waiter = threading.Thread(target=lambda: got.append(run.screen("smolvla", "spatial", "blind")))
+    with store.screen_lock(theirs.screen_id):  # the other worker, measuring
+        waiter.start()
+        waiter.join(timeout=0.5)
+        assert waiter.is_alive(), run.outcomes  # it waits rather than measuring
+        store.write_screen(theirs)
+    waiter.join(timeout=60)
+    assert run.outcomes == {theirs.screen_id: "resumed"}
+    assert got[0].to_json() == theirs.to_json()
+
+
 def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path):
     """pixels_res8..1, blind (encoders.known.LADDER): information falls by construction,
     and every supervised proxy recovers that order exactly; the entropy is only measured."""

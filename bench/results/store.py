@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import tempfile
@@ -281,6 +283,20 @@ class ResultStore:
         """The stored finished screen `sid` when measured under `conditions`, else None."""
         item = self.load_screen(sid)
         return item if isinstance(item, ScreenRecord) and item.conditions == conditions else None
+
+    @contextlib.contextmanager
+    def screen_lock(self, sid: str):
+        """Held while screen `sid` is looked up and measured: another process on this results
+        dir (an xdist worker whose graft selection needs the same screen) waits, then finds it
+        stored instead of measuring it twice. The kernel releases it if the process dies."""
+        path = _screen_file(self.root, sid)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path.with_name(f".{path.stem}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(fd)
 
     def write_screen(self, item: ScreenRecord | ScreenFailure) -> Path:
         """A finished screen, or a failed one (replaced by the next success)."""

@@ -73,16 +73,19 @@ class ScreenRun:
         sid = screen_id(backbone, suite, encoder)
         if sid not in self._screens:
             conditions = self.conditions(backbone, suite)
-            stored = None if self.rerun else self.store.current_screen(sid, conditions)
-            if stored is not None:
-                self._screens[sid], self.outcomes[sid] = stored, RESUMED
-            else:
+            # Under -n N a worker's selection may need a screen another worker is measuring
+            # (its case, or its own selection): the lock makes it wait and resume that one.
+            with self.store.screen_lock(sid):
+                stored = None if self.rerun else self.store.current_screen(sid, conditions)
+                if stored is not None:
+                    self._screens[sid], self.outcomes[sid] = stored, RESUMED
+                    return stored
                 item = measure_screen(self.workspace(), encoder, backbone, suite, conditions)
                 self.store.write_screen(item)
-                self._screens[sid] = item
-                self.outcomes[sid] = (MEASURED if isinstance(item, ScreenRecord)
-                                      else f"failed: {item.error}")
-                self._say(sid, item)
+            self._screens[sid] = item
+            self.outcomes[sid] = (MEASURED if isinstance(item, ScreenRecord)
+                                  else f"failed: {item.error}")
+            self._say(sid, item)
         return self._screens[sid]
 
     def _say(self, sid: str, item) -> None:
