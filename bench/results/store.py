@@ -202,6 +202,19 @@ class EpisodeLog:
         self.path.unlink(missing_ok=True)
 
 
+@contextlib.contextmanager
+def _exclusive(lock_file: Path):
+    """An exclusive flock on `lock_file` (created), released on exit or by the kernel when the
+    process dies."""
+    lock_file.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
 class ResultStore:
     """A writable results dir (layout: module docstring). A failure file is never used to skip
     work; a successful write clears it."""
@@ -284,19 +297,17 @@ class ResultStore:
         item = self.load_screen(sid)
         return item if isinstance(item, ScreenRecord) and item.conditions == conditions else None
 
-    @contextlib.contextmanager
     def screen_lock(self, sid: str):
         """Held while screen `sid` is looked up and measured: another process on this results
         dir (an xdist worker whose graft selection needs the same screen) waits, then finds it
-        stored instead of measuring it twice. The kernel releases it if the process dies."""
+        stored instead of measuring it twice."""
         path = _screen_file(self.root, sid)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path.with_name(f".{path.stem}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX)
-            yield
-        finally:
-            os.close(fd)
+        return _exclusive(path.with_name(f".{path.stem}.lock"))
+
+    def cell_lock(self, cell_id: str):
+        """Held while a short graft (a tier cell) is planned and run: under -n N a worker's
+        --screen-by short selection and another worker's case may both want it."""
+        return _exclusive(self.root / CELLS / f".{cell_id}.lock")
 
     def write_screen(self, item: ScreenRecord | ScreenFailure) -> Path:
         """A finished screen, or a failed one (replaced by the next success)."""
