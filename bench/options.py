@@ -87,6 +87,10 @@ def _add_screen_options(g) -> None:
                 help="with --screen: the proxy that ranks them, logme (default), ridge, knn, "
                      "entropy, or short (the 1/4-steps short graft's MSE, lower is better: the "
                      "selection then waits for every short graft)")
+    g.addoption("--screen-calibration", metavar="RESULTS_DIR",
+                help="with --screen: the results dir of a calibration study (a --screen "
+                     "--screen-keep all run) whose agreement with the graft the report quotes "
+                     "beside this run's selection")
 
 
 DEFAULT_SCREEN_KEEP = 3
@@ -96,8 +100,10 @@ def screen_options(config: pytest.Config, profile):
     """(the profile with the references added to its encoders, the run's ScreenOptions or None,
     lines to print): --screen, --screen-keep, --screen-by checked, each bad one a UsageError."""
     keep, by = config.getoption("--screen-keep"), config.getoption("--screen-by")
+    calibration = config.getoption("--screen-calibration")
     if not config.getoption("--screen"):
-        given = [(o, v) for o, v in (("--screen-keep", keep), ("--screen-by", by)) if v is not None]
+        given = [(o, v) for o, v in (("--screen-keep", keep), ("--screen-by", by),
+                                     ("--screen-calibration", calibration)) if v is not None]
         if given:
             option, value = given[0]
             raise pytest.UsageError(f"{option} {value}: it chooses what a screen keeps, and "
@@ -110,7 +116,8 @@ def screen_options(config: pytest.Config, profile):
 
     try:
         options = ScreenOptions(parse_screen_keep(keep) if keep is not None else DEFAULT_SCREEN_KEEP,
-                                parse_screen_by(by) if by is not None else DEFAULT_SCREEN_BY)
+                                parse_screen_by(by) if by is not None else DEFAULT_SCREEN_BY,
+                                _calibration(calibration) if calibration is not None else None)
     except ValueError as e:
         raise pytest.UsageError(str(e)) from None
     executor = config.getoption("--executor")
@@ -129,6 +136,19 @@ def screen_options(config: pytest.Config, profile):
         lines.append(f"[graftbench] --screen-keep {options.keep} is more than the "
                      f"{len(screened)} listed encoder(s) (references aside): all are grafted")
     return (dataclasses.replace(profile, encoders=profile.encoders + added), options, lines)
+
+
+def _calibration(value: str) -> str:
+    """--screen-calibration's folder, absolute (the selection stores it for the report), once
+    bench.results.store.load_calibration finds a calibration study there."""
+    from bench.results.store import load_calibration
+
+    try:
+        load_calibration(value)
+    except ValueError as e:
+        raise ValueError(f"--screen-calibration {value}: {e}; fix: name the --results-dir of a "
+                         "`pytest bench --screen --screen-keep all` run, or drop the option") from None
+    return str(Path(value).resolve())
 
 
 def _add_executor_options(g) -> None:

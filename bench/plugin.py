@@ -88,6 +88,10 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
     gs: GraftSession = config.stash[SESSION_KEY]
     backbone_of = {c.id: c.backbone
                    for c in grid_cells(gs.profile, gs.screen_options is not None)}
+    if gs.screen_options is not None:
+        # A screen loads its backbone (normaliser, native grid), and the backbone's selection
+        # reads every screen: screens go with the backbone's first group, ahead of its cells.
+        backbone_of |= {c.id: c.backbone for c in screen_cases(gs.profile)}
 
     class BackboneScheduling(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:

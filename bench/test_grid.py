@@ -44,7 +44,7 @@ def test_screen(screen_case, graft_session, record_property):
 def test_short_graft(tier_cell, graft_session, record_property):
     """--screen only, after the screens and before the grafts: the graft at a fraction of its
     steps (bench.grid.kinds short_graft), for every listed encoder whatever the selection."""
-    _check_record(graft_session.run(tier_cell), tier_cell)
+    _check_record(graft_session.screening.run_tier(tier_cell), tier_cell)
     record_property(OUTCOME_PROPERTY, graft_session.outcomes.get(tier_cell.id))
 
 

@@ -119,3 +119,23 @@ def make_grid(levels: dict[tuple[str, str, str], float], seeds: tuple[int, ...] 
 def save_record(results_dir: str | Path, record: Record | Failure) -> Path:
     """Write one record (cells/) or failure (failed/) through the store."""
     return ResultStore(results_dir).save(record)
+
+
+def make_calibration_study(results_dir: str | Path, levels: dict[str, float],
+                           seeds: tuple[int, ...] = (0, 1), backbone: str = "smolvla",
+                           suite: str = "spatial") -> ResultStore:
+    """A `--screen --screen-keep all` results dir, fabricated: per encoder a graft record at
+    `levels[encoder]` per seed (noise 0.001) and a screen whose every supervised proxy's gain is
+    -level (a perfect screen: tau-b 1), entropy 0.9 (all tie)."""
+    from bench.results.screen import ScreenConditions, ScreenScores, new_screen_record
+
+    store = ResultStore(results_dir)
+    for encoder, level in levels.items():
+        for seed in seeds:
+            store.write(make_record(backbone=backbone, suite=suite, encoder=encoder, seed=seed,
+                                    level=level, noise=0.001))
+        screen = ScreenScores(encoder, backbone, suite, seconds=0.5, entropy=0.9)
+        screen.proxies = {p: {"state": 0.1, "state+features": 0.1 - level, "gain": -level}
+                          for p in ("logme", "ridge", "knn")}
+        store.write_screen(new_screen_record(screen, ScreenConditions("h", "f", "fp16"), 2.0))
+    return store

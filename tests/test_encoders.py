@@ -103,10 +103,13 @@ def test_timm_prefix_builds_any_timm_model():
     spec = get_spec("timm:resnet18")
     assert spec.layout == "map" and spec.timm_name == "resnet18" and spec.input_size == 224
     enc = build_encoder("timm:resnet18", "tiny")
-    grid = enc(torch.rand(1, 3, 64, 64))  # resized to 224 inside
-    assert grid.shape == (1, 512, 7, 7)
+    assert enc.input_size == spec.tiny_input_size == 64  # the tiny profile's size; hub: 224
+    grid = enc(torch.rand(1, 3, 64, 64))
+    assert grid.shape == (1, 512, 2, 2)
     vit = get_spec("timm:vit_small_patch14_dinov2")
     assert vit.layout == "tokens" and vit.num_prefix_tokens == 1
+    tiny_vit = build_encoder("timm:vit_tiny_patch16_224", "tiny")  # pos-embed built for 64 px
+    assert tiny_vit(torch.rand(1, 3, 64, 64)).shape == (1, 192, 4, 4)
 
 
 def _fake_hub_cache(root, repo_id: str, state_dict: dict, sha: str = "0") -> None:

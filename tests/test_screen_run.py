@@ -26,15 +26,22 @@ ARGS = ("--screen", "--encoders", ",".join(("pixels", "blind") + SCREENED), "--b
 
 @pytest.fixture(scope="module")
 def keep_two(tmp_path_factory):
-    """On one results dir: the screens alone (-k), then a --screen-keep 2 run, then its rerun."""
+    """On one results dir: the screens alone (-k), then a --screen-keep 2 run naming a
+    calibration study (fabricated: 5 encoders, a perfect screen; under 6 its agreement is "not
+    measured", which spares this run the 2,000-resample bootstrap, ~3.4 s: the measured numbers
+    are test_tiers' calibration test), then its rerun."""
     from tests.bench_inprocess import run_bench
+    from tests.factories import make_calibration_study
 
     folder = tmp_path_factory.mktemp("screen")
     where = ("--results-dir", str(folder / "results"), "--report", str(folder / "REPORT.md"))
     screens = run_bench(*where, *ARGS, "-k", "test_screen")
     screens_report = (folder / "REPORT.md").read_text() if (folder / "REPORT.md").exists() else ""
-    first = run_bench(*where, *ARGS, "--screen-keep", "2", figures=True)
-    again = run_bench(*where, *ARGS, "--screen-keep", "2")
+    make_calibration_study(folder / "calib", {f"timm:model_{i}": 0.05 + 0.01 * i
+                                              for i in range(5)})
+    top_two = ("--screen-keep", "2", "--screen-calibration", str(folder / "calib"))
+    first = run_bench(*where, *ARGS, *top_two, figures=True)
+    again = run_bench(*where, *ARGS, *top_two)
     return folder, first, again, (screens, screens_report)
 
 
@@ -84,6 +91,19 @@ def test_the_report_shows_the_screen_its_cost_and_what_it_dropped(keep_two):
     assert "screen_scatter.png" in section
 
 
+def test_the_top_k_report_quotes_the_calibration_study_it_names(keep_two):
+    folder, _, _, _ = keep_two
+    [chosen] = load_results(folder / "results").selections
+    assert chosen.calibration == str((folder / "calib").resolve())
+    text = (folder / "REPORT.md").read_text()
+    part = text[text.index("**The agreement of the calibration study this run names**"):]
+    part = part[:part.index("\n## ", 1)]
+    assert f"as measured by the calibration study `{chosen.calibration}` over its 5" in part
+    assert "0 of this run's 5 encoder(s) are among them" in part  # said, not hidden
+    logme = next(line for line in part.splitlines() if "| logme " in line)
+    assert "not measured: 5 encoder(s) have both the logme score" in logme  # the study's own
+
+
 def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, tmp_path):
     class OneEncoderBreaks:
         """The tiny workspace, except that dinov2_s's extraction fails."""
@@ -115,6 +135,31 @@ def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, 
                               "smolvla-spatial-blind": "resumed"}
     other_dtype = dataclasses.replace(later.conditions("smolvla", "spatial"), feature_dtype="bf16")
     assert store.current_screen("smolvla-spatial-blind", other_dtype) is None
+
+
+def test_a_screen_another_worker_is_measuring_is_waited_for_and_resumed(tiny_ws, tmp_path):
+    """-n N: a worker whose selection needs a screen that another worker is measuring waits on
+    the screen's lock (ResultStore.screen_lock), then resumes what that worker stored."""
+    import threading
+
+    from bench.results.screen import ScreenScores, new_screen_record
+
+    store = ResultStore(tmp_path)
+    profile = dataclasses.replace(TINY, encoders=("pixels", "blind"))
+    run = ScreenRun(ScreenOptions(None), profile, store, lambda: tiny_ws, feature_dtype="fp16")
+    theirs = ScreenScores("blind", "smolvla", "spatial", seconds=9.0)
+    theirs.proxies = {p: {"gain": 0.0} for p in ("logme", "ridge", "knn")}
+    theirs = new_screen_record(theirs, run.conditions("smolvla", "spatial"), 1.0)
+    got = []
+    waiter = threading.Thread(target=lambda: got.append(run.screen("smolvla", "spatial", "blind")))
+    with store.screen_lock(theirs.screen_id):  # the other worker, measuring
+        waiter.start()
+        waiter.join(timeout=0.5)
+        assert waiter.is_alive(), run.outcomes  # it waits rather than measuring
+        store.write_screen(theirs)
+    waiter.join(timeout=60)
+    assert run.outcomes == {theirs.screen_id: "resumed"}
+    assert got[0].to_json() == theirs.to_json()
 
 
 def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path):

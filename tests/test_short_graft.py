@@ -134,3 +134,26 @@ def test_screen_by_short_is_accepted_at_start_up_and_collects_the_tier(bench_cli
     assert "test_short_graft[smolvla-spatial-dinov2_s-short_1_4-seed0]" in shorts
     first_graft = next(n for n, i in enumerate(ids) if i.startswith("test_graft["))
     assert max(ids.index(i) for i in shorts) < first_graft  # the tier runs before the grafts
+
+
+def test_a_short_graft_another_worker_is_running_is_waited_for(tmp_path):
+    """-n N --screen-by short: the selection on one worker and the case on another both run a
+    short graft through ScreenRun.run_tier, which holds the cell's lock (ResultStore.cell_lock):
+    the later one waits, then its run resumes what the first stored."""
+    import threading
+
+    from bench.run.screen import ScreenOptions
+    from bench.run.screen_run import ScreenRun
+
+    store = ResultStore(tmp_path)
+    ran = []
+    run = ScreenRun(ScreenOptions(1, "short"), TINY, store, lambda: None, feature_dtype="fp16",
+                    run_cell=lambda cell: ran.append(cell.id) or cell.id)
+    cell = CellSpec(SHORT_GRAFT, "smolvla", "spatial", 0, "pixels", SHORT_BY_VARIANT)
+    waiter = threading.Thread(target=run.run_tier, args=(cell,))
+    with store.cell_lock(cell.id):  # the other worker, training it
+        waiter.start()
+        waiter.join(timeout=0.5)
+        assert waiter.is_alive() and ran == []  # it waits rather than running it
+    waiter.join(timeout=10)
+    assert ran == [cell.id]

@@ -90,6 +90,11 @@ BAD_INPUTS = [
      "--screen-by short with --executor submitit-local", "fix: --executor local"),
     (["--screen-keep", "2"], "--screen-keep 2", "--screen is not given; fix: add --screen"),
     (["--screen-by", "ridge"], "--screen-by ridge", "--screen is not given; fix: add --screen"),
+    (["--screen-calibration", "/tmp"], "--screen-calibration /tmp",
+     "--screen is not given; fix: add --screen"),
+    (["--screen", "--screen-calibration", "/nonexistent/calib", "--collect-only"],
+     "--screen-calibration /nonexistent/calib", "no such results dir; fix: name the --results-dir "
+     "of a `pytest bench --screen --screen-keep all` run"),
 ]
 
 
@@ -103,6 +108,30 @@ def test_a_bad_input_is_one_usage_error_screen_before_collection(bench_run, args
     lines = [line for line in out.screen.splitlines() if line.strip()]
     assert len(lines) <= 3 and lines[0].startswith("ERROR: "), out.screen
     assert "collected" not in out.screen and out.records == []
+
+
+def test_a_calibration_study_without_screens_or_grafts_is_refused(bench_run):
+    """--screen-calibration names a folder that holds no calibration study: no screen at all, or
+    screens without a graft of a screened encoder (the screens of a `-k test_screen` run).
+    --collect-only: were the check gone, these runs would stop after collecting, not run cells."""
+    from bench.results.screen import ScreenConditions, ScreenScores, new_screen_record
+    from bench.results.store import ResultStore
+
+    store = ResultStore(bench_run.path / "calib")
+    out = bench_run("--screen", "--screen-calibration", str(store.root), "--collect-only")
+    assert out.ret == pytest.ExitCode.USAGE_ERROR, out.screen
+    assert out.screen.splitlines()[0] == (
+        f"ERROR: --screen-calibration {store.root}: no screen record there (screens/*.json: it "
+        "was not a --screen run); fix: name the --results-dir of a `pytest bench --screen "
+        "--screen-keep all` run, or drop the option")
+    screen = ScreenScores("pixels", "smolvla", "spatial")
+    screen.proxies = {"logme": {"gain": 0.1}}
+    store.write_screen(new_screen_record(screen, ScreenConditions("h", "f", "fp16"), 1.0))
+    out = bench_run("--screen", "--screen-calibration", str(store.root), "--collect-only")
+    assert out.ret == pytest.ExitCode.USAGE_ERROR, out.screen
+    assert ("1 screen(s) but no graft of a screened encoder there (cells/*.json): no agreement "
+            "to quote; fix:") in out.screen.splitlines()[0]
+    assert out.records == []
 
 
 def test_rollouts_without_the_libero_extra_say_how_to_install_it(monkeypatch):

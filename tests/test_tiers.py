@@ -76,18 +76,10 @@ def test_the_report_section_from_a_store_of_screens(tmp_path):
     """Seven stored screens whose ridge gain orders them as their grafts do, a selection: the
     report's screen section measures the agreement with intervals, and lists what was dropped."""
     from bench.report.build import build_report
-    from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenScores,
-                                      ScreenSelection, new_screen_record)
-    from bench.results.store import ResultStore
+    from bench.results.screen import ScreenFailure, ScreenSelection
+    from tests.factories import make_calibration_study
 
-    store = ResultStore(tmp_path / "results")
-    for record in grafts():
-        store.write(record)
-    for e, level in LEVELS.items():
-        screen = ScreenScores(e, "smolvla", "spatial", seconds=0.5, entropy=0.9)
-        screen.proxies = {p: {"state": 0.1, "state+features": 0.1 - level, "gain": -level}
-                          for p in ("logme", "ridge", "knn")}
-        store.write_screen(new_screen_record(screen, ScreenConditions("h", "f", "fp16"), 2.0))
+    store = make_calibration_study(tmp_path / "results", LEVELS)
     store.write_screen(ScreenFailure("smolvla", "spatial", "timm:broken", "OSError: no file"))
     store.write_selection(ScreenSelection("smolvla", "spatial", "ridge", 2, tuple(ENCODERS[:2]),
                                           ("pixels",), {ENCODERS[6]: "ridge rank 7 of 7 (-0.11)"}))
@@ -99,6 +91,32 @@ def test_the_report_section_from_a_store_of_screens(tmp_path):
     assert "`smolvla-spatial-timm:broken`: OSError: no file" in section
     assert f"dropped `{ENCODERS[6]}`: ridge rank 7 of 7" in section
     assert "screen_scatter.png" in section and (tmp_path / "REPORT_plots" / "screen_scatter.png").is_file()
+    # A top-K selection naming no calibration study says it has none.
+    assert "this top-K run names no calibration study" in section
+
+
+def test_a_top_k_run_quotes_the_calibration_study_it_names_or_why_not(tmp_path):
+    """The report's calibration part (bench.report.screen.calibration_parts): the named study's
+    agreement per backbone x suite with its path; a study without that backbone x suite, or gone
+    since the run, is said in words, never as numbers."""
+    from bench.report.screen import calibration_parts, calibrations
+    from bench.results.screen import ScreenSelection
+    from tests.factories import make_calibration_study
+
+    study = str(make_calibration_study(tmp_path / "calib", LEVELS).root)
+    named = [ScreenSelection("smolvla", "spatial", "logme", 2, ("timm:model_0", "mine"),
+                             ("pixels",), {"other": "logme rank 3 of 3"}, calibration=study),
+             ScreenSelection("pi05", "spatial", "logme", 2, ("a",), (), calibration=study)]
+    [pi05, smolvla] = calibration_parts(named, calibrations(named, n_resamples=50))  # sorted
+    assert f"the calibration study `{study}` over its 7 encoder(s)" in smolvla
+    assert "1 of this run's 4 encoder(s) are among them" in smolvla
+    logme = next(line for line in smolvla.splitlines() if "| logme " in line)
+    assert [c.strip() for c in logme.strip("|").split("|")][3:5] == ["7", "1 [1, 1]"]  # tau-b
+    assert "has no screen on pi05 x spatial" in pi05 and "[" not in pi05
+    moved = [ScreenSelection("smolvla", "spatial", "logme", 2, (), (),
+                             calibration=str(tmp_path / "gone"))]
+    [gone] = calibration_parts(moved, calibrations(moved, 50))
+    assert "could not be read when this report was built (no such results dir)" in gone
 
 
 def test_the_short_graft_tier_against_the_graft_by_hand():

@@ -4,6 +4,8 @@ thread as each worker).
 
 Two backbones, so each xdist worker gets one (`-n` implies `--dist loadgroup`, cells carry
 `xdist_group(backbone)`); the controller alone writes REPORT.md from the shared results store.
+Both runs screen too (`--screen --screen-keep all`, the short-graft tier deselected): a
+backbone's screens run on its worker, each once, and give the serial run's numbers.
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ pytestmark = pytest.mark.slow  # fresh interpreters (docs/TESTING.md: tiers)
 
 # 20 projector steps: what is compared is the bits of two runs, not how well they trained.
 SLICE = ["--backbones", "pi05,smolvla", "--suites", "spatial", "--encoders", "pixels,blind",
-         "--seeds", "0", "--controls", "none", "--steps", "20"]
+         "--seeds", "0", "--controls", "none", "--steps", "20",
+         "--screen", "--screen-keep", "all", "-k", "not test_short_graft"]
 # One torch thread per process in BOTH runs: the thread count must not differ between them.
 ENV = {"OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1", "HF_HUB_OFFLINE": "1"}
 
@@ -44,8 +47,20 @@ def numbers(results: Path) -> dict:
 
 
 def report_before_provenance(results: Path) -> str:
-    """REPORT.md up to its provenance section (paths, timings and dates differ by design)."""
-    return (results / "REPORT.md").read_text().split("## Provenance")[0]
+    """REPORT.md up to its provenance section (paths, timings and dates differ by design), less
+    the screen section (its table and cost give seconds; the screens' numbers: screen_numbers)."""
+    text = (results / "REPORT.md").read_text().split("## Provenance")[0]
+    start = text.index("## Screening many encoders")
+    return text[:start] + text[text.index("\n## ", start + 1):]
+
+
+def screen_numbers(results: Path) -> dict:
+    """{screen id: its proxies, entropy and sizes}: the screen records less their seconds."""
+    out = {}
+    for path in sorted((results / "screens").glob("*.json")):
+        scores = json.loads(path.read_text())["scores"]
+        out[path.stem] = {k: v for k, v in scores.items() if k != "seconds"}
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -78,15 +93,19 @@ def test_parallel_records_equal_serial_records(serial_and_parallel):
 def test_parallel_report_equals_serial_report(serial_and_parallel):
     serial, parallel, _, _ = serial_and_parallel
     assert report_before_provenance(parallel) == report_before_provenance(serial)
+    assert len(screen_numbers(serial)) == 4
+    assert screen_numbers(parallel) == screen_numbers(serial)
     summary = [json.loads((r / "REPORT_summary.json").read_text()) for r in (serial, parallel)]
     assert summary[0] == summary[1]
 
 
 def test_one_backbone_per_worker(serial_and_parallel):
-    """-n implies --dist loadgroup: a backbone's cells share a worker, backbones do not."""
+    """-n implies --dist loadgroup: a backbone's cells and screens share a worker, backbones do
+    not; so each screen is measured once (a worker's selection reads its own screens)."""
     _, _, _, out = serial_and_parallel
+    assert "screens 4: measured 4, resumed from store 0, failed 0" in out, out[-2000:]
     workers: dict[str, set[str]] = {}
-    ran_on = r"\[(gw\d+)\].*PASSED bench/test_grid.py::test_graft\[(\w+)-"
+    ran_on = r"\[(gw\d+)\].*PASSED bench/test_grid.py::test_(?:graft|screen)\[(\w+)-"
     for worker, backbone in re.findall(ran_on, out):
         workers.setdefault(backbone, set()).add(worker)
     assert sorted(workers) == ["pi05", "smolvla"], out[-2000:]

@@ -27,8 +27,8 @@ from bench.results.store import Results, load_results
 from bench.report.closed_loop import closed_loop_section
 from bench.report.context import ReportContext
 from bench.report.provenance import per_task_section, provenance_section
-from bench.report.screen import (SCATTER_TITLE, SECTION_TITLE, scatter_points, screen_agreements,
-                                 screen_section)
+from bench.report.screen import (SCATTER_TITLE, SECTION_TITLE, calibrations, scatter_points,
+                                 screen_agreements, screen_section)
 from bench.report.sections import (
     answer_lines, caveats, controls_section, plots_section,
     rankings_section, seed_section, tie_section, transfer_section, vision_section,
@@ -74,7 +74,9 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
                                               random_seed=random_seed),
                          screen_agreements=screen_agreements(
                              [r.scores for r in results.screens], records, n_resamples,
-                             random_seed))
+                             random_seed),
+                         screen_calibrations=calibrations(results.selections, n_resamples,
+                                                          random_seed))
 
 
 def _guarded(name: str, render: Callable[[ReportContext], str | None],
@@ -166,6 +168,7 @@ def summary(ctx: ReportContext) -> dict:
         "wrapper_neutrality": ctx.wrapper, "controls": ctx.controls,
         "closed_loop": ctx.closed_loop, "vision_use": ctx.vision,
         "screen_agreement": ctx.screen_agreements,
+        "screen_calibration": ctx.screen_calibrations,
         "cells": {"finished": len(ctx.records), "failed": [f.cell_id for f in res.failed],
                   "missing": res.missing, "skipped": res.skipped},
         "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},

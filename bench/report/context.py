@@ -29,6 +29,8 @@ class ReportContext:
     closed_loop: list[ClosedLoop] = field(default_factory=list)
     vision: list[VisionCheck] = field(default_factory=list)
     screen_agreements: list = field(default_factory=list)  # bench.analysis.tiers.TierAgreement
+    # {results dir: bench.report.screen.Calibration} of the studies named by --screen-calibration
+    screen_calibrations: dict = field(default_factory=dict)
 
     @property
     def records(self) -> list[dict]:

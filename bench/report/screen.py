@@ -7,6 +7,7 @@ markdown out; an undefined value prints as "undefined: <reason>", never as a num
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Sequence
 
 from bench.analysis.agreement import STATISTICS, TIE_RULE, Interval, Undefined
@@ -148,11 +149,74 @@ def dropped_lines(selections: Sequence) -> list[str]:
                      f"{', '.join(sel.kept) or 'none'}; references {', '.join(sel.references) or 'none'}"
                      + (f" ({sel.note})" if sel.note else ""))
         lines += [f"  - dropped `{e}`: {why}" for e, why in sorted(sel.dropped.items())]
-        if sel.keep is not None and sel.dropped:
-            lines.append("  - a top-K run grafts only what the screen liked, so it cannot "
-                         "measure the screen: the agreement above is a calibration study's "
-                         "(`--screen-keep all` into these results) or not measured")
     return lines
+
+
+@dataclass
+class Calibration:
+    """A calibration study a selection named (--screen-calibration): its agreements per backbone
+    x suite x tier, its own selections, or why it could not be read when the report was built."""
+
+    path: str
+    agreements: list = field(default_factory=list)  # TierAgreement
+    selections: list = field(default_factory=list)  # ScreenSelection
+    error: str | None = None
+
+
+def calibrations(selections: Sequence, n_resamples: int, seed: int = 0) -> dict[str, Calibration]:
+    """{results dir: Calibration} of every calibration study the selections name: the same
+    agreement as the study's own report (screen_agreements over its screens and records)."""
+    from bench.results.store import load_calibration
+
+    out = {}
+    for path in sorted({s.calibration for s in selections if s.calibration}):
+        try:
+            study = load_calibration(path)
+        except (OSError, ValueError) as e:  # gone or emptied since the run: said, not raised
+            out[path] = Calibration(path, error=str(e))
+            continue
+        out[path] = Calibration(path, screen_agreements([r.scores for r in study.screens],
+                                                        study.records, n_resamples, seed),
+                                study.selections)
+    return out
+
+
+def calibration_parts(selections: Sequence, studies: dict[str, Calibration]) -> list[str]:
+    """Per selection: the agreement of the calibration study it named, or, for a top-K run that
+    named none, that it has none (a top-K run grafts what its screen liked, so it cannot
+    measure the screen itself)."""
+    parts = []
+    for sel in sorted(selections, key=lambda s: (s.backbone, s.suite)):
+        panel = f"**{sel.backbone} x {sel.suite}**"
+        if sel.calibration is None:
+            if sel.keep is not None:
+                parts.append(f"{panel}: this top-K run names no calibration study, so how far "
+                             "its screen can be trusted is not measured here (its grafts are "
+                             "what the screen kept; the agreement above is over them, or not "
+                             "measured). Fix: run `--screen --screen-keep all` into another "
+                             "results dir and name it with `--screen-calibration RESULTS_DIR`.")
+            continue
+        study = studies.get(sel.calibration) or Calibration(sel.calibration, error="not read")
+        where = f"the calibration study `{sel.calibration}`"
+        rows = [a for a in study.agreements if (a.backbone, a.suite) == (sel.backbone, sel.suite)]
+        if study.error is not None:
+            parts.append(f"{panel}: {where} could not be read when this report was built "
+                         f"({study.error}): no agreement quoted.")
+        elif not rows:
+            parts.append(f"{panel}: {where} has no screen on {sel.backbone} x {sel.suite}: it "
+                         "has no agreement for this backbone x suite.")
+        else:
+            covered = {e for a in rows for e in a.encoders}
+            mine = set(sel.kept) | set(sel.dropped) | set(sel.references)
+            own = [s for s in study.selections if (s.backbone, s.suite) == (sel.backbone, sel.suite)
+                   and s.keep is not None]
+            parts.append(f"{panel}, as measured by {where} over its {len(covered)} encoder(s) "
+                         f"with a graft ({', '.join(sorted(covered))}); {len(mine & covered)} of "
+                         f"this run's {len(mine)} encoder(s) are among them"
+                         + (f". That study itself grafted only its screen's best {own[0].keep}: "
+                            "its agreement is over what its screen kept" if own else "")
+                         + ".\n\n" + agreement_table(rows))
+    return parts
 
 
 def screen_section(ctx) -> str | None:
@@ -177,6 +241,10 @@ def screen_section(ctx) -> str | None:
               "**Cost per encoder**", cost_table(res.screens, ctx.records),
               "**What the screen dropped**",
               "\n".join(dropped_lines(res.selections)) or "_No --screen selection stored._"]
+    calibration = calibration_parts(res.selections, ctx.screen_calibrations)
+    if calibration:
+        parts += ["**The agreement of the calibration study this run names** "
+                  "(`--screen-calibration`; its own records, recomputed here)", *calibration]
     scatter = [p for t, p in ctx.plots if t == SCATTER_TITLE]
     if scatter:
         parts.append(f"![{SCATTER_TITLE}]({scatter[0].relative_to(ctx.out_path.parent).as_posix()})")

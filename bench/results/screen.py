@@ -3,7 +3,8 @@
     RESULTS_DIR/screens/<screen_id>.json             one screen: status "ok" (a ScreenRecord)
                                                      or "failed" (a ScreenFailure)
     RESULTS_DIR/screens/selections/<b>-<s>.json      what a --screen run grafted and dropped on
-                                                     backbone b x suite s (a ScreenSelection)
+                                                     backbone b x suite s (a ScreenSelection),
+                                                     and the calibration study it named
 
 A screen id reads as the pytest case: `smolvla-spatial-timm:convnext_atto` (backbone-suite-encoder;
 no seed: a screen trains nothing). bench.results.store reads and writes the files; a screen record
@@ -158,7 +159,9 @@ def _status(data) -> object:
 @dataclass(frozen=True)
 class ScreenSelection:
     """What a --screen run grafts on backbone x suite: the top `keep` (None: all) by `by`, the
-    references always, and every dropped encoder with why (its rank and score, or its failure)."""
+    references always, and every dropped encoder with why (its rank and score, or its failure).
+    `calibration`: the results dir of the calibration study the run named
+    (--screen-calibration), whose agreement the report quotes; None when it named none."""
 
     backbone: str
     suite: str
@@ -168,6 +171,7 @@ class ScreenSelection:
     references: tuple[str, ...]
     dropped: dict = field(default_factory=dict)  # encoder -> one line
     note: str | None = None
+    calibration: str | None = None
 
     def grafts(self, encoder: str) -> bool:
         return encoder in self.kept or encoder in self.references

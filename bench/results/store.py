@@ -10,12 +10,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bench.grid.kinds import GRAFT
 from bench.results.current import RunConditions, is_current
 from bench.results.record import Failure, Record
 from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
@@ -141,6 +144,24 @@ def _load_screens(root: Path, results: Results) -> None:
             results.skipped.append((str(path.relative_to(root)), f"{type(err).__name__}: {err}"))
 
 
+def load_calibration(results_dir: str | Path) -> Results:
+    """The results of a calibration study (a `--screen --screen-keep all` run's results dir):
+    ValueError, one line, when the folder is missing, holds no finished screen, or holds no
+    graft record of an encoder it screened on the same backbone x suite (nothing to agree with)."""
+    root = Path(results_dir)
+    if not root.is_dir():
+        raise ValueError("no such results dir")
+    results = load_results(root)
+    if not results.screens:
+        raise ValueError(f"no screen record there ({SCREENS}/*.json: it was not a --screen run)")
+    screened = {(s.scores.backbone, s.scores.suite, s.scores.encoder) for s in results.screens}
+    if not any(r.kind == GRAFT and (r.backbone, r.suite, r.encoder) in screened
+               for r in results.records):
+        raise ValueError(f"{len(results.screens)} screen(s) but no graft of a screened encoder "
+                         f"there ({CELLS}/*.json): no agreement to quote")
+    return results
+
+
 def load_failure(results_dir: str | Path, cell_id: str) -> Failure | None:
     """The failure file of `cell_id` under `results_dir`; None when absent or unreadable."""
     path = Path(results_dir) / FAILED / f"{cell_id}.json"
@@ -179,6 +200,19 @@ class EpisodeLog:
 
     def clear(self) -> None:
         self.path.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _exclusive(lock_file: Path):
+    """An exclusive flock on `lock_file` (created), released on exit or by the kernel when the
+    process dies."""
+    lock_file.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
 
 
 class ResultStore:
@@ -262,6 +296,18 @@ class ResultStore:
         """The stored finished screen `sid` when measured under `conditions`, else None."""
         item = self.load_screen(sid)
         return item if isinstance(item, ScreenRecord) and item.conditions == conditions else None
+
+    def screen_lock(self, sid: str):
+        """Held while screen `sid` is looked up and measured: another process on this results
+        dir (an xdist worker whose graft selection needs the same screen) waits, then finds it
+        stored instead of measuring it twice."""
+        path = _screen_file(self.root, sid)
+        return _exclusive(path.with_name(f".{path.stem}.lock"))
+
+    def cell_lock(self, cell_id: str):
+        """Held while a short graft (a tier cell) is planned and run: under -n N a worker's
+        --screen-by short selection and another worker's case may both want it."""
+        return _exclusive(self.root / CELLS / f".{cell_id}.lock")
 
     def write_screen(self, item: ScreenRecord | ScreenFailure) -> Path:
         """A finished screen, or a failed one (replaced by the next success)."""

@@ -162,10 +162,13 @@ REFERENCES = ("pixels", "blind")
 
 @dataclass(frozen=True)
 class ScreenOptions:
-    """A --screen run: graft the `keep` best encoders (None: all) by proxy `by`."""
+    """A --screen run: graft the `keep` best encoders (None: all) by proxy `by`; `calibration`:
+    the results dir of the calibration study whose agreement its report quotes (checked at
+    start-up: bench.results.store.load_calibration)."""
 
     keep: int | None
     by: str = DEFAULT_SCREEN_BY
+    calibration: str | None = None
 
 
 @dataclass(frozen=True)
@@ -228,4 +231,5 @@ def select_for_graft(backbone: str, suite: str, screens: list[ScreenScores],
         dropped[encoder] = (f"{by} rank {rank} of {len(ranked)} ({_shown(by, score)}), below "
                             f"the top {count}")
     kept = tuple(e for e, _ in ranked[:count])
-    return ScreenSelection(backbone, suite, by, keep, kept, tuple(references), dropped, note)
+    return ScreenSelection(backbone, suite, by, keep, kept, tuple(references), dropped, note,
+                           options.calibration)

@@ -9,8 +9,8 @@ selection drops it with that reason.
 
 Under `--screen-by short` the selection waits for the short grafts (kind short_graft, variant
 SHORT_BY_VARIANT) of every listed encoder and seed instead: each is run or resumed through
-`run_cell` (the session's own `run`: the same plan, store and records as its
-`test_short_graft` case); one that fails drops its encoder with the failure's line.
+`run_tier` (the session's own `run` under the cell's lock: the same plan, store and records as
+its `test_short_graft` case); one that fails drops its encoder with the failure's line.
 """
 
 from __future__ import annotations
@@ -73,16 +73,19 @@ class ScreenRun:
         sid = screen_id(backbone, suite, encoder)
         if sid not in self._screens:
             conditions = self.conditions(backbone, suite)
-            stored = None if self.rerun else self.store.current_screen(sid, conditions)
-            if stored is not None:
-                self._screens[sid], self.outcomes[sid] = stored, RESUMED
-            else:
+            # Under -n N a worker's selection may need a screen another worker is measuring
+            # (its case, or its own selection): the lock makes it wait and resume that one.
+            with self.store.screen_lock(sid):
+                stored = None if self.rerun else self.store.current_screen(sid, conditions)
+                if stored is not None:
+                    self._screens[sid], self.outcomes[sid] = stored, RESUMED
+                    return stored
                 item = measure_screen(self.workspace(), encoder, backbone, suite, conditions)
                 self.store.write_screen(item)
-                self._screens[sid] = item
-                self.outcomes[sid] = (MEASURED if isinstance(item, ScreenRecord)
-                                      else f"failed: {item.error}")
-                self._say(sid, item)
+            self._screens[sid] = item
+            self.outcomes[sid] = (MEASURED if isinstance(item, ScreenRecord)
+                                  else f"failed: {item.error}")
+            self._say(sid, item)
         return self._screens[sid]
 
     def _say(self, sid: str, item) -> None:
@@ -129,13 +132,22 @@ class ScreenRun:
             for seed in self.profile.seeds:
                 cell = CellSpec(SHORT_GRAFT, backbone, suite, seed, encoder, SHORT_BY_VARIANT)
                 try:
-                    mses.append(self.run_cell(cell).mse_in())
+                    mses.append(self.run_tier(cell).mse_in())
                 except (Exception, pytest.fail.Exception) as e:  # noqa: BLE001 - the rest go on
                     error = " ".join(str(e).split()) or type(e).__name__
                     break
             out.append(ShortScores(encoder, Undefined(f"its short graft failed: {error}")
                                    if error else sum(mses) / len(mses)))
         return out
+
+    def run_tier(self, cell: CellSpec):
+        """A tier cell (a short graft) run or resumed through `run_cell` under its cell lock:
+        its case and, under --screen-by short, the selection both run it, perhaps on two xdist
+        workers at once; the later one waits, then resumes the record the first stored."""
+        if self.run_cell is None:
+            raise RuntimeError("a tier cell needs the session's run_cell")
+        with self.store.cell_lock(cell.id):
+            return self.run_cell(cell)
 
     def note_report(self, case_id: str, report) -> None:
         """What a pytest report says of a screen case (its outcome, a property) or of a cell the
