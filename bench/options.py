@@ -15,7 +15,7 @@ from bench.grid.gridfile import read_grid_file
 from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import Profile, get_profile, with_overrides
-from bench.startup import check_rollouts_possible
+from bench.startup import check_rollout_batch, check_rollouts_possible
 
 DEFAULT_PROFILE = "tiny"
 
@@ -55,6 +55,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--rollouts", type=int, default=0, metavar="N",
                 help="also roll every cell out in the LIBERO simulator, N episodes per task "
                      "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
+    g.addoption("--rollout-batch", type=int, default=1, metavar="B",
+                help="envs of a task rolled out at once, one batched policy call per step "
+                     "(LeRobot's gym vector env; default 1: one env in-process, the faster on "
+                     "2 CPU cores, docs/PERFORMANCE.md)")
+    g.addoption("--rollout-envs", default="sync", choices=("sync", "async"),
+                help="with --rollout-batch > 1: the B envs in this process (sync) or one worker "
+                     "process and render context each (async, as lerobot-eval)")
     g.addoption("--sim-tasks", metavar="IDS",
                 help="sim suites: the LIBERO task ids to demonstrate and roll out, e.g. 0,1,2 "
                      "(default: bench.sim.demos.DEFAULT_SPECS); a task the scripted expert "
@@ -297,6 +304,8 @@ class RunOptions:
     features_mode: str = "cache"
     feature_dtype: str = "fp16"
     rollouts: int = 0
+    rollout_batch: int = 1  # --rollout-batch: envs per task at once (bench.sim.batched)
+    rollout_envs: str = "sync"  # --rollout-envs: gym SyncVectorEnv or AsyncVectorEnv
     executor: str = "local"
     slurm: object = None  # bench.run.executors.SlurmOptions
     baseline: object = None  # bench.regression.run.BaselineOptions
@@ -322,6 +331,7 @@ def parse_options(config: pytest.Config) -> RunOptions:
         raise pytest.UsageError(f"--rollouts {rollouts}: give episodes per task >= 0")
     if rollouts:
         check_rollouts_possible(profile, rollouts)
+    rollout_batch = check_rollout_batch(opt("--rollout-batch"), rollouts)
     check_executor_options(config)
     slurm = SlurmOptions(partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
                          gpus_per_task=opt("--slurm-gpus-per-task"),
@@ -330,5 +340,6 @@ def parse_options(config: pytest.Config) -> RunOptions:
         profile, labels, tuple(lines + screen_lines), results_dir,
         report_path(opt("--report"), results, profile.name, results_dir),
         rerun=bool(opt("--rerun")), features_mode=opt("--features"),
-        feature_dtype=opt("--feature-dtype"), rollouts=rollouts, executor=opt("--executor"),
+        feature_dtype=opt("--feature-dtype"), rollouts=rollouts, rollout_batch=rollout_batch,
+        rollout_envs=opt("--rollout-envs"), executor=opt("--executor"),
         slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen)

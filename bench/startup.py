@@ -115,6 +115,20 @@ def check_rollouts_possible(profile, rollouts: int) -> None:
                     f"demonstration's init state; give --rollouts <= {50 - spec.max_attempts}")
 
 
+def check_rollout_batch(batch, rollouts: int) -> int:
+    """--rollout-batch: a whole number of envs >= 1, and only beside --rollouts (alone it would
+    batch nothing, silently)."""
+    if batch is None or batch == 1:
+        return 1
+    if batch < 1:
+        raise pytest.UsageError(f"--rollout-batch {batch}: give envs per task rolled out at "
+                                "once >= 1 (1: one env in-process)")
+    if not rollouts:
+        raise pytest.UsageError(f"--rollout-batch {batch}: it batches the episodes of "
+                                "--rollouts, which is not given; fix: add --rollouts N")
+    return int(batch)
+
+
 def check_writable(option: str, folder: Path) -> None:
     """A UsageError naming the option when `folder` cannot be created or written."""
     import tempfile

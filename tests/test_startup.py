@@ -63,6 +63,8 @@ BAD_INPUTS = [
     (["--steps", "0"], "--steps 0", "at least 1"),
     (["--profile", "nope"], "unknown profile 'nope'", "(--profile NAME)"),
     (["--rollouts", "-1"], "--rollouts -1", ">= 0"),
+    (["--rollout-batch", "0"], "--rollout-batch 0", "rolled out at once >= 1"),
+    (["--rollout-batch", "4"], "--rollout-batch 4", "fix: add --rollouts N"),
     (["--profile", "sim", "--sim-tasks", "0,4"], "--sim-tasks 0,4",
      "the scripted expert cannot solve LIBERO-spatial task 4 (measured 0/5"),
     (["--profile", "sim", "--sim-tasks", "0,x"], "--sim-tasks 0,x", "give e.g. --sim-tasks 0,1,2"),

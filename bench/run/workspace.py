@@ -44,6 +44,10 @@ class Workspace:
     progress: object = True  # a bench.progress sink, or a bool
     # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
     rollouts: int = 0
+    # How they are run (bench.sim.batched): envs per task at once, gym sync or async vector env.
+    # Not part of what a cell measures: the same episodes whatever the batch.
+    rollout_batch: int = 1
+    rollout_envs: str = "sync"
     cache: Path = field(default_factory=cache_dir)
     _suites: dict = field(default_factory=dict)
     _splits: dict = field(default_factory=dict)
