@@ -68,6 +68,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      "cannot solve is refused")
     g.addoption("--sim-demos", type=int, metavar="N",
                 help="sim suites: successful scripted demonstrations per task (default 3)")
+    g.addoption("--sim-demo-noise", type=float, metavar="SIGMA",
+                help="sim suites: std of Gaussian noise on the executed translation actions of "
+                     "the scripted demonstrations, labels kept clean (DART; default 0)")
     g.addoption("--features", default="cache", choices=("cache", "loop"),
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
     g.addoption("--feature-dtype", default="fp16", choices=("fp16", "bf16", "float32"),
@@ -203,10 +206,11 @@ def build_profile(config: pytest.Config):
 def _sim_demos(profile, opt) -> dict:
     """--sim-tasks / --sim-demos as Profile fields, refused unless the suites are simulated and
     the scripted expert solves every task (its measured success named, bench.sim.expert)."""
-    tasks, demos = opt("--sim-tasks"), opt("--sim-demos")
-    if tasks is None and demos is None:
+    tasks, demos, noise = opt("--sim-tasks"), opt("--sim-demos"), opt("--sim-demo-noise")
+    if tasks is None and demos is None and noise is None:
         return {}
-    shown = f"--sim-tasks {tasks}" if tasks is not None else f"--sim-demos {demos}"
+    shown = (f"--sim-tasks {tasks}" if tasks is not None else f"--sim-demos {demos}"
+             if demos is not None else f"--sim-demo-noise {noise}")
     if profile.data_source != "sim":
         raise ValueError(f"{shown}: profile {profile.name!r} has no simulated suites; use "
                          "--profile sim")
@@ -223,7 +227,9 @@ def _sim_demos(profile, opt) -> dict:
             check_solvable(suite, ids)
         except ValueError as e:
             raise ValueError(f"--sim-tasks {tasks}: {e}") from None
-    return {"sim_tasks": ids or None, "sim_demos": demos}
+    if noise is not None and not 0.0 <= noise <= 1.0:
+        raise ValueError(f"--sim-demo-noise {noise}: give a std in action units, 0 to 1")
+    return {"sim_tasks": ids or None, "sim_demos": demos, "sim_demo_noise": noise}
 
 
 def _user_world(profile, opt):

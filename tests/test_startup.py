@@ -69,6 +69,7 @@ BAD_INPUTS = [
      "the scripted expert cannot solve LIBERO-spatial task 4 (measured 0/5"),
     (["--profile", "sim", "--sim-tasks", "0,x"], "--sim-tasks 0,x", "give e.g. --sim-tasks 0,1,2"),
     (["--sim-demos", "5"], "--sim-demos 5", "has no simulated suites; use --profile sim"),
+    (["--profile", "sim", "--sim-demo-noise", "2"], "--sim-demo-noise 2.0", "0 to 1"),
     (["--profile", "sim", "--sim-demos", "20", "--rollouts", "30"], "--rollouts 30",
      "give --rollouts <= 26"),
     (["--slurm-time", "0"], "--slurm-time 0", ">= 1"),
