@@ -82,8 +82,12 @@ def make_libero_vector_env(suite: str, task: int, render: sim_env.RenderSettings
 
     def env_cls(factories):
         slots = [partial(_libero_slot, f, i, render) for i, f in enumerate(factories)]
-        cls = gym.vector.AsyncVectorEnv if mode == "async" else gym.vector.SyncVectorEnv
-        return cls(slots, autoreset_mode=gym.vector.AutoresetMode.NEXT_STEP)
+        reset = gym.vector.AutoresetMode.NEXT_STEP
+        if mode == "sync":
+            return gym.vector.SyncVectorEnv(slots, autoreset_mode=reset)
+        # Spawned, not forked: a fork of this multi-threaded (torch) process deadlocked its
+        # workers while they built their envs (measured 2026-12-03: 3 workers idle for 5 min).
+        return gym.vector.AsyncVectorEnv(slots, autoreset_mode=reset, context="spawn")
 
     name = sim_env.LIBERO_SUITES[suite]
     with contextlib.redirect_stdout(io.StringIO()):  # it prints a line per task built
