@@ -157,3 +157,18 @@ def test_libero_vector_env_meets_the_single_env_observations():
     batched = run_rollouts(recorder(together), spec, progress=False, render=render, batch=2)
     assert outcomes(batched) == outcomes(base)
     assert sorted(together) == sorted(alone) and len(alone) == 3 * 2
+
+
+def test_a_policy_that_raises_in_a_batch_fails_the_cell_naming_the_episodes():
+    from bench.sim.rollout import RolloutCrashed
+
+    spec = RolloutSpec("spatial", tasks=(0,), episodes_per_task=3, seed=0, max_steps=12,
+                       n_action_steps=2)
+    single, vector, _ = toy_scenes()
+
+    def broken(raw):
+        raise RuntimeError("CUDA out of memory")
+
+    with pytest.raises(RolloutCrashed, match=r"spatial task 0 episode 0 \(init state 49\), "
+                       r"episode 1 \(init state 48\): the policy: RuntimeError: CUDA out of"):
+        run_rollouts(broken, spec, progress=False, scenes=single, batch=2, vector_scenes=vector)

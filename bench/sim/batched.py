@@ -126,6 +126,17 @@ def rows_of(tree, rows: np.ndarray):
     return np.asarray(tree)[rows]
 
 
+def ask_policy(act, raw: dict) -> torch.Tensor:
+    """act(raw) as (B, T, 7) float32 on the CPU, B = the rows of `raw`; a wrong shape raises."""
+    with torch.inference_mode():
+        chunk = torch.as_tensor(act(raw)).detach().float().cpu()
+    rows = len(raw["task"])
+    if chunk.ndim != 3 or chunk.shape[0] != rows or chunk.shape[2] != 7:
+        raise ValueError(f"act returned shape {tuple(chunk.shape)}; expected (B={rows}, T, 7) "
+                         "raw actions")
+    return chunk
+
+
 def run_task_batched(act, spec, task: int, todo: list[int], description: str, render, batch: int,
                      mode: str, scenes: VectorScenes, done: Callable[[dict], None],
                      crash: Callable[[Callable, str], object]) -> None:
@@ -165,12 +176,11 @@ def run_task_batched(act, spec, task: int, todo: list[int], description: str, re
             active = [i for i, s in enumerate(slots) if s is not None]
             ask = [i for i in active if not slots[i].queue]
             if ask:  # one policy call for every slot whose chunk is used up
-                raw = scenes.observe(rows_of(obs, np.array(ask)), [description] * len(ask))
-                with torch.inference_mode():
-                    chunk = torch.as_tensor(act(raw)).detach().float().cpu()
-                if chunk.ndim != 3 or chunk.shape[0] != len(ask) or chunk.shape[2] != 7:
-                    raise ValueError(f"act returned shape {tuple(chunk.shape)}; expected "
-                                     f"(B={len(ask)}, T, 7) raw actions")
+                where = ", ".join(f"episode {slots[i].episode} (init state "
+                                  f"{slots[i].init_state})" for i in ask)
+                chunk = crash(lambda: ask_policy(act, scenes.observe(
+                    rows_of(obs, np.array(ask)), [description] * len(ask))),
+                    f"{spec.suite} task {task} {where}: the policy")
                 for row, i in enumerate(ask):
                     slots[i].queue = list(chunk[row, :spec.n_action_steps].numpy()
                                           .astype(np.float64))
