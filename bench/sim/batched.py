@@ -118,6 +118,14 @@ class _Slot:
     success: bool = False
     queue: list | None = None  # actions left of the current chunk
 
+    def named(self) -> str:
+        return f"episode {self.episode} (init state {self.init_state})"
+
+    def row(self) -> dict:
+        return {"task": self.task, "episode": self.episode, "init_state": self.init_state,
+                "success": self.success, "steps": self.steps,
+                "seconds": round(time.perf_counter() - self.started, 2)}
+
 
 def rows_of(tree, rows: np.ndarray):
     """The `rows` of every array of a nested observation dict."""
@@ -137,76 +145,86 @@ def ask_policy(act, raw: dict) -> torch.Tensor:
     return chunk
 
 
-def run_task_batched(act, spec, task: int, todo: list[int], description: str, render, batch: int,
-                     mode: str, scenes: VectorScenes, done: Callable[[dict], None],
-                     crash: Callable[[Callable, str], object]) -> None:
-    """Roll out episodes `todo` of `task` over min(batch, len(todo)) slots; `done(row)` each."""
-    from bench.sim.rollout import rollout_env_seed, rollout_init_state
+class _TaskBatch:
+    """The slots of one task's vector env: which episode each runs, its chunk, its count."""
 
+    def __init__(self, venv, width: int, spec, task: int, crash: Callable):
+        self.venv, self.spec, self.task, self.crash = venv, spec, task, crash
+        self.slots: list[_Slot | None] = [None] * width
+        self.inits = [0] * width  # each slot's latest init state (PairedReset reads its own)
+        self.obs = None
+
+    def where(self, slots: list[int]) -> str:
+        return (f"{self.spec.suite} task {self.task} "
+                + ", ".join(self.slots[i].named() for i in slots))
+
+    def start(self, free: list[int], planned: list[tuple[int, int, int]]) -> None:
+        """Reset slots `free` to the next planned (episode, init state, env seed) each."""
+        seeds = [0] * len(self.slots)
+        for i in free:
+            episode, self.inits[i], seeds[i] = planned.pop(0)
+            self.slots[i] = _Slot(self.task, episode, self.inits[i], time.perf_counter())
+        mask = np.zeros(len(self.slots), dtype=bool)
+        mask[free] = True
+        # The vector env hands back every slot's observation (the others' unchanged).
+        self.obs, _ = self.crash(lambda: self.venv.reset(seed=seeds, options={
+            "reset_mask": mask, "init_states": list(self.inits)}), self.where(free) + ": reset")
+
+    def plan_chunks(self, act, observe: Callable, description: str) -> None:
+        """One policy call for every running slot whose chunk is used up."""
+        ask = [i for i, s in enumerate(self.slots) if s is not None and not s.queue]
+        if not ask:
+            return
+        chunk = self.crash(lambda: ask_policy(act, observe(
+            rows_of(self.obs, np.array(ask)), [description] * len(ask))),
+            self.where(ask) + ": the policy")
+        for row, i in enumerate(ask):
+            self.slots[i].queue = list(chunk[row, :self.spec.n_action_steps].numpy()
+                                       .astype(np.float64))
+
+    def step(self) -> list[_Slot]:
+        """Step every env once; the slots whose episode ended (success or max_steps), freed."""
+        active = [i for i, s in enumerate(self.slots) if s is not None]
+        actions = np.zeros((len(self.slots), 7))  # idle slots: a no-op, gripper open
+        actions[:, 6] = -1.0
+        for i in active:
+            actions[i] = self.slots[i].queue.pop(0)
+        self.obs, _, _, _, info = self.crash(lambda: self.venv.step(actions), self.where(active))
+        won = np.asarray(info.get("is_success", np.zeros(len(self.slots))), dtype=bool)
+        ended = []
+        for i in active:
+            slot = self.slots[i]
+            slot.steps, slot.success = slot.steps + 1, bool(won[i])
+            if slot.success or slot.steps >= self.spec.max_steps:
+                ended.append(i)
+        return ended
+
+
+def run_task_batched(act, spec, task: int, planned: list[tuple[int, int, int]],
+                     description: str, render, batch: int, mode: str, scenes: VectorScenes,
+                     done: Callable[[dict], None], crash: Callable[[Callable, str], object]):
+    """Roll out `planned` (episode, init state, env seed) of `task` over min(batch, episodes)
+    slots of a vector env, refilling a slot as its episode ends; `done(row)` for each."""
     if getattr(act, "on_reset", None) is not None:
         raise ValueError("a privileged policy (on_reset: the scripted expert, a replay) reads "
                          "its env in-process; roll it out with batch 1")
-    width = min(batch, len(todo))
-    queue = list(todo)
+    planned = list(planned)
+    width = min(batch, len(planned))
     venv = crash(lambda: scenes.make_vector_env(spec.suite, task, render, spec.max_steps, width,
-                                                mode), f"{spec.suite} task {task}: building its "
-                 f"{width} {mode} envs")
-    slots: list[_Slot | None] = [None] * width
-    inits = [0] * width
+                                                mode),
+                 f"{spec.suite} task {task}: building its {width} {mode} envs")
     try:
-        obs = None
-
-        def refill(free: list[int]):  # the vector env hands back every slot's observation
-            nonlocal obs
-            seeds = [0] * width
-            for i in free:
-                episode = queue.pop(0)
-                inits[i] = rollout_init_state(episode, scenes.num_init_states)
-                seeds[i] = rollout_env_seed(spec.seed, task, episode)
-                slots[i] = _Slot(task, episode, inits[i], time.perf_counter())
-            mask = np.zeros(width, dtype=bool)
-            mask[free] = True
-            where = ", ".join(f"episode {slots[i].episode} (init state {inits[i]})" for i in free)
-            obs, _ = crash(lambda: venv.reset(seed=seeds, options={
-                "reset_mask": mask, "init_states": list(inits)}), f"{spec.suite} task {task} "
-                f"{where}: reset")
-
-        refill(list(range(width)))
-        while any(s is not None for s in slots):
-            active = [i for i, s in enumerate(slots) if s is not None]
-            ask = [i for i in active if not slots[i].queue]
-            if ask:  # one policy call for every slot whose chunk is used up
-                where = ", ".join(f"episode {slots[i].episode} (init state "
-                                  f"{slots[i].init_state})" for i in ask)
-                chunk = crash(lambda: ask_policy(act, scenes.observe(
-                    rows_of(obs, np.array(ask)), [description] * len(ask))),
-                    f"{spec.suite} task {task} {where}: the policy")
-                for row, i in enumerate(ask):
-                    slots[i].queue = list(chunk[row, :spec.n_action_steps].numpy()
-                                          .astype(np.float64))
-            actions = np.zeros((width, 7))  # idle slots: a no-op (gripper stays open)
-            actions[:, 6] = -1.0
-            for i in active:
-                actions[i] = slots[i].queue.pop(0)
-            where = ", ".join(f"episode {slots[i].episode} (init state {slots[i].init_state})"
-                              for i in active)
-            obs, _, _, _, info = crash(lambda: venv.step(actions),
-                                       f"{spec.suite} task {task} {where}")
-            won = np.asarray(info.get("is_success", np.zeros(width, dtype=bool)), dtype=bool)
-            free = []
-            for i in active:
-                slot = slots[i]
-                slot.steps += 1
-                slot.success = bool(won[i])
-                if slot.success or slot.steps >= spec.max_steps:
-                    done({"task": task, "episode": slot.episode, "init_state": slot.init_state,
-                          "success": slot.success, "steps": slot.steps,
-                          "seconds": round(time.perf_counter() - slot.started, 2)})
-                    slots[i] = None
-                    if len(free) < len(queue):  # slots that end together share the queue
-                        free.append(i)
-            if free:
-                refill(free)
+        slots = _TaskBatch(venv, width, spec, task, crash)
+        slots.start(list(range(width)), planned)
+        while any(s is not None for s in slots.slots):
+            slots.plan_chunks(act, scenes.observe, description)
+            ended = slots.step()
+            for i in ended:
+                done(slots.slots[i].row())
+                slots.slots[i] = None
+            refill = ended[:len(planned)]  # slots that end together share what is left
+            if refill:
+                slots.start(refill, planned)
     finally:
         venv.close()
 

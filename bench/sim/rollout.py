@@ -157,28 +157,8 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
                 if on_episode is not None else "no episode log: a rerun starts over")
 
     if batch > 1:
-        from bench.sim import batched
-
-        def ended(row: dict) -> None:
-            if on_episode is not None:
-                on_episode(row)
-            episodes.append(row)
-            if progress:
-                batched.progress_line(spec, row)
-
-        vector_scenes = vector_scenes or batched.LIBERO_VECTOR
-        for task in spec.tasks:
-            todo = [e for e in range(spec.episodes_per_task) if (task, e) not in done]
-            episodes += [done[(task, e)] for e in range(spec.episodes_per_task)
-                         if (task, e) in done]
-            if todo:
-                batched.run_task_batched(
-                    act, spec, task, todo, descriptions[task], render, batch, env_mode,
-                    vector_scenes, ended,
-                    lambda step, where: _crash_named(step, where, kept()))
-        # Rows in the B = 1 order (task, episode), whatever order the slots finished in.
-        order = {t: i for i, t in enumerate(spec.tasks)}
-        return sorted(episodes, key=lambda e: (order[e["task"]], e["episode"]))
+        return _run_batched(act, spec, progress, render, done, on_episode, batch, env_mode,
+                            vector_scenes, descriptions, episodes, kept)
 
     for task in spec.tasks:
         todo = [e for e in range(spec.episodes_per_task) if (task, e) not in done]
@@ -211,6 +191,34 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
             if env is not None:
                 env.close()
     return episodes
+
+
+def _run_batched(act: ActFn, spec: RolloutSpec, progress: bool, render, done: dict, on_episode,
+                 batch: int, env_mode: str, vector_scenes, descriptions, episodes: list,
+                 kept: Callable[[], str]) -> list[dict]:
+    """_run_all's batch > 1 way (bench.sim.batched): the same planned episodes, B at a time."""
+    from bench.sim import batched
+
+    def ended(row: dict) -> None:
+        if on_episode is not None:
+            on_episode(row)
+        episodes.append(row)
+        if progress:
+            batched.progress_line(spec, row)
+
+    vector_scenes = vector_scenes or batched.LIBERO_VECTOR
+    n = vector_scenes.num_init_states
+    for task in spec.tasks:
+        planned = [(e, rollout_init_state(e, n), rollout_env_seed(spec.seed, task, e))
+                   for e in range(spec.episodes_per_task) if (task, e) not in done]
+        episodes += [done[(task, e)] for e in range(spec.episodes_per_task) if (task, e) in done]
+        if planned:
+            batched.run_task_batched(act, spec, task, planned, descriptions[task], render, batch,
+                                     env_mode, vector_scenes, ended,
+                                     lambda step, where: _crash_named(step, where, kept()))
+    # Rows in the B = 1 order (task, episode), whatever order the slots finished in.
+    order = {t: i for i, t in enumerate(spec.tasks)}
+    return sorted(episodes, key=lambda e: (order[e["task"]], e["episode"]))
 
 
 def _crash_named(step: Callable, where: str, kept: str):
