@@ -15,7 +15,7 @@ from bench.grid.gridfile import read_grid_file
 from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import Profile, get_profile, with_overrides
-from bench.startup import check_rollouts_possible
+from bench.startup import check_rollout_batch, check_rollouts_possible
 
 DEFAULT_PROFILE = "tiny"
 
@@ -55,12 +55,22 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--rollouts", type=int, default=0, metavar="N",
                 help="also roll every cell out in the LIBERO simulator, N episodes per task "
                      "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
+    g.addoption("--rollout-batch", type=int, default=1, metavar="B",
+                help="envs of a task rolled out at once, one batched policy call per step "
+                     "(LeRobot's gym vector env; default 1: one env in-process, the faster on "
+                     "2 CPU cores, docs/PERFORMANCE.md)")
+    g.addoption("--rollout-envs", default="sync", choices=("sync", "async"),
+                help="with --rollout-batch > 1: the B envs in this process (sync) or one worker "
+                     "process and render context each (async, as lerobot-eval)")
     g.addoption("--sim-tasks", metavar="IDS",
                 help="sim suites: the LIBERO task ids to demonstrate and roll out, e.g. 0,1,2 "
                      "(default: bench.sim.demos.DEFAULT_SPECS); a task the scripted expert "
                      "cannot solve is refused")
     g.addoption("--sim-demos", type=int, metavar="N",
                 help="sim suites: successful scripted demonstrations per task (default 3)")
+    g.addoption("--sim-demo-noise", type=float, metavar="SIGMA",
+                help="sim suites: std of Gaussian noise on the executed translation actions of "
+                     "the scripted demonstrations, labels kept clean (DART; default 0)")
     g.addoption("--features", default="cache", choices=("cache", "loop"),
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
     g.addoption("--feature-dtype", default="fp16", choices=("fp16", "bf16", "float32"),
@@ -216,10 +226,11 @@ def build_profile(config: pytest.Config):
 def _sim_demos(profile, opt) -> dict:
     """--sim-tasks / --sim-demos as Profile fields, refused unless the suites are simulated and
     the scripted expert solves every task (its measured success named, bench.sim.expert)."""
-    tasks, demos = opt("--sim-tasks"), opt("--sim-demos")
-    if tasks is None and demos is None:
+    tasks, demos, noise = opt("--sim-tasks"), opt("--sim-demos"), opt("--sim-demo-noise")
+    if tasks is None and demos is None and noise is None:
         return {}
-    shown = f"--sim-tasks {tasks}" if tasks is not None else f"--sim-demos {demos}"
+    shown = (f"--sim-tasks {tasks}" if tasks is not None else f"--sim-demos {demos}"
+             if demos is not None else f"--sim-demo-noise {noise}")
     if profile.data_source != "sim":
         raise ValueError(f"{shown}: profile {profile.name!r} has no simulated suites; use "
                          "--profile sim")
@@ -236,7 +247,9 @@ def _sim_demos(profile, opt) -> dict:
             check_solvable(suite, ids)
         except ValueError as e:
             raise ValueError(f"--sim-tasks {tasks}: {e}") from None
-    return {"sim_tasks": ids or None, "sim_demos": demos}
+    if noise is not None and not 0.0 <= noise <= 1.0:
+        raise ValueError(f"--sim-demo-noise {noise}: give a std in action units, 0 to 1")
+    return {"sim_tasks": ids or None, "sim_demos": demos, "sim_demo_noise": noise}
 
 
 def _user_world(profile, opt):
@@ -317,6 +330,8 @@ class RunOptions:
     features_mode: str = "cache"
     feature_dtype: str = "fp16"
     rollouts: int = 0
+    rollout_batch: int = 1  # --rollout-batch: envs per task at once (bench.sim.batched)
+    rollout_envs: str = "sync"  # --rollout-envs: gym SyncVectorEnv or AsyncVectorEnv
     executor: str = "local"
     slurm: object = None  # bench.run.executors.SlurmOptions
     baseline: object = None  # bench.regression.run.BaselineOptions
@@ -342,6 +357,7 @@ def parse_options(config: pytest.Config) -> RunOptions:
         raise pytest.UsageError(f"--rollouts {rollouts}: give episodes per task >= 0")
     if rollouts:
         check_rollouts_possible(profile, rollouts)
+    rollout_batch = check_rollout_batch(opt("--rollout-batch"), rollouts)
     check_executor_options(config)
     slurm = SlurmOptions(partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),
                          gpus_per_task=opt("--slurm-gpus-per-task"),
@@ -350,5 +366,6 @@ def parse_options(config: pytest.Config) -> RunOptions:
         profile, labels, tuple(lines + screen_lines), results_dir,
         report_path(opt("--report"), results, profile.name, results_dir),
         rerun=bool(opt("--rerun")), features_mode=opt("--features"),
-        feature_dtype=opt("--feature-dtype"), rollouts=rollouts, executor=opt("--executor"),
+        feature_dtype=opt("--feature-dtype"), rollouts=rollouts, rollout_batch=rollout_batch,
+        rollout_envs=opt("--rollout-envs"), executor=opt("--executor"),
         slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen)

@@ -84,6 +84,7 @@ class GraftSession:
     report_path = property(lambda self: self.options.report_path)
     rerun = property(lambda self: self.options.rerun)
     rollouts = property(lambda self: self.options.rollouts)
+    rollout_batch = property(lambda self: (self.options.rollout_batch, self.options.rollout_envs))
     features_mode = property(lambda self: self.options.features_mode)
     feature_dtype = property(lambda self: self.options.feature_dtype)
     screen_options = property(lambda self: self.options.screen)  # None without --screen
@@ -240,7 +241,8 @@ class GraftSession:
                     and not (self.screening and self.screening.dropped_reason(c))]
             paths = (str(self.results_dir), str(cache_dir()))
             self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
-                                             self.rollouts, self.feature_dtype) for c in todo])
+                                             self.rollouts, self.feature_dtype,
+                                             *self.rollout_batch) for c in todo])
         try:
             return self._cell_array.result(cell.id)
         except Exception as e:  # the task died before writing its own failure record
@@ -305,8 +307,9 @@ def _default_workspace(session: GraftSession):
         threads, why = serial_threads()
         torch.set_num_threads(threads)
         say(sink, f"torch threads: {threads} ({why})")
+    batch, envs = session.rollout_batch
     return Workspace(session.profile, session.store, progress=sink, rollouts=session.rollouts,
-                     feature_dtype=session.feature_dtype)
+                     feature_dtype=session.feature_dtype, rollout_batch=batch, rollout_envs=envs)
 
 
 def serial_threads() -> tuple[int, str]:

@@ -106,13 +106,27 @@ def check_rollouts_possible(profile, rollouts: int) -> None:
         from bench.sim.demos import demo_spec
 
         for suite in profile.suites:
-            spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos)
+            spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos, profile.sim_demo_noise)
             # demos use init states 0.. (at most max_attempts), rollouts 49, 48, ...: disjoint
             if spec.max_attempts + rollouts > 50:
                 raise pytest.UsageError(
                     f"--rollouts {rollouts}: with {spec.episodes_per_task} demonstrations per "
                     f"task (init states 0..{spec.max_attempts - 1}) rollouts would reuse a "
                     f"demonstration's init state; give --rollouts <= {50 - spec.max_attempts}")
+
+
+def check_rollout_batch(batch, rollouts: int) -> int:
+    """--rollout-batch: a whole number of envs >= 1, and only beside --rollouts (alone it would
+    batch nothing, silently)."""
+    if batch is None or batch == 1:
+        return 1
+    if batch < 1:
+        raise pytest.UsageError(f"--rollout-batch {batch}: give envs per task rolled out at "
+                                "once >= 1 (1: one env in-process)")
+    if not rollouts:
+        raise pytest.UsageError(f"--rollout-batch {batch}: it batches the episodes of "
+                                "--rollouts, which is not given; fix: add --rollouts N")
+    return int(batch)
 
 
 def check_writable(option: str, folder: Path) -> None:

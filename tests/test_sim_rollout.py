@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -33,6 +35,9 @@ def test_demo_specs_refuse_a_task_the_expert_cannot_solve():
     assert (more.tasks, more.episodes_per_task, more.max_attempts) == ((0, 1), 20, 24)
     assert more.key() != DEFAULT_SPECS["spatial"].key() and demo_spec("object") == \
         DEFAULT_SPECS["object"]
+    noisy = demo_spec("spatial", (0, 1), 20, action_noise=0.3)  # DART: another dataset
+    assert noisy.action_noise == 0.3 and noisy.key() != more.key()
+    assert replace(noisy, action_noise=0.0).key() == more.key()  # no noise: the old key
     with pytest.raises(ValueError, match=r"cannot solve LIBERO-object task 6 \(measured 0/5"):
         DemoSpec("object", tasks=(0, 6))
     with pytest.raises(ValueError, match="task 10 is not a LIBERO-spatial task id"):

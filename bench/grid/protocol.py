@@ -117,6 +117,7 @@ class Profile:
     # of `protocol`: the data they make changes the suite fingerprint and the tiny releases.
     sim_tasks: tuple[int, ...] = ()
     sim_demos: int = 0
+    sim_demo_noise: float = 0.0  # --sim-demo-noise: DemoSpec.action_noise (DART-style)
 
     @property
     def data_source(self) -> str:

@@ -136,12 +136,14 @@ def rollout_log_key(spec, render, policy: str) -> str:
 
 def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, encoder=None,
                   grid=None, progress: bool = True, store=None, policy: str = "",
-                  scenes=None) -> dict:
+                  scenes=None, batch: int = 1, env_mode: str = "sync") -> dict:
     """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts".
 
     With a results `store`, every finished episode is kept in the cell's episode log (under
     the spec, render settings and `policy`, a policy_fingerprint) and a rerun after a kill
-    resumes from it. `scenes`: bench.sim.rollout.Scenes (LIBERO's unless a test passes one)."""
+    resumes from it. `scenes`: bench.sim.rollout.Scenes (LIBERO's unless a test passes one);
+    `batch` > 1: that many envs of a task at once in a gym vector env (`env_mode` sync/async),
+    the same episodes, so the episode log's key leaves it out."""
     if cell.spec.eval_inputs in NO_CLOSED_LOOP:
         return {"skipped": NO_CLOSED_LOOP[cell.spec.eval_inputs]}
     from dataclasses import asdict
@@ -155,7 +157,8 @@ def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, e
     log = store.episode_log(cell.id, rollout_log_key(spec, render, policy)) if store else None
     out = run_rollouts(act, spec, progress=progress, render=render,
                        finished=log.finished() if log else [],
-                       on_episode=log.add if log else None, scenes=scenes)
+                       on_episode=log.add if log else None, scenes=scenes, batch=batch,
+                       env_mode=env_mode)
     return {**out, "spec": asdict(spec)}
 
 

@@ -49,6 +49,8 @@ class CellJob:
     features_mode: str = "cache"
     rollouts: int = 0  # closed-loop episodes per task (--rollouts)
     feature_dtype: str = "fp16"  # --feature-dtype
+    rollout_batch: int = 1  # --rollout-batch
+    rollout_envs: str = "sync"  # --rollout-envs
 
 
 def run_cell_job(job: CellJob) -> Record:
@@ -64,7 +66,8 @@ def run_cell_job(job: CellJob) -> Record:
 
     store = ResultStore(Path(job.results_dir))
     ws = Workspace(job.profile, store, progress=False, cache=Path(job.cache_dir),
-                   rollouts=job.rollouts, feature_dtype=job.feature_dtype)
+                   rollouts=job.rollouts, feature_dtype=job.feature_dtype,
+                   rollout_batch=job.rollout_batch, rollout_envs=job.rollout_envs)
     try:
         return run_cell(job.cell, ws, features_mode=job.features_mode)
     except Exception as e:

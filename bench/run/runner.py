@@ -149,6 +149,7 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
         rollouts = cell_rollouts(
             cell, suite, backbone, ws.rollouts, feed=feed, encoder=inputs.encoder,
             grid=inputs.grid, progress=ws.progress, store=ws.store,
+            batch=ws.rollout_batch, env_mode=ws.rollout_envs,
             policy=policy_fingerprint(backbone, feed, json.dumps(asdict(measured),
                                                                  sort_keys=True, default=str)))
         timings.update(rollouts=time.perf_counter() - t0)  # the phase (a timings_s entry)

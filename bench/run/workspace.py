@@ -44,6 +44,10 @@ class Workspace:
     progress: object = True  # a bench.progress sink, or a bool
     # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
     rollouts: int = 0
+    # How they are run (bench.sim.batched): envs per task at once, gym sync or async vector env.
+    # Not part of what a cell measures: the same episodes whatever the batch.
+    rollout_batch: int = 1
+    rollout_envs: str = "sync"
     cache: Path = field(default_factory=cache_dir)
     _suites: dict = field(default_factory=dict)
     _splits: dict = field(default_factory=dict)
@@ -85,11 +89,11 @@ class Workspace:
     def _demos(self, name: str):
         """The sim suite's DemoSpec when --sim-tasks / --sim-demos change it, else None."""
         p = self.profile
-        if p.data_source != "sim" or not (p.sim_tasks or p.sim_demos):
+        if p.data_source != "sim" or not (p.sim_tasks or p.sim_demos or p.sim_demo_noise):
             return None
         from bench.sim.demos import demo_spec
 
-        return demo_spec(name, p.sim_tasks, p.sim_demos)
+        return demo_spec(name, p.sim_tasks, p.sim_demos, p.sim_demo_noise)
 
     def split(self, name: str) -> Split:
         if name not in self._splits:

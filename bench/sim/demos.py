@@ -47,6 +47,12 @@ class DemoSpec:
     seed: int = 0
     max_steps: int = 280  # LeRobot's LIBERO-Spatial / -Object episode limit
     image_size: int = 128  # public LeRobot LIBERO datasets: 256
+    # DART-style noise injection (Laskey et al. 2017): the std of Gaussian noise added to the
+    # EXECUTED translation actions (dims 0-2, action units), while the recorded label stays the
+    # expert's clean action; the closed-loop expert corrects the push, so the data shows
+    # recoveries from states off its own path. 0: none (and not part of the key, so the suites
+    # generated before it keep theirs).
+    action_noise: float = 0.0
 
     def __post_init__(self):
         check_solvable(self.suite, self.tasks)  # no demonstrations from a task it never solved
@@ -56,7 +62,10 @@ class DemoSpec:
 
     def key(self) -> str:
         """12 hex chars naming the content (generator version + every field)."""
-        blob = json.dumps({"version": GENERATOR_VERSION, **asdict(self)}, sort_keys=True)
+        fields = asdict(self)
+        if not self.action_noise:
+            del fields["action_noise"]
+        blob = json.dumps({"version": GENERATOR_VERSION, **fields}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
@@ -66,13 +75,14 @@ DEFAULT_SPECS = {"spatial": DemoSpec("spatial", tasks=(0, 1, 2, 3)),
                  "object": DemoSpec("object", tasks=(0, 2, 3, 4))}
 
 
-def demo_spec(suite: str, tasks: tuple[int, ...] = (), episodes: int = 0) -> DemoSpec:
+def demo_spec(suite: str, tasks: tuple[int, ...] = (), episodes: int = 0,
+              action_noise: float = 0.0) -> DemoSpec:
     """The suite's DEFAULT_SPECS entry with other task ids and demonstrations per task (empty /
     0: the default's). A few more attempts than episodes, for the odd failed init state."""
     base = DEFAULT_SPECS[suite]
     episodes = episodes or base.episodes_per_task
     return replace(base, tasks=tuple(tasks) or base.tasks, episodes_per_task=episodes,
-                   max_attempts=max(base.max_attempts, episodes + 4))
+                   max_attempts=max(base.max_attempts, episodes + 4), action_noise=action_noise)
 
 
 def repo_id(suite: str) -> str:
@@ -104,14 +114,16 @@ class Episode:
 
 
 def run_expert_episode(env, suite: str, task: int, init_state: int, seed: int,
-                       max_steps: int, description: str) -> Episode:
-    """Run the scripted expert once from `init_state`, recording every observed frame."""
+                       max_steps: int, description: str, action_noise: float = 0.0) -> Episode:
+    """Run the scripted expert once from `init_state`, recording every observed frame (and the
+    expert's clean action as its label, whatever noise is executed: DemoSpec.action_noise)."""
     from bench.sim import env as sim_env
 
     start = time.perf_counter()
     obs = sim_env.reset_to(env, init_state, episode_seed(seed, task, init_state))
     expert = ScriptedExpert(suite)
     expert.reset(env)
+    noise = np.random.default_rng(episode_seed(seed, task, init_state))
     images, wrists, states, actions = [], [], [], []
     success = False
     for _ in range(max_steps):
@@ -121,7 +133,10 @@ def run_expert_episode(env, suite: str, task: int, init_state: int, seed: int,
         wrists.append(sim_env.to_uint8_hwc(raw[IMAGE_KEYS[1]][0]))
         states.append(raw[STATE_KEY][0].numpy())
         actions.append(action.astype(np.float32))
-        obs, _, terminated, _, info = env.step(action.astype(np.float64))
+        executed = action.astype(np.float64).copy()
+        if action_noise:
+            executed[:3] = np.clip(executed[:3] + noise.normal(0.0, action_noise, 3), -1, 1)
+        obs, _, terminated, _, info = env.step(executed)
         if info.get("is_success", False):
             success = True
             break
@@ -186,7 +201,7 @@ def run_attempts(spec: DemoSpec, work: _Work, progress: bool = True) -> dict[tup
             if env is None:
                 env = sim_env.make_env(spec.suite, task, render, max_steps=spec.max_steps)
             episode = run_expert_episode(env, spec.suite, task, init_state, spec.seed,
-                                         spec.max_steps, descriptions[task])
+                                         spec.max_steps, descriptions[task], spec.action_noise)
             work.record(episode)
             done[(task, init_state)] = {"success": episode.success, "steps": episode.steps}
             kept += int(episode.success)

@@ -214,6 +214,11 @@ def observe(observations: list[dict], tasks: list[str]) -> dict:
     "observation.state": (B, 8) float32, "task": list[str]}: LeRobot's preprocess_observation
     then its LIBERO env processor (images turned 180 degrees, quaternion -> axis-angle).
     """
+    return observe_batched(_stack(observations), tasks)
+
+
+def observe_batched(batched: dict, tasks: list[str]) -> dict:
+    """`observe` of observations already stacked along a leading batch axis (a vector env's)."""
     global _env_processor
     from lerobot.envs.utils import preprocess_observation
 
@@ -221,7 +226,6 @@ def observe(observations: list[dict], tasks: list[str]) -> dict:
         from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
 
         _env_processor = LiberoEnvConfig(camera_name_mapping=CAMERA_MAPPING).get_env_processors()[0]
-    batched = _stack(observations)
     batch = preprocess_observation(batched)
     batch["task"] = list(tasks)
     batch = _env_processor(batch)

@@ -116,29 +116,38 @@ def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
 def run_rollouts(act: ActFn, spec: RolloutSpec, progress: bool = True,
                  render: sim_env.RenderSettings | None = None, *, finished: list[dict] = (),
                  on_episode: Callable[[dict], None] | None = None,
-                 scenes: Scenes = LIBERO) -> dict:
+                 scenes: Scenes = LIBERO, batch: int = 1, env_mode: str = "sync",
+                 vector_scenes=None) -> dict:
     """Run `spec` with policy `act`; per-episode successes, rates and Wilson 95% intervals.
 
     act(raw) -> (B, T, 7) raw actions, raw = {"observation.images.image": (B, 3, H, W) float32
     [0, 1], "observation.images.wrist_image": same, "observation.state": (B, 8) float32,
-    "task": list[str]}; B = 1 here (one env stepped at a time: 2 cores gain nothing from more).
+    "task": list[str]}. batch = 1: one env in-process (`scenes`), stepped alone; batch > 1:
+    that many envs of a task in a gym vector env (bench.sim.batched; `env_mode` "sync" or
+    "async", `vector_scenes` LIBERO's unless a test passes its own), same episodes and rows.
     finished: episode rows of an interrupted run of the same policy and spec (kept, not rerun);
     on_episode: called with each new row as soon as its episode ends.
     """
     render = render or sim_env.RenderSettings()
+    if batch < 1:
+        raise ValueError(f"rollout batch {batch}: give envs per task >= 1")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # 2 shared cores: one thread each for sim and policy is faster
     start = time.perf_counter()
     try:
-        episodes = _run_all(act, spec, progress, render, finished, on_episode, scenes)
+        episodes = _run_all(act, spec, progress, render, finished, on_episode, scenes,
+                            batch, env_mode, vector_scenes)
     finally:
         torch.set_num_threads(threads)
-    return summarise(episodes, spec, render, time.perf_counter() - start,
-                     resumed=len({(e["task"], e["episode"]) for e in finished}))
+    out = summarise(episodes, spec, render, time.perf_counter() - start,
+                    resumed=len({(e["task"], e["episode"]) for e in finished}))
+    out["settings"].update(batch=batch, env_mode=env_mode if batch > 1 else "in-process")
+    return out
 
 
 def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.RenderSettings,
-             finished, on_episode, scenes: Scenes) -> list[dict]:
+             finished, on_episode, scenes: Scenes, batch: int = 1, env_mode: str = "sync",
+             vector_scenes=None) -> list[dict]:
     done = {(int(e["task"]), int(e["episode"])): e for e in finished}
     descriptions = scenes.descriptions(spec.suite)
     episodes = []
@@ -146,6 +155,10 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
     def kept() -> str:  # what a crash leaves for the rerun
         return (f"{len(episodes)} episode(s) finished before it are kept; rerun to resume"
                 if on_episode is not None else "no episode log: a rerun starts over")
+
+    if batch > 1:
+        return _run_batched(act, spec, progress, render, done, on_episode, batch, env_mode,
+                            vector_scenes, descriptions, episodes, kept)
 
     for task in spec.tasks:
         todo = [e for e in range(spec.episodes_per_task) if (task, e) not in done]
@@ -178,6 +191,34 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
             if env is not None:
                 env.close()
     return episodes
+
+
+def _run_batched(act: ActFn, spec: RolloutSpec, progress: bool, render, done: dict, on_episode,
+                 batch: int, env_mode: str, vector_scenes, descriptions, episodes: list,
+                 kept: Callable[[], str]) -> list[dict]:
+    """_run_all's batch > 1 way (bench.sim.batched): the same planned episodes, B at a time."""
+    from bench.sim import batched
+
+    def ended(row: dict) -> None:
+        if on_episode is not None:
+            on_episode(row)
+        episodes.append(row)
+        if progress:
+            batched.progress_line(spec, row)
+
+    vector_scenes = vector_scenes or batched.LIBERO_VECTOR
+    n = vector_scenes.num_init_states
+    for task in spec.tasks:
+        planned = [(e, rollout_init_state(e, n), rollout_env_seed(spec.seed, task, e))
+                   for e in range(spec.episodes_per_task) if (task, e) not in done]
+        episodes += [done[(task, e)] for e in range(spec.episodes_per_task) if (task, e) in done]
+        if planned:
+            batched.run_task_batched(act, spec, task, planned, descriptions[task], render, batch,
+                                     env_mode, vector_scenes, ended,
+                                     lambda step, where: _crash_named(step, where, kept()))
+    # Rows in the B = 1 order (task, episode), whatever order the slots finished in.
+    order = {t: i for i, t in enumerate(spec.tasks)}
+    return sorted(episodes, key=lambda e: (order[e["task"]], e["episode"]))
 
 
 def _crash_named(step: Callable, where: str, kept: str):
