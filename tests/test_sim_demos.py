@@ -26,8 +26,11 @@ SPEC = demos.DemoSpec("spatial", tasks=(0,), episodes_per_task=1, max_attempts=2
 
 
 @pytest.fixture(scope="module")
-def demo_root(tmp_path_factory):
-    return demos.generate(SPEC, tmp_path_factory.mktemp("sim") / "spatial", progress=False)
+def demo_root():
+    """The spec's suite where a run keeps it (the cache, keyed on the generator's version and
+    the spec): generated on a cold cache, reused warm (~15 s). The generator itself runs in
+    test_generation_is_deterministic, which builds it afresh and compares the two."""
+    return demos.generate(SPEC, progress=False)
 
 
 @pytest.fixture(scope="module")
