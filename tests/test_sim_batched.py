@@ -13,6 +13,7 @@ import torch
 
 from bench.sim import env as sim_env
 from bench.sim.rollout import RolloutSpec, Scenes, run_rollouts
+from tests.sim_marks import needs_libero
 
 gym = pytest.importorskip("gymnasium")
 TASKS = ["reach the far mark", "reach the near mark"]
@@ -127,8 +128,6 @@ def test_a_privileged_policy_is_refused_in_a_batch():
                      vector_scenes=vector)
 
 
-needs_libero = pytest.mark.skipif(not sim_env.libero_available(),
-                                  reason="libero extra not installed (bash scripts/install_libero.sh)")
 
 
 @pytest.mark.slow  # LIBERO scenes rendered in the simulator

@@ -11,6 +11,7 @@ import torch
 from bench.sim import env as sim_env
 from bench.sim.rollout import RolloutSpec, rollout_env_seed, rollout_init_state
 from bench.stats import wilson_interval
+from tests.sim_marks import needs_libero
 
 
 def test_wilson_interval_known_answers():
@@ -64,8 +65,6 @@ def test_sim_suite_without_the_extra_fails_in_one_line(monkeypatch, tmp_path):
         load_suite("spatial", "sim", root=tmp_path / "absent")
 
 
-needs_libero = pytest.mark.skipif(not sim_env.libero_available(),
-                                  reason="libero extra not installed (bash scripts/install_libero.sh)")
 SMALL = sim_env.RenderSettings(image_size=64)
 
 
