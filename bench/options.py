@@ -71,6 +71,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--sim-demo-noise", type=float, metavar="SIGMA",
                 help="sim suites: std of Gaussian noise on the executed translation actions of "
                      "the scripted demonstrations, labels kept clean (DART; default 0)")
+    g.addoption("--sim-demo-speed", type=float, metavar="S",
+                help="sim suites: the scripted expert's speed, 0 < S <= 1: its translation "
+                     "actions within +-S, unsaturated (default 1: the original expert)")
     g.addoption("--features", default="cache", choices=("cache", "loop"),
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
     g.addoption("--feature-dtype", default="fp16", choices=("fp16", "bf16", "float32"),
@@ -227,10 +230,12 @@ def _sim_demos(profile, opt) -> dict:
     """--sim-tasks / --sim-demos as Profile fields, refused unless the suites are simulated and
     the scripted expert solves every task (its measured success named, bench.sim.expert)."""
     tasks, demos, noise = opt("--sim-tasks"), opt("--sim-demos"), opt("--sim-demo-noise")
-    if tasks is None and demos is None and noise is None:
+    speed = opt("--sim-demo-speed")
+    given = [f"{name} {value}" for name, value in (("--sim-tasks", tasks), ("--sim-demos", demos),
+             ("--sim-demo-noise", noise), ("--sim-demo-speed", speed)) if value is not None]
+    if not given:
         return {}
-    shown = (f"--sim-tasks {tasks}" if tasks is not None else f"--sim-demos {demos}"
-             if demos is not None else f"--sim-demo-noise {noise}")
+    shown = given[0]
     if profile.data_source != "sim":
         raise ValueError(f"{shown}: profile {profile.name!r} has no simulated suites; use "
                          "--profile sim")
@@ -249,7 +254,11 @@ def _sim_demos(profile, opt) -> dict:
             raise ValueError(f"--sim-tasks {tasks}: {e}") from None
     if noise is not None and not 0.0 <= noise <= 1.0:
         raise ValueError(f"--sim-demo-noise {noise}: give a std in action units, 0 to 1")
-    return {"sim_tasks": ids or None, "sim_demos": demos, "sim_demo_noise": noise}
+    if speed is not None and not 0.0 < speed <= 1.0:
+        raise ValueError(f"--sim-demo-speed {speed}: give the expert's largest translation "
+                         "action, 0 < S <= 1 (1: the original expert)")
+    return {"sim_tasks": ids or None, "sim_demos": demos, "sim_demo_noise": noise,
+            "sim_demo_speed": speed}
 
 
 def _user_world(profile, opt):

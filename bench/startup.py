@@ -106,7 +106,8 @@ def check_rollouts_possible(profile, rollouts: int) -> None:
         from bench.sim.demos import demo_spec
 
         for suite in profile.suites:
-            spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos, profile.sim_demo_noise)
+            spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos, profile.sim_demo_noise,
+                             profile.sim_demo_speed)
             # demos use init states 0.. (at most max_attempts), rollouts 49, 48, ...: disjoint
             if spec.max_attempts + rollouts > 50:
                 raise pytest.UsageError(

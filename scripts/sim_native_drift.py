@@ -28,6 +28,7 @@ def main() -> None:
     p.add_argument("release")
     p.add_argument("--tasks", default="0,1")
     p.add_argument("--demos", type=int, default=10)
+    p.add_argument("--speed", type=float, default=1.0, help="the suite's DemoSpec.expert_speed")
     p.add_argument("--task", type=int, default=0)
     p.add_argument("--init", type=int, default=0)
     p.add_argument("--steps", type=int, default=120)
@@ -35,7 +36,8 @@ def main() -> None:
     a = p.parse_args()
     torch.set_num_threads(1)
     tasks = tuple(int(t) for t in a.tasks.split(","))
-    suite = load_suite("spatial", "sim", sim_spec=demos.demo_spec("spatial", tasks, a.demos))
+    spec = demos.demo_spec("spatial", tasks, a.demos, expert_speed=a.speed)
+    suite = load_suite("spatial", "sim", sim_spec=spec)
     info = demos.suite_info(suite.root)
     ep = [i for i, e in enumerate(info["episodes"]) if e["task"] == a.task and e["init_state"] == a.init][0]
     rows = suite.episode_index == ep

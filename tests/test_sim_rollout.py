@@ -39,10 +39,33 @@ def test_demo_specs_refuse_a_task_the_expert_cannot_solve():
     noisy = demo_spec("spatial", (0, 1), 20, action_noise=0.3)  # DART: another dataset
     assert noisy.action_noise == 0.3 and noisy.key() != more.key()
     assert replace(noisy, action_noise=0.0).key() == more.key()  # no noise: the old key
+    slow = demo_spec("spatial", (0, 1), 20, expert_speed=0.5)  # an unsaturated expert
+    assert slow.key() != more.key() and replace(slow, expert_speed=1.0).key() == more.key()
+    # Pinned: the key of the cached suite of docs/LIBERO_SIM.md's attempts 1-2, made before the
+    # noise and speed fields existed (a default field in the key would rename every cached suite).
+    assert demo_spec("spatial", (0, 1), 10).key() == "fe3b20524c9d"
+    with pytest.raises(ValueError, match="give 0 < speed <= 1"):
+        demo_spec("spatial", (0, 1), expert_speed=0.0)
     with pytest.raises(ValueError, match=r"cannot solve LIBERO-object task 6 \(measured 0/5"):
         DemoSpec("object", tasks=(0, 6))
     with pytest.raises(ValueError, match="task 10 is not a LIBERO-spatial task id"):
         demo_spec("spatial", (10,))
+
+
+def test_a_slowed_expert_keeps_its_moves_within_the_cap_and_on_course():
+    """ExpertParams.speed < 1: translation within +-speed, pointing at the waypoint (direction
+    kept, unlike a per-axis clip); inside the cap it is the same P-controller; 1 is the original
+    per-axis clip at +-1."""
+    from bench.sim.expert import ExpertParams, ScriptedExpert
+
+    far, near = np.array([0.30, -0.10, 0.02]), np.array([0.02, -0.01, 0.0])
+    original = ScriptedExpert("spatial")._translation(far)
+    np.testing.assert_array_equal(original, [1.0, -1.0, 0.24])  # 12 per metre, clipped per axis
+    slow = ScriptedExpert("spatial", ExpertParams(speed=0.5))
+    action = slow._translation(far)
+    assert np.abs(action).max() == pytest.approx(0.5)
+    np.testing.assert_allclose(action / np.linalg.norm(action), far / np.linalg.norm(far))
+    np.testing.assert_allclose(slow._translation(near), 12.0 * near)  # unsaturated
 
 
 def test_a_sim_spec_picks_its_own_cached_suite(monkeypatch):

@@ -70,6 +70,8 @@ BAD_INPUTS = [
     (["--profile", "sim", "--sim-tasks", "0,x"], "--sim-tasks 0,x", "give e.g. --sim-tasks 0,1,2"),
     (["--sim-demos", "5"], "--sim-demos 5", "has no simulated suites; use --profile sim"),
     (["--profile", "sim", "--sim-demo-noise", "2"], "--sim-demo-noise 2.0", "0 to 1"),
+    (["--profile", "sim", "--sim-demo-speed", "0"], "--sim-demo-speed 0.0", "0 < S <= 1"),
+    (["--sim-demo-speed", "0.5"], "--sim-demo-speed 0.5", "has no simulated suites"),
     (["--profile", "sim", "--sim-demos", "20", "--rollouts", "30"], "--rollouts 30",
      "give --rollouts <= 26"),
     (["--slurm-time", "0"], "--slurm-time 0", ">= 1"),

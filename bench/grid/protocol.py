@@ -118,6 +118,7 @@ class Profile:
     sim_tasks: tuple[int, ...] = ()
     sim_demos: int = 0
     sim_demo_noise: float = 0.0  # --sim-demo-noise: DemoSpec.action_noise (DART-style)
+    sim_demo_speed: float = 1.0  # --sim-demo-speed: DemoSpec.expert_speed (1: the original)
 
     @property
     def data_source(self) -> str:

@@ -89,11 +89,12 @@ class Workspace:
     def _demos(self, name: str):
         """The sim suite's DemoSpec when --sim-tasks / --sim-demos change it, else None."""
         p = self.profile
-        if p.data_source != "sim" or not (p.sim_tasks or p.sim_demos or p.sim_demo_noise):
+        if p.data_source != "sim" or not (p.sim_tasks or p.sim_demos or p.sim_demo_noise
+                                           or p.sim_demo_speed != 1.0):
             return None
         from bench.sim.demos import demo_spec
 
-        return demo_spec(name, p.sim_tasks, p.sim_demos, p.sim_demo_noise)
+        return demo_spec(name, p.sim_tasks, p.sim_demos, p.sim_demo_noise, p.sim_demo_speed)
 
     def split(self, name: str) -> Split:
         if name not in self._splits:

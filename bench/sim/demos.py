@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.sim.expert import ScriptedExpert, check_solvable, episode_seed
+from bench.sim.expert import ExpertParams, ScriptedExpert, check_solvable, episode_seed
 from external.paths import build_dataset_dir, cache_dir
 from external.lerobot_dataset import write_dataset
 from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
@@ -53,9 +53,15 @@ class DemoSpec:
     # recoveries from states off its own path. 0: none (and not part of the key, so the suites
     # generated before it keep theirs).
     action_noise: float = 0.0
+    # The expert's speed (ExpertParams.speed, 0 < s <= 1): below 1 its translation actions stay
+    # within +-s, unsaturated (issue 27). 1: the original expert, and not part of the key either.
+    expert_speed: float = 1.0
 
     def __post_init__(self):
         check_solvable(self.suite, self.tasks)  # no demonstrations from a task it never solved
+        if not 0.0 < self.expert_speed <= 1.0:
+            raise ValueError(f"expert speed {self.expert_speed}: give 0 < speed <= 1 (action "
+                             "units; 1 = the original expert)")
         if self.episodes_per_task < 1 or self.max_attempts < self.episodes_per_task:
             raise ValueError(f"DemoSpec needs 1 <= episodes_per_task <= max_attempts; got "
                              f"{self.episodes_per_task} and {self.max_attempts}")
@@ -65,6 +71,8 @@ class DemoSpec:
         fields = asdict(self)
         if not self.action_noise:
             del fields["action_noise"]
+        if self.expert_speed == 1.0:
+            del fields["expert_speed"]
         blob = json.dumps({"version": GENERATOR_VERSION, **fields}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
@@ -76,13 +84,14 @@ DEFAULT_SPECS = {"spatial": DemoSpec("spatial", tasks=(0, 1, 2, 3)),
 
 
 def demo_spec(suite: str, tasks: tuple[int, ...] = (), episodes: int = 0,
-              action_noise: float = 0.0) -> DemoSpec:
+              action_noise: float = 0.0, expert_speed: float = 1.0) -> DemoSpec:
     """The suite's DEFAULT_SPECS entry with other task ids and demonstrations per task (empty /
     0: the default's). A few more attempts than episodes, for the odd failed init state."""
     base = DEFAULT_SPECS[suite]
     episodes = episodes or base.episodes_per_task
     return replace(base, tasks=tuple(tasks) or base.tasks, episodes_per_task=episodes,
-                   max_attempts=max(base.max_attempts, episodes + 4), action_noise=action_noise)
+                   max_attempts=max(base.max_attempts, episodes + 4), action_noise=action_noise,
+                   expert_speed=expert_speed)
 
 
 def repo_id(suite: str) -> str:
@@ -114,14 +123,15 @@ class Episode:
 
 
 def run_expert_episode(env, suite: str, task: int, init_state: int, seed: int,
-                       max_steps: int, description: str, action_noise: float = 0.0) -> Episode:
+                       max_steps: int, description: str, action_noise: float = 0.0,
+                       expert_speed: float = 1.0) -> Episode:
     """Run the scripted expert once from `init_state`, recording every observed frame (and the
     expert's clean action as its label, whatever noise is executed: DemoSpec.action_noise)."""
     from bench.sim import env as sim_env
 
     start = time.perf_counter()
     obs = sim_env.reset_to(env, init_state, episode_seed(seed, task, init_state))
-    expert = ScriptedExpert(suite)
+    expert = ScriptedExpert(suite, ExpertParams(speed=expert_speed))
     expert.reset(env)
     noise = np.random.default_rng(episode_seed(seed, task, init_state))
     images, wrists, states, actions = [], [], [], []
@@ -201,7 +211,8 @@ def run_attempts(spec: DemoSpec, work: _Work, progress: bool = True) -> dict[tup
             if env is None:
                 env = sim_env.make_env(spec.suite, task, render, max_steps=spec.max_steps)
             episode = run_expert_episode(env, spec.suite, task, init_state, spec.seed,
-                                         spec.max_steps, descriptions[task], spec.action_noise)
+                                         spec.max_steps, descriptions[task], spec.action_noise,
+                                         spec.expert_speed)
             work.record(episode)
             done[(task, init_state)] = {"success": episode.success, "steps": episode.steps}
             kept += int(episode.success)

@@ -78,6 +78,11 @@ class ExpertParams:
     object_grip_below_top: float = 0.03  # LIBERO-Object: eef this far under the item's top
     object_drop_margin: float = 0.03  # LIBERO-Object: item bottom above the basket rim on release
     gain: float = 12.0  # action units per metre of position error, clipped to [-1, 1] (x POS_SCALE)
+    # Below 1 (issue 27): the translation is capped at `speed` with its direction kept (same gain
+    # inside the cap: halving it let the loaded arm sag out of the transit tolerance), so moves
+    # are no longer saturated at +-1 per axis (a constant label carries no feedback, and a learned
+    # policy undershot it); waypoint timeouts grow by 1/speed. 1: the original per-axis clip.
+    speed: float = 1.0
     rot_gain: float = 1.0  # action units per radian of orientation error
     rot_tolerance: float = 0.05  # radians: orientation held this well before grasping
     tolerance: float = 0.012  # metres: a precise waypoint (grasp point) counts as reached
@@ -255,12 +260,21 @@ class ScriptedExpert:
         else:
             target, gripper, kind = waypoints[self.phase]
         action = np.zeros(7, dtype=np.float32)
-        action[:3] = np.clip(p.gain * (target - pos), -1.0, 1.0)
+        action[:3] = self._translation(target - pos)
         rotation_error = _rotation_error(ori, self.goal_ori)
         action[3:6] = np.clip(p.rot_gain * rotation_error / ROT_SCALE, -1.0, 1.0)
         action[6] = gripper
         self._advance(kind, np.linalg.norm(target - pos), float(np.linalg.norm(rotation_error)))
         return action
+
+    def _translation(self, error: np.ndarray) -> np.ndarray:
+        """Translation action (3,) for a position error (metres): see ExpertParams.speed."""
+        p = self.params
+        if p.speed >= 1.0:
+            return np.clip(p.gain * error, -1.0, 1.0)
+        action = p.gain * error
+        largest = np.abs(action).max()
+        return action * (p.speed / largest) if largest > p.speed else action
 
     def _advance(self, kind: str, error: float, rotation_error: float) -> None:
         p = self.params
@@ -272,7 +286,8 @@ class ScriptedExpert:
         else:
             tolerance = p.transit_tolerance if kind == "transit" else p.tolerance
             aligned = self.phase >= 2 or rotation_error < p.rot_tolerance  # upright before grasping
-            finished = (error < tolerance and aligned) or self.phase_steps >= p.waypoint_timeout
+            timeout = p.waypoint_timeout / min(p.speed, 1.0)  # a slower expert needs longer
+            finished = (error < tolerance and aligned) or self.phase_steps >= timeout
         if finished and not self.done:
             self.phase += 1
             self.phase_steps = 0
@@ -322,7 +337,7 @@ class ReplayPolicy:
 
 
 def measure(suite: str, tasks: list[int], init_states: list[int], seed: int = 0,
-            max_steps: int = 280, progress: bool = True) -> dict:
+            max_steps: int = 280, progress: bool = True, speed: float = 1.0) -> dict:
     """Expert success per task without rendering (cameras off while stepping): a measurement.
 
     Returns {task: {"successes", "attempts", "steps": [...], "seconds": [...]}}.
@@ -340,7 +355,7 @@ def measure(suite: str, tasks: list[int], init_states: list[int], seed: int = 0,
             start = time.perf_counter()
             sim_env.reset_to(env, init_state, episode_seed(seed, task, init_state))
             sim_env.set_cameras(env, False)
-            expert = ScriptedExpert(suite)
+            expert = ScriptedExpert(suite, ExpertParams(speed=speed))
             expert.reset(env)
             success, steps = False, 0
             while steps < max_steps and not success:
@@ -372,9 +387,10 @@ if __name__ == "__main__":
     parser.add_argument("--init-states", type=int, default=10, help="init states 0..N-1")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="write the result JSON here")
+    parser.add_argument("--speed", type=float, default=1.0, help="ExpertParams.speed")
     args = parser.parse_args()
     result = measure(args.suite, [int(t) for t in args.tasks.split(",")],
-                     list(range(args.init_states)), args.seed)
+                     list(range(args.init_states)), args.seed, speed=args.speed)
     text = json.dumps(result, indent=1)
     if args.out:
         open(args.out, "w").write(text)
