@@ -52,6 +52,22 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--results-dir", help="results store (default .graftbench/results/<profile>)")
     g.addoption("--report", help="where REPORT.md goes (default: REPORT.md at the repo root)")
     g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
+    g.addoption("--features", default="cache", choices=("cache", "loop"),
+                help="pooled features from the on-disk cache (default) or the encoder in the loop")
+    g.addoption("--feature-dtype", default="fp16", choices=("fp16", "bf16", "float32"),
+                help="how the feature store keeps features on disk: fp16 (default; moves a "
+                     "cell's MSE < 2e-4 relative, docs/PERFORMANCE.md), bf16, or float32 (the "
+                     "encoder's numbers bit for bit, twice the disk)")
+    _add_sim_options(g)
+    _add_screen_options(g)
+    _add_executor_options(g)
+    from bench.regression.run import add_baseline_options
+
+    add_baseline_options(parser)
+
+
+def _add_sim_options(g) -> None:
+    """Closed-loop rollouts and the scripted demonstrations of the sim profile (bench.sim)."""
     g.addoption("--rollouts", type=int, default=0, metavar="N",
                 help="also roll every cell out in the LIBERO simulator, N episodes per task "
                      "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
@@ -74,17 +90,6 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--sim-demo-speed", type=float, metavar="S",
                 help="sim suites: the scripted expert's speed, 0 < S <= 1: its translation "
                      "actions within +-S, unsaturated (default 1: the original expert)")
-    g.addoption("--features", default="cache", choices=("cache", "loop"),
-                help="pooled features from the on-disk cache (default) or the encoder in the loop")
-    g.addoption("--feature-dtype", default="fp16", choices=("fp16", "bf16", "float32"),
-                help="how the feature store keeps features on disk: fp16 (default; moves a "
-                     "cell's MSE < 2e-4 relative, docs/PERFORMANCE.md), bf16, or float32 (the "
-                     "encoder's numbers bit for bit, twice the disk)")
-    _add_screen_options(g)
-    _add_executor_options(g)
-    from bench.regression.run import add_baseline_options
-
-    add_baseline_options(parser)
 
 
 def _add_screen_options(g) -> None:
