@@ -10,8 +10,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import json
 import os
 import tempfile
@@ -19,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.grid.kinds import GRAFT
+from external.filelock import exclusive
 from bench.results.current import RunConditions, is_current
 from bench.results.record import Failure, Record
 from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
@@ -202,19 +201,6 @@ class EpisodeLog:
         self.path.unlink(missing_ok=True)
 
 
-@contextlib.contextmanager
-def _exclusive(lock_file: Path):
-    """An exclusive flock on `lock_file` (created), released on exit or by the kernel when the
-    process dies."""
-    lock_file.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)
-
-
 class ResultStore:
     """A writable results dir (layout: module docstring). A failure file is never used to skip
     work; a successful write clears it."""
@@ -302,12 +288,12 @@ class ResultStore:
         dir (an xdist worker whose graft selection needs the same screen) waits, then finds it
         stored instead of measuring it twice."""
         path = _screen_file(self.root, sid)
-        return _exclusive(path.with_name(f".{path.stem}.lock"))
+        return exclusive(path.with_name(f".{path.stem}.lock"))
 
     def cell_lock(self, cell_id: str):
         """Held while a short graft (a tier cell) is planned and run: under -n N a worker's
         --screen-by short selection and another worker's case may both want it."""
-        return _exclusive(self.root / CELLS / f".{cell_id}.lock")
+        return exclusive(self.root / CELLS / f".{cell_id}.lock")
 
     def write_screen(self, item: ScreenRecord | ScreenFailure) -> Path:
         """A finished screen, or a failed one (replaced by the next success)."""

@@ -30,7 +30,6 @@ count towards its resident set (and it would then grow with the frames read).
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import shutil
@@ -45,6 +44,8 @@ from typing import Callable
 import numpy as np
 import torch
 from torch import Tensor
+
+from external.filelock import exclusive
 
 FORMAT = "graftbench-features/1"
 MAGIC = b"GBFEAT01"
@@ -319,13 +320,9 @@ def build(path: str | os.PathLike, layout: Layout, compute: ComputeChunk, chunk_
     (progress bars; tests stop a build there)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    lock = os.open(path.with_name(path.name + ".lock"), os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # released by the kernel if this process dies
+    with exclusive(path.with_name(path.name + ".lock")):  # the kernel frees it if we die
         if not path.exists():
             _build_locked(path, layout, compute, chunk_frames, say, chunk_done)
-    finally:
-        os.close(lock)
     return StoredFeatures.open(path, expect=layout)
 
 

@@ -9,8 +9,6 @@ when missing.
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import hashlib
 import json
 import os
@@ -23,6 +21,7 @@ import torch
 from backbones import adapter_module, get_entry
 from backbones.base import BackboneUnavailable, stats_fingerprint
 from backbones.hub import saved_normalizer_stats
+from external.filelock import exclusive
 from external.hubcache import download_command, folder_revision, resolved_revision
 from bench.progress import say
 from bench.grid.protocol import Profile
@@ -206,22 +205,10 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
     folder = tiny_release_dir(cache, name, key)
     if not (folder / "graftbench_release.json").exists():
         # xdist workers and array tasks sharing a cache: one trains, the others wait and load it.
-        with _exclusive(folder.with_name(folder.name + ".lock")):
+        with exclusive(folder.with_name(folder.name + ".lock")):
             if not (folder / "graftbench_release.json").exists():
                 say(progress, f"training the tiny released {name} natively ({profile.protocol.native_steps} "
                               f"steps, once; cached in {folder})")
                 train_tiny_release(name, untrained, profile, suites, train_frames, folder,
                                    chunk_size, progress)
     return module.load_policy(str(folder)), checkpoint_id(name, profile, folder)
-
-
-@contextlib.contextmanager
-def _exclusive(lock_path: Path):
-    """An exclusive fcntl lock on `lock_path` for the block (released when the process dies)."""
-    lock_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(lock_path, "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)

@@ -1,0 +1,23 @@
+"""One exclusive file lock for processes sharing a cache or results dir (xdist workers, job-array
+tasks): the release cache, the feature store and the results store all wait on it."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def exclusive(lock_file: Path):
+    """An exclusive flock on `lock_file` (created, with its folder) for the block; the kernel
+    releases it if the process dies."""
+    lock_file = Path(lock_file)
+    lock_file.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
