@@ -13,7 +13,6 @@ import json
 import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 from unittest.mock import patch
 
@@ -21,7 +20,6 @@ import pytest
 
 from bench.grid.cells import CellSpec
 from bench.run.executors import CellArray, CellJob, SlurmOptions
-from external.paths import REPO_ROOT
 from bench.grid.protocol import TINY, with_overrides
 
 SLICE = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels,blind",
