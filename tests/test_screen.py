@@ -85,6 +85,18 @@ def test_screen_cell_reads_the_store_and_scores_the_grafts_windows(tiny_ws):
     assert blind.proxies["logme"]["gain"] == 0.0  # constant features are dropped: no gain
 
 
+def test_screen_bits_follow_torch_threads_not_numpys_blas_default(tiny_ws, one_torch_thread):
+    """numpy's BLAS defaults to every CPU whatever torch's threads: a serial run and an xdist
+    worker then gave LogME and ridge 13th-digit apart (CI). The screen pins it to torch's count."""
+    from threadpoolctl import threadpool_limits
+
+    proxies = []
+    for blas_threads in (1, 2):
+        with threadpool_limits(blas_threads, user_api="blas"):
+            proxies.append(screen_cell(tiny_ws, "pixels", "smolvla", SUITE).proxies)
+    assert proxies[0] == proxies[1]
+
+
 @pytest.mark.parametrize("value, expected", [("3", 3), ("all", None), ("ALL", None), ("12", 12)])
 def test_screen_keep_accepts_counts_and_all(value, expected):
     assert parse_screen_keep(value) == expected

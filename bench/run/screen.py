@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 from bench.analysis.agreement import Measure, Undefined, is_defined
 from bench.analysis.screening import (Moments, knn_heldout, logme_moments, norm_entropy,
@@ -94,7 +95,15 @@ def screen_features(views: dict, suite, split, normalize_actions, chunk_size: in
     """Screen one (encoder, backbone, suite) = `names` from its feature `views` (see module doc).
 
     split: .train_frames (N,), .train_episodes, .windows (M,); normalize_actions: (B, T, 7) raw
-    -> normalised, the backbone's own."""
+    -> normalised, the backbone's own. numpy's BLAS runs on torch's thread count: its own
+    default (every CPU) made a serial run's LogME and ridge differ from an xdist worker's in the
+    13th digit (CI, test_xdist). One knob for the screen's bits, as for a cell's."""
+    with threadpool_limits(torch.get_num_threads(), user_api="blas"):
+        return _screen(views, suite, split, normalize_actions, chunk_size, names)
+
+
+def _screen(views: dict, suite, split, normalize_actions, chunk_size: int,
+            names: tuple[str, str, str]) -> ScreenScores:
     t0 = time.perf_counter()
     out = ScreenScores(*names)
     n_folds = min(FOLDS, len(split.train_episodes))
