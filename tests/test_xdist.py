@@ -27,7 +27,8 @@ pytestmark = pytest.mark.slow  # fresh interpreters (docs/TESTING.md: tiers)
 SLICE = ["--backbones", "pi05,smolvla", "--suites", "spatial", "--encoders", "pixels,blind",
          "--seeds", "0", "--controls", "none", "--steps", "20",
          "--screen", "--screen-keep", "all", "-k", "not test_short_graft"]
-# One torch thread per process in BOTH runs: the thread count must not differ between them.
+# One torch thread per process in BOTH runs: the thread count must not differ between them (the
+# in-process serial run would otherwise take the CPUs the load leaves free: bench.session).
 ENV = {"OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1", "HF_HUB_OFFLINE": "1"}
 
 
@@ -72,7 +73,7 @@ def serial_and_parallel(tmp_path_factory, one_torch_thread):
     root = tmp_path_factory.mktemp("xdist")
     serial = root / "serial"
     done = run_bench(*SLICE, "-q", "--results-dir", str(serial), "--report",
-                     str(serial / "REPORT.md"), figures=True, env={"GRAFTBENCH_QUIET": "1"})
+                     str(serial / "REPORT.md"), figures=True, env=ENV)
     assert done.returncode == 0, done.stdout[-3000:]
     serial_out = done.stdout
     parallel_out = run_grid(root / "parallel", "-n", "2", "-v")
