@@ -28,6 +28,7 @@ from backbones.paligemma import (
 )
 from backbones.tiny_pi05 import TinyPI05Arch, require_pinned_lerobot, tiny_pi05_patches
 from external.hubcache import cached_file, hub_artifact
+from external.lerobot_config import config_from_pretrained
 
 
 def load_policy(backbone_cls: type[PaliGemmaBackbone], path_or_repo_id: str,
@@ -64,14 +65,13 @@ def _read_marker(family: PaliGemmaFamily, source: str, marker_dir: Path | None,
 
 def _load(backbone_cls: type[PaliGemmaBackbone], source: str, stats: dict | None,
           marker_dir: Path | None, revision: str | None, device: str | None) -> PaliGemmaBackbone:
-    from lerobot.configs import PreTrainedConfig
     from lerobot.policies.factory import make_pre_post_processors
 
     family = backbone_cls.family
     marker = _read_marker(family, source, marker_dir, revision)
     arch = TinyPI05Arch.from_dict(marker["tiny_arch"]) if marker.get("tiny_arch") else None
     with _hub_errors_as_unavailable(source, revision):
-        config = PreTrainedConfig.from_pretrained(source, revision=revision)
+        config = config_from_pretrained(source, revision)
     _check_config(config, family, source)
     if device is not None:
         config.device = device

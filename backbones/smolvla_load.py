@@ -10,6 +10,7 @@ import torch
 from backbones import hub
 from backbones.base import only_step
 from external.hubcache import hub_artifact
+from external.lerobot_config import config_from_pretrained
 from external.libero_format import (
     ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
 )
@@ -40,7 +41,6 @@ def load_parts(
     `stats`, the processors are rebuilt from them; without, the saved processors are loaded with
     our device and features, and their own stats must cover state and action.
     """
-    from lerobot.configs import PreTrainedConfig
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
     local = Path(path_or_repo_id).expanduser()
@@ -51,7 +51,7 @@ def load_parts(
         hub.require_present(artifacts(path_or_repo_id, revision, f"backbone {path_or_repo_id}")[:1])
         device = device or hub.default_device()
     with _hub_errors_as_unavailable(path_or_repo_id, revision=revision):
-        config = PreTrainedConfig.from_pretrained(source, revision=revision)
+        config = config_from_pretrained(source, revision)
     if config.type != "smolvla":
         raise ValueError(f"{path_or_repo_id} holds a {config.type!r} policy, not 'smolvla'")
     config.load_vlm_weights = False  # the checkpoint carries every VLM weight; keep float32

@@ -8,6 +8,7 @@ pi0.5 share, tests/test_backbone_paligemma.py.
 
 from __future__ import annotations
 
+import tempfile
 import time
 
 import pytest
@@ -158,7 +159,10 @@ def test_action_normalisation_is_the_map_its_config_names(tiny):
 def test_save_load_round_trip_is_bit_identical(module, tiny, tmp_path, monkeypatch):
     module.save_pretrained(tiny, tmp_path / "tiny")
     monkeypatch.setenv("GRAFTBENCH_CACHE", str(tmp_path / "empty_cache"))  # self-contained folder
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     loaded = module.load_policy(str(tmp_path / "tiny"))
+    assert not any((tmp_path / "tmp").iterdir())  # LeRobot's config parse leaves a temp file
     loaded.freeze()
     ours, theirs = tiny.policy.state_dict(), loaded.policy.state_dict()
     assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)

@@ -25,6 +25,7 @@ from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from torch import Tensor, nn
 
 from external.graft import GraftFeed, Projector, pool_grid
+from external.lerobot_config import config_from_pretrained
 from lerobot_policy_graft.configuration_graft import (
     TRAIN_SCOPES, GraftPI0Config, GraftPI05Config, GraftSmolVLAConfig,
 )
@@ -133,7 +134,7 @@ class _Grafted:
         kwargs.pop("strict", None)
         folder = _local_folder(pretrained_name_or_path, kwargs.get("revision"))
         if config is None:
-            config = PreTrainedConfig.from_pretrained(folder)
+            config = config_from_pretrained(str(folder))
         if not isinstance(config, cls.config_class):
             raise TypeError(f"{folder} holds a {config.type!r} config, not {cls.name!r}")
         with assets_at(folder):
