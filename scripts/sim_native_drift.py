@@ -5,6 +5,10 @@ at every re-plan, the eef position error against the demo at the same step and t
 chunk against the demo's actions there.
 
     python scripts/sim_native_drift.py RELEASE_DIR --task 0 --init 0 --steps 120 --n-action-steps 10
+
+--rollout: a HELD-OUT init state as the grid's rollouts run it (init state 49 - e, the env seed
+of rollout episode e, seed 0); the reference is then the clean expert (--speed) run once from
+that same reset (no demonstration exists there).
 """
 
 from __future__ import annotations
@@ -33,20 +37,34 @@ def main() -> None:
     p.add_argument("--init", type=int, default=0)
     p.add_argument("--steps", type=int, default=120)
     p.add_argument("--n-action-steps", type=int, default=10)
+    p.add_argument("--rollout", action="store_true",
+                   help="held-out init state: rollout env seed, clean expert as the reference")
     a = p.parse_args()
     torch.set_num_threads(1)
     tasks = tuple(int(t) for t in a.tasks.split(","))
     spec = demos.demo_spec("spatial", tasks, a.demos, expert_speed=a.speed)
     suite = load_suite("spatial", "sim", sim_spec=spec)
     info = demos.suite_info(suite.root)
-    ep = [i for i, e in enumerate(info["episodes"]) if e["task"] == a.task and e["init_state"] == a.init][0]
-    rows = suite.episode_index == ep
-    demo_state, demo_action = suite.state[rows].numpy(), suite.action[rows].numpy()
+    seed = episode_seed(0, a.task, a.init)
+    if a.rollout:
+        from bench.sim.rollout import rollout_env_seed
+        seed = rollout_env_seed(0, a.task, 49 - a.init)
+        ref_env = sim_env.make_env("spatial", a.task, demos.render_settings(suite.root), max_steps=280)
+        ref = demos.run_expert_episode(ref_env, "spatial", a.task, a.init, 0, 280,
+                                       sim_env.task_descriptions("spatial")[a.task],
+                                       expert_speed=a.speed)
+        ref_env.close()
+        print(json.dumps({"reference": "clean expert", "success": ref.success, "steps": ref.steps}))
+        demo_state, demo_action = ref.state, ref.action
+    else:
+        ep = [i for i, e in enumerate(info["episodes"]) if e["task"] == a.task and e["init_state"] == a.init][0]
+        rows = suite.episode_index == ep
+        demo_state, demo_action = suite.state[rows].numpy(), suite.action[rows].numpy()
     backbone = adapter_module("pi05").load_policy(a.release)
     act = make_act(backbone, noise_seed=0)
     env = sim_env.make_env("spatial", a.task, demos.render_settings(suite.root), max_steps=a.steps)
     desc = sim_env.task_descriptions("spatial")[a.task]
-    obs = sim_env.reset_to(env, a.init, episode_seed(0, a.task, a.init))
+    obs = sim_env.reset_to(env, a.init, seed)
     t = 0
     while t < a.steps:
         raw = sim_env.observe([obs], [desc])
