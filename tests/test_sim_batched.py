@@ -128,8 +128,6 @@ def test_a_privileged_policy_is_refused_in_a_batch():
                      vector_scenes=vector)
 
 
-
-
 @pytest.mark.slow  # LIBERO scenes rendered in the simulator
 @needs_libero
 def test_libero_vector_env_meets_the_single_env_observations():
