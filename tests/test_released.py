@@ -1,13 +1,18 @@
-"""Tiny released checkpoints: state dropout of the native training and the release cache key."""
+"""Tiny released checkpoints: state dropout and image shift of the native training, and the
+release cache key."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 import torch
 
-from bench.run.releases import drop_states, release_key
-from bench.grid.protocol import TINY
+from bench.run.releases import drop_states, release_key, shift_images
+from bench.grid.protocol import SIM, TINY
+
+BASELINE = Path(__file__).resolve().parents[1] / ".graftbench" / "baselines" / "ci-tiny.json"
 
 
 def test_state_dropout_replaces_whole_rows_with_the_mean_at_the_given_rate():
@@ -32,3 +37,32 @@ def test_release_key_changes_with_the_state_dropout():
         native_state_dropout=TINY.protocol.native_state_dropout + 0.1))
     assert release_key("smolvla", TINY, [S()], 10, "arch") != \
         release_key("smolvla", other, [S()], 10, "arch")
+
+
+def test_image_shift_moves_each_image_whole_by_at_most_the_pad():
+    images = torch.rand(64, 3, 12, 10)
+    assert shift_images(images, 0, torch.Generator().manual_seed(0)) is images
+    shifted = shift_images(images, 2, torch.Generator().manual_seed(0))
+    assert shifted.shape == images.shape
+    padded = torch.nn.functional.pad(images, (2, 2, 2, 2), mode="replicate")
+    found = set()
+    for i in range(len(images)):  # each output is one crop of its own padded image
+        crops = [(x, y) for y in range(5) for x in range(5)
+                 if torch.equal(shifted[i], padded[i, :, y:y + 12, x:x + 10])]
+        assert len(crops) == 1
+        found.add(crops[0])
+    assert len(found) > 15  # 64 draws over 25 offsets: the shift varies per sample
+    again = shift_images(images, 2, torch.Generator().manual_seed(0))
+    assert torch.equal(shifted, again)
+
+
+def test_image_shift_keys_a_new_release_and_leaves_older_hashes_alone():
+    class S:
+        fingerprint = "abc"
+
+    shifted = dataclasses.replace(SIM, protocol=SIM.protocol.replace(native_image_shift=4))
+    assert release_key("pi05", SIM, [S()], 10, "arch") != release_key("pi05", shifted, [S()], 10,
+                                                                        "arch")
+    assert shifted.protocol.hash != SIM.protocol.hash
+    # The committed baseline's cells were measured before the field existed: same hash today.
+    assert json.loads(BASELINE.read_text())["protocol_hashes"] == [TINY.protocol.hash]

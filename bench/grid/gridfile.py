@@ -124,8 +124,18 @@ def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
     for name, value in table.items():
         if name not in defaults:
             raise _unknown_key(where, f"[protocol] {name}", name, defaults)
-        out.append((name, _like(where, f"[protocol] {name}", value, defaults[name])))
+        value = _like(where, f"[protocol] {name}", value, defaults[name])
+        low, high = _RANGES.get(name, (None, None))
+        if (low is not None and value < low) or (high is not None and value > high):
+            raise _fail(where, f"[protocol] {name}", f"= {value!r} is out of range; give a value "
+                        f"in [{low}, {'any' if high is None else high}]")
+        out.append((name, value))
     return tuple(out)
+
+
+# Protocol fields whose meaning has bounds (the rest are checked by type only).
+_RANGES = {"native_steps": (0, None), "native_state_dropout": (0.0, 1.0),
+           "native_state_dropout_warmup": (0, None), "native_image_shift": (0, None)}
 
 
 _KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string",

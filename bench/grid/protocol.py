@@ -50,19 +50,28 @@ class Protocol:
     # never attends to the images (measured: native 0.31 vs shuffled-image 0.30 normalised MSE).
     native_state_dropout: float = 0.0
     native_state_dropout_warmup: int = 0
+    # Random-shift augmentation in that native training (DrQ's pad-and-crop): every camera image
+    # of every sample is moved by up to this many pixels in x and y (edges replicated). 0 = off.
+    native_image_shift: int = 0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
     @property
     def hash(self) -> str:
-        """12 hex chars of sha256 over the canonical JSON of all fields."""
-        blob = json.dumps(self.to_dict(), sort_keys=True, default=list).encode()
+        """12 hex chars of sha256 over the canonical JSON of all fields; a field added after the
+        first records leaves the hash alone at its default, so those records still resume."""
+        values = {k: v for k, v in self.to_dict().items()
+                  if not (k in _ADDED_LATER and v == _ADDED_LATER[k])}
+        blob = json.dumps(values, sort_keys=True, default=list).encode()
         return hashlib.sha256(blob).hexdigest()[:12]
 
     def replace(self, **changes) -> "Protocol":
         return dataclasses.replace(self, **changes)
 
+
+# Fields added after records existed, with the default that keeps the older hashes.
+_ADDED_LATER = {"native_image_shift": 0}
 
 PAPER_ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 # The study's two backbones, as the registry marks them (its base releases).

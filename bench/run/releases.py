@@ -68,6 +68,8 @@ def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str)
         "native_steps": p.native_steps, "native_lr": p.native_lr, "batch": p.batch_size,
         "state_dropout": [p.native_state_dropout, p.native_state_dropout_warmup],
         "split_seed": p.split_seed, "heldout": p.heldout_episodes_per_task,
+        # Only when set: the releases trained before the field existed keep their keys.
+        **({"image_shift": p.native_image_shift} if p.native_image_shift else {}),
     }, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
@@ -83,6 +85,17 @@ def drop_states(states: torch.Tensor, rate: float, mean: torch.Tensor,
         return states
     drop = torch.rand(states.shape[0], generator=generator) < rate
     return torch.where(drop[:, None], mean.to(states.dtype), states)
+
+
+def shift_images(images: torch.Tensor, pad: int, generator: torch.Generator) -> torch.Tensor:
+    """(B, 3, H, W) images, each moved by its own random (dx, dy) in [-pad, pad] (DrQ's
+    pad-and-crop, edges replicated): the native policy cannot key on exact pixel positions."""
+    if pad <= 0:
+        return images
+    n, _, h, w = images.shape
+    padded = torch.nn.functional.pad(images, (pad, pad, pad, pad), mode="replicate")
+    offsets = torch.randint(0, 2 * pad + 1, (n, 2), generator=generator).tolist()
+    return torch.stack([padded[i, :, y:y + h, x:x + w] for i, (x, y) in enumerate(offsets)])
 
 
 def train_tiny_release(name: str, backbone, profile: Profile, suites, train_frames, folder: Path,
@@ -104,6 +117,7 @@ def train_tiny_release(name: str, backbone, profile: Profile, suites, train_fram
     p = profile.protocol
     state_mean = torch.cat([s.state[train_frames[s.name]] for s in suites]).mean(0)
     dropout = torch.Generator().manual_seed(stable_seed("native-state-dropout", name))
+    shifts = torch.Generator().manual_seed(stable_seed("native-image-shift", name))
     calls = [0]
 
     def next_batch(rows):
@@ -116,6 +130,8 @@ def train_tiny_release(name: str, backbone, profile: Profile, suites, train_fram
         calls[0] += 1  # one call per optimiser step (the probe never runs here)
         rate = 1.0 if calls[0] <= p.native_state_dropout_warmup else p.native_state_dropout
         merged[STATE_KEY] = drop_states(merged[STATE_KEY], rate, state_mean, dropout)
+        for cam in suites[0].camera_keys:
+            merged[cam] = shift_images(merged[cam], p.native_image_shift, shifts)
         return merged, None
 
     cfg = FitConfig(steps=p.native_steps, batch_size=p.batch_size, lr=p.native_lr,
