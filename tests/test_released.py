@@ -7,8 +7,12 @@ import dataclasses
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
+from bench.results.store import ResultStore
+from bench.run.workspace import Workspace
+from tests.worlds import lent_workspace
 from bench.run.releases import drop_states, release_key, shift_images
 from bench.grid.protocol import SIM, TINY
 
@@ -66,3 +70,20 @@ def test_image_shift_keys_a_new_release_and_leaves_older_hashes_alone():
     assert shifted.protocol.hash != SIM.protocol.hash
     # The committed baseline's cells were measured before the field existed: same hash today.
     assert json.loads(BASELINE.read_text())["protocol_hashes"] == [TINY.protocol.hash]
+
+
+@pytest.mark.parametrize("name", ["pi05", "smolvla"])
+def test_tiny_image_size_builds_the_release_at_that_size_or_refuses(tmp_path, name):
+    """A 2-step release at 32 px: pi0.5's tokens follow the size (a 2 x 2 grid, a release of its
+    own); SmolVLA's tiny tower reads 64 px whatever the size, so the knob is refused."""
+    protocol = TINY.protocol.replace(native_steps=2, tiny_image_size=32)
+    ws = Workspace(dataclasses.replace(TINY, protocol=protocol),
+                   ResultStore(tmp_path / "results"), progress=False, cache=tmp_path / "cache")
+    ws._suites["spatial"] = lent_workspace(TINY, ResultStore(tmp_path / "r2")).suite("spatial")
+    if name == "smolvla":
+        with pytest.raises(ValueError, match=r"tiny_image_size = 32: the tiny smolvla reads"):
+            ws.backbone(name, "spatial")
+        return
+    backbone = ws.backbone(name, "spatial")
+    assert backbone.info.native_grid == (2, 2)
+    assert tuple(backbone.policy.config.image_resolution) == (32, 32)

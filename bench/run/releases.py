@@ -24,7 +24,7 @@ from backbones.hub import saved_normalizer_stats
 from external.filelock import exclusive
 from external.hubcache import download_command, folder_revision, resolved_revision
 from bench.progress import say
-from bench.grid.protocol import Profile
+from bench.grid.protocol import Profile, Protocol
 from bench.results.provenance import stable_seed
 from external.libero_format import STATE_KEY
 from bench.run.train import FitConfig, fit
@@ -215,8 +215,16 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
         backbone = module.load_policy(entry.repo_id, stats=stats, revision=entry.revision)
         return backbone, checkpoint_id(name, profile)
     # The untrained build (seed 0) both keys the cache and, on a miss, is what gets trained.
+    side = profile.protocol.tiny_image_size
     untrained = module.build_tiny_policy(union_stats(suites, train_frames), suites[0].camera_keys,
-                                         chunk_size=chunk_size, seed=0)
+                                         image_hw=(side, side), chunk_size=chunk_size, seed=0)
+    if side != Protocol.tiny_image_size:
+        default = module.build_tiny_policy(union_stats(suites, train_frames), suites[0].camera_keys,
+                                           chunk_size=chunk_size, seed=0)
+        if default.info.native_grid == untrained.info.native_grid:  # a knob that moves nothing
+            raise ValueError(f"[protocol] tiny_image_size = {side}: the tiny {name} reads "
+                             f"{default.info.native_grid} image tokens at any size; remove it "
+                             "for this backbone")
     key = release_key(name, profile, suites, chunk_size, architecture_fingerprint(untrained))
     folder = tiny_release_dir(cache, name, key)
     if not (folder / "graftbench_release.json").exists():
