@@ -148,7 +148,7 @@ def fake_scenes(ws, kill_at_reset: int | None = None, crash_at_reset: int | None
     return scenes, resets
 
 
-def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path):
+def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path, monkeypatch):
     """Killed during its 4th episode, a cell keeps the 3 finished ones (atomically, in the
     store's episode log) and a rerun rolls out only the rest: same episodes as one sitting."""
     from bench.results.store import ResultStore
@@ -156,9 +156,9 @@ def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path):
 
     store = ResultStore(tmp_path / "res")
     cell, backbone = CellSpec("native", "pi05", "spatial", 0), tiny_ws.backbone("pi05")
-    run = lambda scenes, policy="p1": cell_rollouts(  # noqa: E731
+    run = lambda scenes, policy="p1", progress=False: cell_rollouts(  # noqa: E731
         cell, tiny_ws.suite("spatial"), backbone, 2, store=store, policy=policy,
-        scenes=scenes, progress=False)
+        scenes=scenes, progress=progress)
     killed, _ = fake_scenes(tiny_ws, kill_at_reset=4)
     with pytest.raises(Killed):
         run(killed)
@@ -166,8 +166,16 @@ def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path):
     assert [(e["task"], e["episode"]) for e in log["episodes"]] == [(0, 0), (0, 1), (1, 0)]
 
     scenes, resets = fake_scenes(tiny_ws)
-    out = run(scenes)
+    lines = []  # a progress sink: inside `pytest bench` one line per episode as it ends
+    monkeypatch.delenv("GRAFTBENCH_QUIET", raising=False)
+
+    class Sink:
+        line = staticmethod(lines.append)
+
+    out = run(scenes, progress=Sink())
     assert resets == [(1, 48), (2, 49), (2, 48), (3, 49), (3, 48)]  # only the 5 not finished
+    assert lines[0] == "[rollout] spatial task 1 episode 1 (init 48): success in 3 steps " \
+        f"({out['episodes'][3]['seconds']:.1f} s)" and len(lines) == 5
     assert [(e["task"], e["episode"], e["init_state"]) for e in out["episodes"]] == [
         (t, e, 49 - e) for t in range(4) for e in range(2)]
     assert [e["success"] for e in out["episodes"]] == [True, False] + [True] * 6

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import sys
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -227,9 +226,3 @@ def run_task_batched(act, spec, task: int, planned: list[tuple[int, int, int]],
                 slots.start(refill, planned)
     finally:
         venv.close()
-
-
-def progress_line(spec, row: dict) -> None:
-    print(f"[rollout] {spec.suite} task {row['task']} episode {row['episode']} "
-          f"(init {row['init_state']}): {'success' if row['success'] else 'failure'} in "
-          f"{row['steps']} steps ({row['seconds']:.1f} s)", file=sys.stderr, flush=True)

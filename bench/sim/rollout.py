@@ -20,7 +20,6 @@ naming the task, episode and init state: that cell fails with it, the run goes o
 from __future__ import annotations
 
 import hashlib
-import sys
 import time
 from dataclasses import asdict, dataclass
 from typing import Callable
@@ -28,6 +27,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from bench.progress import as_sink
 from bench.sim import env as sim_env
 from bench.stats import wilson_interval
 
@@ -83,6 +83,16 @@ def rollout_init_state(episode: int, num_init_states: int) -> int:
 def rollout_env_seed(seed: int, task: int, episode: int) -> int:
     digest = hashlib.sha256(f"rollout:{seed}:{task}:{episode}".encode()).digest()
     return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+def progress_line(progress, spec, row: dict) -> None:
+    """One line per finished episode, through the progress sink: inside `pytest bench` a bare
+    stderr print is captured until the test ends, i.e. after the last episode."""
+    sink = as_sink(progress)
+    if sink is not None:
+        sink.line(f"[rollout] {spec.suite} task {row['task']} episode {row['episode']} "
+                  f"(init {row['init_state']}): {'success' if row['success'] else 'failure'} in "
+                  f"{row['steps']} steps ({row['seconds']:.1f} s)")
 
 
 def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
@@ -182,11 +192,7 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
                 if on_episode is not None:
                     on_episode(row)
                 episodes.append(row)
-                if progress:
-                    print(f"[rollout] {spec.suite} task {task} episode {episode} "
-                          f"(init {row['init_state']}): {'success' if row['success'] else 'failure'}"
-                          f" in {row['steps']} steps ({row['seconds']:.1f} s)",
-                          file=sys.stderr, flush=True)
+                progress_line(progress, spec, row)
         finally:
             if env is not None:
                 env.close()
@@ -203,8 +209,7 @@ def _run_batched(act: ActFn, spec: RolloutSpec, progress: bool, render, done: di
         if on_episode is not None:
             on_episode(row)
         episodes.append(row)
-        if progress:
-            batched.progress_line(spec, row)
+        progress_line(progress, spec, row)
 
     vector_scenes = vector_scenes or batched.LIBERO_VECTOR
     n = vector_scenes.num_init_states
