@@ -103,8 +103,10 @@ def test_the_command_line_overrides_the_file(tmp_path):
     ("[protocol]\nlr = \"fast\"\n", ["[protocol] lr = 'fast'", "expected a number"]),
     ("[protocol]\nlora_targets = \"q_proj\"\n", ["lora_targets", "a list of strings"]),
     ("steps = 5\n[protocol]\nsteps = 6\n", ["steps is given twice"]),
-    ("[protocol]\nnative_image_shift = -4\n", ["native_image_shift = -4 is out of range", "[0, any]"]),
+    ("[protocol]\nnative_image_shift = -4\n", ["native_image_shift = -4 is out of range", ">= 0"]),
     ("[protocol]\nnative_state_dropout = 1.5\n", ["native_state_dropout = 1.5", "[0.0, 1.0]"]),
+    ("[protocol]\ntiny_image_size = 100\n", ["tiny_image_size = 100 is not a multiple",
+                                             "give 96 or 112"]),
     ("seeds = [0\n", ["not valid TOML", "fix the file"]),
 ])
 def test_a_bad_file_is_one_line_naming_the_file_and_the_key(tmp_path, text, words):

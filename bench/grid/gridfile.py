@@ -128,7 +128,10 @@ def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
         low, high = _RANGES.get(name, (None, None))
         if (low is not None and value < low) or (high is not None and value > high):
             raise _fail(where, f"[protocol] {name}", f"= {value!r} is out of range; give a value "
-                        f"in [{low}, {'any' if high is None else high}]")
+                        + (f">= {low}" if high is None else f"in [{low}, {high}]"))
+        if name == "tiny_image_size" and value % 16:  # the tiny pi0 / pi0.5 patch (16 px)
+            raise _fail(where, f"[protocol] {name}", f"= {value} is not a multiple of the tiny "
+                        f"patch size 16; give {value - value % 16 or 16} or {value - value % 16 + 16}")
         out.append((name, value))
     return tuple(out)
 
