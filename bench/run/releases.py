@@ -215,12 +215,12 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
         backbone = module.load_policy(entry.repo_id, stats=stats, revision=entry.revision)
         return backbone, checkpoint_id(name, profile)
     # The untrained build (seed 0) both keys the cache and, on a miss, is what gets trained.
-    side = profile.protocol.tiny_image_size
-    untrained = module.build_tiny_policy(union_stats(suites, train_frames), suites[0].camera_keys,
-                                         image_hw=(side, side), chunk_size=chunk_size, seed=0)
+    side, tiny_stats = profile.protocol.tiny_image_size, union_stats(suites, train_frames)
+    untrained = module.build_tiny_policy(tiny_stats, suites[0].camera_keys, image_hw=(side, side),
+                                         chunk_size=chunk_size, seed=0)
     if side != Protocol.tiny_image_size:
-        default = module.build_tiny_policy(union_stats(suites, train_frames), suites[0].camera_keys,
-                                           chunk_size=chunk_size, seed=0)
+        default = module.build_tiny_policy(tiny_stats, suites[0].camera_keys, chunk_size=chunk_size,
+                                           seed=0)
         if default.info.native_grid == untrained.info.native_grid:  # a knob that moves nothing
             raise ValueError(f"[protocol] tiny_image_size = {side}: the tiny {name} reads "
                              f"{default.info.native_grid} image tokens at any size; remove it "
