@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from backbones.tiny_pi05 import TinyPI05Arch
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import PROFILES, GridFileInfo, Profile, Protocol, with_overrides
 from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
@@ -129,9 +130,11 @@ def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
         if (low is not None and value < low) or (high is not None and value > high):
             raise _fail(where, f"[protocol] {name}", f"= {value!r} is out of range; give a value "
                         + (f">= {low}" if high is None else f"in [{low}, {high}]"))
-        if name == "tiny_image_size" and value % 16:  # the tiny pi0 / pi0.5 patch (16 px)
+        patch = TinyPI05Arch.patch_size  # the tiny pi0 / pi0.5 build checks the same
+        if name == "tiny_image_size" and value % patch:
+            low_side = value - value % patch
             raise _fail(where, f"[protocol] {name}", f"= {value} is not a multiple of the tiny "
-                        f"patch size 16; give {value - value % 16 or 16} or {value - value % 16 + 16}")
+                        f"patch size {patch}; give {low_side or patch} or {low_side + patch}")
         out.append((name, value))
     return tuple(out)
 
