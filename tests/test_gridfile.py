@@ -104,6 +104,7 @@ def test_the_command_line_overrides_the_file(tmp_path):
     ("[protocol]\nlora_targets = \"q_proj\"\n", ["lora_targets", "a list of strings"]),
     ("steps = 5\n[protocol]\nsteps = 6\n", ["steps is given twice"]),
     ("[protocol]\nnative_image_shift = -4\n", ["native_image_shift = -4 is out of range", ">= 0"]),
+    ("[protocol]\ngraft_image_shift = -1\n", ["graft_image_shift = -1 is out of range", ">= 0"]),
     ("[protocol]\nnative_state_dropout = 1.5\n", ["native_state_dropout = 1.5", "[0.0, 1.0]"]),
     ("[protocol]\ntiny_image_size = 100\n", ["tiny_image_size = 100 is not a multiple",
                                              "give 96 or 112"]),

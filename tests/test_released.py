@@ -1,5 +1,5 @@
 """Tiny released checkpoints: state dropout and image shift of the native training, and the
-release cache key."""
+release cache key; the same image shift in graft training."""
 
 from __future__ import annotations
 
@@ -14,7 +14,12 @@ from bench.results.store import ResultStore
 from bench.run.workspace import Workspace
 from tests.worlds import lent_workspace
 from bench.run.releases import drop_states, release_key, shift_images
+from bench.grid.kinds import SAME, ZERO
 from bench.grid.protocol import SIM, TINY
+from bench.run.augment import shift_images as shared_shift
+from bench.run.features import encode_pooled
+from bench.run.inputs import CellInputs
+from encoders.registry import build_encoder
 
 BASELINE = Path(__file__).resolve().parents[1] / ".graftbench" / "baselines" / "ci-tiny.json"
 
@@ -87,3 +92,29 @@ def test_tiny_image_size_builds_the_release_at_that_size_or_refuses(tmp_path, na
     backbone = ws.backbone(name, "spatial")
     assert backbone.info.native_grid == (2, 2)
     assert tuple(backbone.policy.config.image_resolution) == (32, 32)
+
+
+def test_graft_image_shift_feeds_the_encoder_moved_pixels_in_training_only(tmp_path):
+    """Known answer: with graft_image_shift = 3 a training batch's features are the encoder's
+    on the images shift_images moves with the cell's generator; the zero rule and evaluation
+    read the images as they are."""
+    assert shared_shift is shift_images  # one definition for native and graft training
+    suite = lent_workspace(TINY, ResultStore(tmp_path / "r")).suite("spatial")
+    frames = torch.arange(0, 60, 10)
+    plain = CellInputs(suite, frames, frames, 4, torch.device("cpu"), (2, 2),
+                       encoder=build_encoder("pixels", "tiny"))
+    moved = dataclasses.replace(plain, train_shift=3, shift_seed=7)
+    gen = torch.Generator().manual_seed(7)
+    images = {k: shift_images(v, 3, gen) for k, v in suite.images(frames).items()}
+    want = encode_pooled(plain.encoder, images, (2, 2))
+    raw, got = moved.train_batches(SAME)(frames)
+    _, unshifted = plain.train_batches(SAME)(frames)
+    for k in suite.camera_keys:
+        assert torch.equal(got[k], want[k])
+        assert torch.equal(raw[k], images[k])
+        assert not torch.equal(got[k], unshifted[k])
+    _, zero = moved.train_batches(ZERO)(frames)
+    assert all(torch.equal(zero[k], plain.zero_pooled(len(frames))[k]) for k in zero)
+    pos = torch.arange(len(frames))
+    scored = moved.eval_features(SAME)(pos, frames)
+    assert all(torch.equal(scored[k], unshifted[k]) for k in scored)

@@ -142,6 +142,7 @@ def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
 # Protocol fields whose meaning has bounds (the rest are checked by type only).
 _RANGES = {"native_steps": (0, None), "native_state_dropout": (0.0, 1.0),
            "native_state_dropout_warmup": (0, None), "native_image_shift": (0, None),
+           "graft_image_shift": (0, None),
            "tiny_image_size": (16, 512)}
 
 

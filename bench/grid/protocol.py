@@ -53,6 +53,10 @@ class Protocol:
     # Random-shift augmentation in that native training (DrQ's pad-and-crop): every camera image
     # of every sample is moved by up to this many pixels in x and y (edges replicated). 0 = off.
     native_image_shift: int = 0
+    # The same shift in graft (projector) training: the encoder then runs in the loop on the
+    # shifted training images (stored features cannot be shifted); evaluation and rollouts read
+    # images as they are. 0 = off.
+    graft_image_shift: int = 0
     # Side of the square image the tiny released policies read (their config's image_resolution;
     # the suites' images are resized with padding to it). 64 px at patch 16 is a 4 x 4 grid of
     # tokens per camera: enough for the offline known answers, coarse for a centimetre grasp.
@@ -75,7 +79,7 @@ class Protocol:
 
 
 # Fields added after records existed, with the default that keeps the older hashes.
-_ADDED_LATER = {"native_image_shift": 0, "tiny_image_size": 64}
+_ADDED_LATER = {"native_image_shift": 0, "graft_image_shift": 0, "tiny_image_size": 64}
 
 PAPER_ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 # The study's two backbones, as the registry marks them (its base releases).

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from bench.run.augment import shift_images
 from bench.run.features import encode_pooled
 from bench.grid.kinds import SAME, SHUFFLED, ZERO
 from bench.suites.windows import raw_batch
@@ -28,6 +29,8 @@ class CellInputs:
     encoder: object = None  # a graft's encoder (None: the policy's own tower, or no graft)
     features: dict | None = None  # camera -> stored pooled features (None: encoder in the loop)
     tower: bool = False
+    train_shift: int = 0  # Protocol.graft_image_shift: training images moved by up to this (px)
+    shift_seed: int = 0
 
     @property
     def on_pixels(self) -> bool:
@@ -76,16 +79,25 @@ class CellInputs:
     # --- training batches -----------------------------------------------------------------------
     def train_batches(self, rule: str):
         """next_batch(frames) -> (raw batch, graft features or None) of bench.run.train.fit."""
-        needs_pixels = self.on_pixels or self.features is None
+        shift = self.train_shift if rule != ZERO else 0
+        needs_pixels = self.on_pixels or self.features is None or shift > 0
+        shifts = torch.Generator().manual_seed(self.shift_seed)
 
         def next_batch(frames: Tensor):
             raw = raw_batch(self.suite, frames, self.chunk_size, with_images=needs_pixels)
             for k in self.suite.camera_keys:  # a graft ignores them; the pipeline wants them
                 raw.setdefault(k, torch.zeros((len(frames), *self.suite.image_shape)))
+            if shift:  # stored features cannot be shifted: the encoder runs on the moved pixels
+                raw.update({k: shift_images(raw[k], shift, shifts) for k in self.suite.camera_keys})
             if self.on_pixels:
                 if rule == ZERO:
                     raw.update({k: torch.zeros_like(raw[k]) for k in self.suite.camera_keys})
                 return raw, None
-            return raw, self.zero_pooled(len(frames)) if rule == ZERO else self.pooled(frames)
+            if rule == ZERO:
+                return raw, self.zero_pooled(len(frames))
+            if shift:
+                return raw, encode_pooled(self.encoder, {k: raw[k] for k in self.suite.camera_keys},
+                                          self.grid)
+            return raw, self.pooled(frames)
 
         return next_batch

@@ -26,6 +26,7 @@ from external.hubcache import download_command, folder_revision, resolved_revisi
 from bench.progress import say
 from bench.grid.protocol import Profile, Protocol
 from bench.results.provenance import stable_seed
+from bench.run.augment import shift_images
 from external.libero_format import STATE_KEY
 from bench.run.train import FitConfig, fit
 from bench.run.userworld import policy_facts, user_checkpoint_id
@@ -85,17 +86,6 @@ def drop_states(states: torch.Tensor, rate: float, mean: torch.Tensor,
         return states
     drop = torch.rand(states.shape[0], generator=generator) < rate
     return torch.where(drop[:, None], mean.to(states.dtype), states)
-
-
-def shift_images(images: torch.Tensor, pad: int, generator: torch.Generator) -> torch.Tensor:
-    """(B, 3, H, W) images, each moved by its own random (dx, dy) in [-pad, pad] (DrQ's
-    pad-and-crop, edges replicated): the native policy cannot key on exact pixel positions."""
-    if pad <= 0:
-        return images
-    n, _, h, w = images.shape
-    padded = torch.nn.functional.pad(images, (pad, pad, pad, pad), mode="replicate")
-    offsets = torch.randint(0, 2 * pad + 1, (n, 2), generator=generator).tolist()
-    return torch.stack([padded[i, :, y:y + h, x:x + w] for i, (x, y) in enumerate(offsets)])
 
 
 def train_tiny_release(name: str, backbone, profile: Profile, suites, train_frames, folder: Path,

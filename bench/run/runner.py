@@ -119,9 +119,7 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
                 else ws.backbone(cell.backbone, cell.suite))
     device = next(backbone.policy.parameters()).device
     reset_peak_memory(device)
-    inputs = CellInputs(suite, split.windows, derangement(len(split.windows), p.split_seed),
-                        backbone.info.chunk_size, device,
-                        kind.grid(backbone.info.native_grid, cell.variant), tower=kind.tower)
+    inputs = cell_inputs(cell, p, suite, split, backbone, device)
     timings["build"] = time.perf_counter() - t_start
 
     graft, training, trained = None, Training(curve=[]), None
@@ -168,6 +166,15 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
                     rollouts=rollouts))
     ws.store.write(record)
     return CellResult(record, trained)
+
+
+def cell_inputs(cell: CellSpec, p, suite, split, backbone, device) -> CellInputs:
+    """What the cell feeds its graft or policy (bench.run.inputs), under the protocol `p`."""
+    return CellInputs(suite, split.windows, derangement(len(split.windows), p.split_seed),
+                      backbone.info.chunk_size, device,
+                      cell.spec.grid(backbone.info.native_grid, cell.variant),
+                      tower=cell.spec.tower, train_shift=p.graft_image_shift,
+                      shift_seed=stable_seed(cell.seed, "graft-image-shift"))
 
 
 def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
