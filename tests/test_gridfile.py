@@ -187,3 +187,11 @@ def test_a_study_file_runs_the_same_cells_and_records_its_hash(bench_cli, tmp_pa
     report = (tmp_path / "file" / "REPORT.md").read_text()
     assert f"`{study}` sha256 `{sha}` (2 cells)" in report
     assert "Grid file(s)" not in (tmp_path / "cli" / "REPORT.md").read_text()
+
+
+def test_the_committed_sim_recipe_is_the_protocol_of_the_committed_sim_report():
+    """docs/sim/closed_loop.toml is the grid file docs/sim/REPORT.md's run used (a copy of it):
+    its protocol hash is the one every record of that report carries."""
+    profile = build_profile(Config(grid=str(REPO_ROOT / "docs" / "sim" / "closed_loop.toml")))
+    summary = json.loads((REPO_ROOT / "docs" / "sim" / "REPORT_summary.json").read_text())
+    assert profile.name == "sim" and summary["protocol_hashes"] == [profile.protocol.hash]
