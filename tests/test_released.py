@@ -13,10 +13,11 @@ import torch
 from bench.results.store import ResultStore
 from bench.run.workspace import Workspace
 from tests.worlds import lent_workspace
-from bench.run.releases import drop_states, release_key, shift_images
+from bench.run import releases
+from bench.run.releases import drop_states, release_key
 from bench.grid.kinds import SAME, ZERO
 from bench.grid.protocol import SIM, TINY
-from bench.run.augment import shift_images as shared_shift
+from bench.run.augment import shift_images
 from bench.run.features import encode_pooled
 from bench.run.inputs import CellInputs
 from encoders.registry import build_encoder
@@ -98,7 +99,7 @@ def test_graft_image_shift_feeds_the_encoder_moved_pixels_in_training_only(tmp_p
     """Known answer: with graft_image_shift = 3 a training batch's features are the encoder's
     on the images shift_images moves with the cell's generator; the zero rule and evaluation
     read the images as they are."""
-    assert shared_shift is shift_images  # one definition for native and graft training
+    assert releases.shift_images is shift_images  # one definition for native and graft training
     suite = lent_workspace(TINY, ResultStore(tmp_path / "r")).suite("spatial")
     frames = torch.arange(0, 60, 10)
     plain = CellInputs(suite, frames, frames, 4, torch.device("cpu"), (2, 2),
