@@ -59,6 +59,35 @@ class PixelsEncoder(_KnownEncoder):
         return patches.reshape(b, self.channels, h // PIXEL_PATCH, w // PIXEL_PATCH)
 
 
+class TowerPatchPixelsEncoder(_KnownEncoder):
+    """The image resized to 64 px (antialiased bilinear), mean-centred, cut in 16 x 16 px
+    patches: (B, 3, H, W) -> (B, 768, 4, 4), channel c*256 + dy*16 + dx.
+
+    Why beside `pixels`: the fixed wrapper averages an encoder's grid down to the backbone's, and
+    averaging 8 px patches folds them into one mean patch (the sim suites' 128 px images are a
+    16 x 16 grid of them; a 4 x 4 native grid keeps the mean 8 x 8 patch of each 32 x 32 px
+    region, about its colour). This grid is coarse instead: pooled to 4 x 4 or finer it loses
+    nothing, and each token is exactly the pixels a patch-16 tower reads at 64 px."""
+
+    side = 64
+    patch = 16
+    channels = 3 * patch * patch
+    weights_id = "none:centred-64px-p16"
+
+    def forward(self, images: Tensor) -> Tensor:
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"{self.spec.name} encoder needs (B, 3, H, W); got "
+                             f"{tuple(images.shape)}")
+        x = images.float()
+        if tuple(x.shape[-2:]) != (self.side, self.side):
+            x = F.interpolate(x, size=(self.side, self.side), mode="bilinear", antialias=True,
+                              align_corners=False)
+        centred = x - x.mean(dim=(2, 3), keepdim=True)
+        patches = F.unfold(centred, kernel_size=self.patch, stride=self.patch)
+        grid = self.side // self.patch
+        return patches.reshape(x.shape[0], self.channels, grid, grid)
+
+
 class BlindEncoder(_KnownEncoder):
     """Constant all-ones grid (B, 16, 2, 2) whatever the input: carries no visual information."""
 
@@ -73,6 +102,12 @@ register(EncoderSpec(
     name="pixels", timm_name=None, input_size=64, layout="map",
     description="known answer: mean-centred 8x8 pixel patches, 192 ch, (H/8)x(W/8) grid; all "
                 "visual information but the mean colour, no learning"), PixelsEncoder)
+
+register(EncoderSpec(
+    name="pixels_p16", timm_name=None, input_size=64, layout="map",
+    description="known answer: the image at 64 px, mean-centred, in 16x16 patches, 768 ch, 4x4 "
+                "grid; what a patch-16 tower reads at 64 px, kept whole by pooling to 4x4 or "
+                "finer"), TowerPatchPixelsEncoder)
 
 register(EncoderSpec(
     name="blind", timm_name=None, input_size=64, layout="map",
