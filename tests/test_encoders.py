@@ -256,3 +256,35 @@ def test_each_ladder_rung_holds_less_than_the_rung_above():
     assert not torch.allclose(noise2[0], noise2[1])  # each image its own draw
     alone = build_encoder(LADDER[2], "tiny")(image[1:])[..., 0, 0]
     assert torch.equal(alone[0], tokens[2][1])  # whatever batch it is read in
+
+
+def test_pixels_p16_keeps_through_the_wrappers_pooling_what_pixels_folds_away():
+    """Known answer on the wrapper's own pooling (external.graft.pool_grid) to a 4 x 4 native
+    grid: a dark 8 px square moved by 8 px inside one 32 x 32 px region of a 128 px image.
+    `pixels` (8 px patches, a 16 x 16 grid) averages the region's 16 patches into one mean patch,
+    so both images give the same tokens; `pixels_p16` reads the image at 64 px in 16 px patches
+    (4 x 4, pooled as is), so the tokens differ, and each is the 64 px image's patch exactly."""
+    from external.graft import pool_grid
+
+    scene = torch.full((2, 3, 128, 128), 0.6)
+    scene[0, :, 0:8, 0:8] = 0.1
+    scene[1, :, 8:16, 8:16] = 0.1  # same region (rows, cols 0-31), same mean colour
+    tokens = {name: pool_grid(build_encoder(name, "tiny")(scene), (4, 4))
+              for name in ("pixels", "pixels_p16")}
+    torch.testing.assert_close(tokens["pixels"][0], tokens["pixels"][1], rtol=0, atol=1e-6)
+    assert (tokens["pixels_p16"][0, 0] - tokens["pixels_p16"][1, 0]).abs().max() > 0.1
+    torch.testing.assert_close(tokens["pixels_p16"][:, 1:], tokens["pixels_p16"][:, 1:].flip(0))
+
+    images = torch.rand(2, 3, 64, 48)
+    grid = build_encoder("pixels_p16", "tiny")(images)
+    assert grid.shape == (2, 768, 4, 4)
+    square = torch.nn.functional.interpolate(images, size=(64, 64), mode="bilinear",
+                                             antialias=True, align_corners=False)
+    centred = square - square.mean(dim=(2, 3), keepdim=True)
+    # channel = colour*256 + dy*16 + dx, position (row, col) -> pixel (row*16 + dy, col*16 + dx)
+    torch.testing.assert_close(grid[1, 2 * 256 + 5 * 16 + 7, 3, 1], centred[1, 2, 53, 23])
+    rebuilt = grid.reshape(2, 3, 16, 16, 4, 4).permute(0, 1, 4, 2, 5, 3).reshape(2, 3, 64, 64)
+    torch.testing.assert_close(rebuilt, centred, rtol=0, atol=1e-6)
+    # pooled to a finer grid, every token is its 16 px patch repeated: nothing averaged away
+    fine = pool_grid(grid, (8, 8)).reshape(2, 8, 8, 768)
+    torch.testing.assert_close(fine[:, 4:6, 2:4], grid[:, :, 2, 1][:, None, None].expand(-1, 2, 2, -1))
