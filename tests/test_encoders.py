@@ -20,6 +20,7 @@ EXPECTED = {
     "repvit": (384, 64, 2),
     "pixels": (192, 192, 8),
     "pixels_p16": (768, 768, 4),
+    "pixels_p16_ln": (1664, 1664, 4),
     "blind": (16, 16, 2),
     # the known-answer ladder
     **{n: (3 * r * r, 3 * r * r, 2) for n, r in (("pixels_res8", 8), ("pixels_res4", 4),
