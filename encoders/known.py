@@ -85,27 +85,7 @@ class TowerPatchPixelsEncoder(_KnownEncoder):
         centred = x - x.mean(dim=(2, 3), keepdim=True)
         patches = F.unfold(centred, kernel_size=self.patch, stride=self.patch)
         grid = self.side // self.patch
-        return patches.reshape(x.shape[0], 3 * self.patch ** 2, grid, grid)
-
-
-class LayerNormProofPixelsEncoder(TowerPatchPixelsEncoder):
-    """`pixels_p16`'s patches p as (p, -p, +8 x 64, -8 x 64): (B, 1664, 4, 4).
-
-    Why: the wrapper's LayerNorm takes each token's mean and scale away, and for raw pixels those
-    are the region's brightness and contrast (a black bowl against the table; a flat patch's
-    noise blown up to unit scale). Here every token's channel mean is exactly 0 and the constant
-    block holds its scale within 2% (sum of 2 p^2 <= 2 * 768 * 0.25, against 128 * 64), so the
-    LayerNorm is nearly a fixed linear map and the projector sees the pixels themselves."""
-
-    constant, constant_channels = 8.0, 64
-    channels = 2 * 3 * 16 * 16 + 2 * 64
-    weights_id = "none:centred-64px-p16-signed"
-
-    def forward(self, images: Tensor) -> Tensor:
-        patches = super().forward(images)
-        block = patches.new_full((patches.shape[0], self.constant_channels, *patches.shape[2:]),
-                                 self.constant)
-        return torch.cat([patches, -patches, block, -block], dim=1)
+        return patches.reshape(x.shape[0], self.channels, grid, grid)
 
 
 class BlindEncoder(_KnownEncoder):
@@ -128,12 +108,6 @@ register(EncoderSpec(
     description="known answer: the image at 64 px, mean-centred, in 16x16 patches, 768 ch, 4x4 "
                 "grid; what a patch-16 tower reads at 64 px, kept whole by pooling to 4x4 or "
                 "finer"), TowerPatchPixelsEncoder)
-
-register(EncoderSpec(
-    name="pixels_p16_ln", timm_name=None, input_size=64, layout="map",
-    description="known answer: pixels_p16's patches signed twice plus a constant block, 1664 ch, "
-                "4x4 grid; the wrapper's LayerNorm keeps their brightness and contrast"),
-    LayerNormProofPixelsEncoder)
 
 register(EncoderSpec(
     name="blind", timm_name=None, input_size=64, layout="map",
