@@ -195,3 +195,4 @@ def test_the_committed_sim_recipe_is_the_protocol_of_the_committed_sim_report():
     profile = build_profile(Config(grid=str(REPO_ROOT / "docs" / "sim" / "closed_loop.toml")))
     summary = json.loads((REPO_ROOT / "docs" / "sim" / "REPORT_summary.json").read_text())
     assert profile.name == "sim" and summary["protocol_hashes"] == [profile.protocol.hash]
+    assert profile.control_encoders == ("pixels_p16",)  # the report's LoRA item
