@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from encoders.base import Encoder, EncoderSpec
+from encoders.base import Encoder, EncoderSpec, resized_normalised
 from encoders.registry import register
 
 PIXEL_PATCH = 8
@@ -41,6 +41,15 @@ class _KnownEncoder(Encoder):
         return super().train(False)
 
 
+def centred_patches(images: Tensor, patch: int) -> Tensor:
+    """(B, 3, H, W) -> (B, 3*patch*patch, H/patch, W/patch): each image minus its mean colour,
+    patchified; channel c*patch^2 + dy*patch + dx."""
+    b, c, h, w = images.shape
+    centred = images - images.mean(dim=(2, 3), keepdim=True)
+    patches = F.unfold(centred, kernel_size=patch, stride=patch)
+    return patches.reshape(b, c * patch * patch, h // patch, w // patch)
+
+
 class PixelsEncoder(_KnownEncoder):
     """Mean-centred pixels, patchified: (B, 3, H, W) -> (B, 3*8*8, H/8, W/8), channel
     c*64 + dy*8 + dx = pixel minus the image's mean of colour c."""
@@ -53,10 +62,7 @@ class PixelsEncoder(_KnownEncoder):
         if c != 3 or h % PIXEL_PATCH or w % PIXEL_PATCH:
             raise ValueError(f"pixels encoder needs (B, 3, H, W) with H, W multiples of "
                              f"{PIXEL_PATCH}; got {tuple(images.shape)}")
-        images = images.float()
-        centred = images - images.mean(dim=(2, 3), keepdim=True)
-        patches = F.unfold(centred, kernel_size=PIXEL_PATCH, stride=PIXEL_PATCH)
-        return patches.reshape(b, self.channels, h // PIXEL_PATCH, w // PIXEL_PATCH)
+        return centred_patches(images.float(), PIXEL_PATCH)
 
 
 class TowerPatchPixelsEncoder(_KnownEncoder):
@@ -78,14 +84,10 @@ class TowerPatchPixelsEncoder(_KnownEncoder):
         if images.ndim != 4 or images.shape[1] != 3:
             raise ValueError(f"{self.spec.name} encoder needs (B, 3, H, W); got "
                              f"{tuple(images.shape)}")
-        x = images.float()
-        if tuple(x.shape[-2:]) != (self.side, self.side):
-            x = F.interpolate(x, size=(self.side, self.side), mode="bilinear", antialias=True,
-                              align_corners=False)
-        centred = x - x.mean(dim=(2, 3), keepdim=True)
-        patches = F.unfold(centred, kernel_size=self.patch, stride=self.patch)
-        grid = self.side // self.patch
-        return patches.reshape(x.shape[0], self.channels, grid, grid)
+        # mean 0, std 1: the shared resize alone, with no normalisation
+        identity = (torch.zeros(1, 3, 1, 1, device=images.device),
+                    torch.ones(1, 3, 1, 1, device=images.device))
+        return centred_patches(resized_normalised(images, self.side, *identity), self.patch)
 
 
 class BlindEncoder(_KnownEncoder):

@@ -287,4 +287,5 @@ def test_pixels_p16_keeps_through_the_wrappers_pooling_what_pixels_folds_away():
     torch.testing.assert_close(rebuilt, centred, rtol=0, atol=1e-6)
     # pooled to a finer grid, every token is its 16 px patch repeated: nothing averaged away
     fine = pool_grid(grid, (8, 8)).reshape(2, 8, 8, 768)
-    torch.testing.assert_close(fine[:, 4:6, 2:4], grid[:, :, 2, 1][:, None, None].expand(-1, 2, 2, -1))
+    torch.testing.assert_close(fine[:, 4:6, 2:4],
+                               grid[:, :, 2, 1][:, None, None].expand(-1, 2, 2, -1))
