@@ -75,8 +75,7 @@ class TowerPatchPixelsEncoder(_KnownEncoder):
     region, about its colour). This grid is coarse instead: pooled to 4 x 4 or finer it loses
     nothing, and each token is exactly the pixels a patch-16 tower reads at 64 px."""
 
-    side = 64
-    patch = 16
+    patch = 16  # the spec's input_size (64) is the side it resizes to: a 4 x 4 grid
     channels = 3 * patch * patch
     weights_id = "none:centred-64px-p16"
 
@@ -87,7 +86,8 @@ class TowerPatchPixelsEncoder(_KnownEncoder):
         # mean 0, std 1: the shared resize alone, with no normalisation
         identity = (torch.zeros(1, 3, 1, 1, device=images.device),
                     torch.ones(1, 3, 1, 1, device=images.device))
-        return centred_patches(resized_normalised(images, self.side, *identity), self.patch)
+        return centred_patches(resized_normalised(images, self.input_size, *identity),
+                               self.patch)
 
 
 class BlindEncoder(_KnownEncoder):
