@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.sim.expert import ExpertParams, ScriptedExpert, check_solvable, episode_seed
+from external.filelock import exclusive
 from external.paths import build_dataset_dir, cache_dir
 from external.lerobot_dataset import write_dataset
 from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
@@ -278,14 +279,19 @@ def generate(spec: DemoSpec, root: str | Path | None = None, progress: bool = Tr
     final = Path(root) if root is not None else suite_path(spec)
     if (final / "meta" / "info.json").is_file():
         return final
-    work = _Work(final.parent / f"{final.name}.work")
-    attempts = run_attempts(spec, work, progress)
-    short = {t: r["successes"] for t, r in expert_success(spec, attempts).items()
-             if r["successes"] < spec.episodes_per_task}
-    if short and progress:
-        print(f"[sim demos] fewer than {spec.episodes_per_task} successes for tasks {short} "
-              f"within {spec.max_attempts} attempts", file=sys.stderr)
-    return build_dataset_dir(final, lambda tmp: write_suite(spec, work, attempts, tmp))
+    # Two runs sharing a cache: one renders, the other waits and reuses its suite (unlocked, both
+    # ran the same attempts into one work folder).
+    with exclusive(final.parent / f"{final.name}.lock"):
+        if (final / "meta" / "info.json").is_file():
+            return final
+        work = _Work(final.parent / f"{final.name}.work")
+        attempts = run_attempts(spec, work, progress)
+        short = {t: r["successes"] for t, r in expert_success(spec, attempts).items()
+                 if r["successes"] < spec.episodes_per_task}
+        if short and progress:
+            print(f"[sim demos] fewer than {spec.episodes_per_task} successes for tasks {short} "
+                  f"within {spec.max_attempts} attempts", file=sys.stderr)
+        return build_dataset_dir(final, lambda tmp: write_suite(spec, work, attempts, tmp))
 
 
 def suite_path(spec: DemoSpec) -> Path:
