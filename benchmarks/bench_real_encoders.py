@@ -17,7 +17,20 @@ ENCODERS = ("dinov2_s", "pixels_p16", "effnet_lite0_random", "effnet_lite0", "ef
             "effnet_lite1", "effnet_lite2")
 REFERENCE = "dinov2_s"
 FRAMES = 16
-PER_FRAME: dict[str, float] = {}
+
+
+@pytest.fixture(scope="module")
+def per_frame(request):
+    """encoder -> seconds per frame (median round); printed as ratios when the module ends
+    (a fixture's teardown, so --benchmark-only, which skips plain tests, still prints them)."""
+    found: dict[str, float] = {}
+    yield found
+    if REFERENCE in found:
+        reporter = request.config.pluginmanager.get_plugin("terminalreporter")
+        reporter.write_line(f"\nper frame (median of 5 rounds, 1 thread), ratio to {REFERENCE}:")
+        for name, seconds in found.items():
+            reporter.write_line(f"  {name:<22} {seconds * 1e3:8.2f} ms  "
+                                f"x{seconds / found[REFERENCE]:6.1f}")
 
 
 @pytest.fixture(scope="module")
@@ -26,19 +39,10 @@ def frames() -> torch.Tensor:
 
 
 @pytest.mark.parametrize("name", ENCODERS)
-def test_extract(benchmark, frames, name):
+def test_extract(benchmark, frames, per_frame, name):
     from encoders import build_encoder
 
     encoder = build_encoder(name, "tiny")
     encoder(frames[:2])  # first call outside the timing (allocator, lazy init)
     benchmark.pedantic(encoder, args=(frames,), rounds=5, iterations=1)
-    PER_FRAME[name] = benchmark.stats.stats.median / FRAMES
-
-
-def test_ratios_to_the_tiny_reference(capsys):
-    if REFERENCE not in PER_FRAME:
-        pytest.skip("run with the extraction benchmarks (--benchmark-only runs them first)")
-    with capsys.disabled():
-        print(f"\nper frame (median of 5 rounds, 1 thread), ratio to {REFERENCE}:")
-        for name, seconds in PER_FRAME.items():
-            print(f"  {name:<22} {seconds * 1e3:8.2f} ms  x{seconds / PER_FRAME[REFERENCE]:6.1f}")
+    per_frame[name] = benchmark.stats.stats.median / FRAMES
