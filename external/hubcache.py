@@ -98,6 +98,13 @@ def folder_revision(folder: str | os.PathLike) -> str | None:
     return f"sha256:{_file_sha256(str(weights), weights.stat().st_mtime_ns)[:16]}"
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """sha256 (hex) of a file, symlinks followed (a hub snapshot links into blobs/), hashed once
+    per file version in a process."""
+    resolved = Path(path).resolve()
+    return _file_sha256(str(resolved), resolved.stat().st_mtime_ns)
+
+
 @functools.lru_cache(maxsize=None)
 def _file_sha256(path: str, mtime_ns: int) -> str:
     hasher = hashlib.sha256()

@@ -10,6 +10,7 @@ import torch
 
 import encoders
 from encoders import timm_encoders
+from external.hubcache import file_sha256
 from encoders import EncoderSpec, EncoderUnavailable, UnknownEncoder, build_encoder, get_spec
 
 # (registry name, real forward_features channels, tiny channels, tiny grid side at 64 px input)
@@ -215,7 +216,7 @@ def test_hub_loads_cached_weights(hub_cache):
     _fake_hub_cache(hub_cache, "timm/repvit_m1.dist_in1k", real.state_dict())
     enc = build_encoder("repvit", "hub")
     cached = hub_cache / "models--timm--repvit_m1.dist_in1k" / "snapshots" / "0" / "model.safetensors"
-    assert enc.weights_id == f"pretrained:repvit_m1.dist_in1k@sha256:{timm_encoders.file_sha256(cached)}"
+    assert enc.weights_id == f"pretrained:repvit_m1.dist_in1k@sha256:{file_sha256(cached)}"
     images = torch.rand(1, 3, 224, 224)
     mean = torch.tensor(enc.spec.mean).view(1, 3, 1, 1)
     std = torch.tensor(enc.spec.std).view(1, 3, 1, 1)

@@ -22,7 +22,7 @@ import backbones  # noqa: F401
 import bench.run.screen  # noqa: F401
 import encoders
 from encoders import real
-from encoders.timm_encoders import file_sha256
+from external.hubcache import file_sha256
 from external.paths import REPO_ROOT
 
 pytest_plugins = ["pytester"]
