@@ -82,13 +82,16 @@ def test_removing_any_one_artifact_makes_the_preflight_name_exactly_it(in_world,
     from bench.preflight import grid_artifacts
     from bench.grid.protocol import PAPER_ENCODERS
 
+    # The world also holds the real ImageNet EfficientNet-Lites (timm/tf_efficientnet_liteN.in1k).
+    encoders = PAPER_ENCODERS + tuple(f"timm:tf_efficientnet_lite{n}" for n in range(3))
+
     def missing():
-        found = grid_artifacts(["smolvla", "pi05", "pi0"], PAPER_ENCODERS, ["spatial", "object"])
+        found = grid_artifacts(["smolvla", "pi05", "pi0"], encoders, ["spatial", "object"])
         return [a for a in found if not a.present], found
 
     assert missing()[0] == []
     paths = _artifact_paths(Path(in_world["HF_HUB_CACHE"]))
-    assert len(paths) == len(missing()[1]) == 11
+    assert len(paths) == len(missing()[1]) == 14
     for repo_id, snapshot in paths.items():
         aside = tmp_path / "aside"
         shutil.move(snapshot, aside)
