@@ -15,13 +15,11 @@ from bench.grid.gridfile import read_grid_file
 from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import Profile, get_profile, with_overrides
-from bench.startup import check_rollout_batch, check_rollouts_possible
+from bench.option_values import listed, positive, refuse_empty, report_file, seeds
+from bench.startup import (check_rollout_batch, check_rollouts_possible,
+                           check_sim_suites_possible)
 
 DEFAULT_PROFILE = "tiny"
-
-
-def _csv(value: str | None) -> tuple[str, ...] | None:
-    return tuple(v.strip() for v in value.split(",") if v.strip()) if value else None
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -181,22 +179,6 @@ def _add_executor_options(g) -> None:
                 help="array tasks running at once (sbatch --array=0-N%%P)")
 
 
-def _seeds(values: tuple[str, ...] | None) -> tuple[int, ...] | None:
-    if not values:
-        return None
-    bad = [v for v in values if not v.isdigit()]
-    if bad:
-        raise ValueError(f"--seeds {','.join(values)}: {bad} not a non-negative integer; give a "
-                         "comma list such as --seeds 0,1,2")
-    return tuple(int(v) for v in values)
-
-
-def _positive(option: str, value: int | None, what: str) -> int | None:
-    if value is not None and value < 1:
-        raise ValueError(f"{option} {value}: give a positive number of {what} (at least 1)")
-    return value
-
-
 def build_profile(config: pytest.Config):
     """The run's Profile: --profile (else the --grid file's, else tiny), then the --grid file's
     values, then every grid option given on the command line."""
@@ -208,8 +190,7 @@ def build_profile(config: pytest.Config):
         if grid is not None:
             profile = grid.apply(profile)
         profile = _user_world(profile, opt)
-        seeds = _csv(opt("--seeds"))
-        controls = _csv(opt("--controls"))
+        controls = listed("--controls", opt("--controls"))
         if controls == ("none",):
             controls = ()
         valid = control_kinds()
@@ -219,12 +200,12 @@ def build_profile(config: pytest.Config):
                              f"valid: {', '.join(valid)} (or none)")
         return with_overrides(
             profile,
-            backbones=_csv(opt("--backbones")),
-            encoders=_csv(opt("--encoders")),
-            suites=_csv(opt("--suites")),
-            seeds=_seeds(seeds),
+            backbones=listed("--backbones", opt("--backbones")),
+            encoders=listed("--encoders", opt("--encoders")),
+            suites=listed("--suites", opt("--suites")),
+            seeds=seeds(listed("--seeds", opt("--seeds"))),
             controls=controls,
-            steps=_positive("--steps", opt("--steps"), "projector steps"),
+            steps=positive("--steps", opt("--steps"), "projector steps"),
             **_sim_demos(profile, opt),
         )
     except ValueError as e:
@@ -244,15 +225,15 @@ def _sim_demos(profile, opt) -> dict:
     if profile.data_source != "sim":
         raise ValueError(f"{shown}: profile {profile.name!r} has no simulated suites; use "
                          "--profile sim")
-    _positive("--sim-demos", demos, "demonstrations per task")
-    ids = _csv(tasks) or ()
+    positive("--sim-demos", demos, "demonstrations per task")
+    ids = listed("--sim-tasks", tasks) or ()
     if not all(t.isdigit() for t in ids):
         raise ValueError(f"--sim-tasks {tasks}: not a comma list of LIBERO task ids; give e.g. "
                          "--sim-tasks 0,1,2")
     ids = tuple(int(t) for t in ids)
     from bench.sim.expert import check_solvable
 
-    for suite in _csv(opt("--suites")) or profile.suites:
+    for suite in listed("--suites", opt("--suites")) or profile.suites:
         try:
             check_solvable(suite, ids)
         except ValueError as e:
@@ -276,7 +257,7 @@ def _user_world(profile, opt):
         policies=parse_named("--policy", given["policies"]) if given["policies"] else None,
         datasets=parse_named("--dataset", given["datasets"]) if given["datasets"] else None,
         camera_map=(parse_camera_map("--camera-map", opt("--camera-map"))
-                    if opt("--camera-map") else None))
+                    if opt("--camera-map") is not None else None))
 
 
 FOLDED_FIELDS = ("backbones", "encoders", "suites", "seeds", "controls", "control_encoders")
@@ -324,8 +305,8 @@ def check_executor_options(config: pytest.Config) -> None:
 def report_path(report: str | None, results: str | None, profile: str, results_dir: Path) -> Path:
     """Where the report goes: --report; else beside an explicit --results-dir; else the repo's
     REPORT.md for the default tiny run (the committed report), else beside the results."""
-    if report:
-        return Path(report)
+    if report is not None:
+        return report_file(report)
     if results is None and profile == "tiny":
         return REPO_ROOT / "REPORT.md"
     return results_dir / "REPORT.md"
@@ -359,6 +340,7 @@ def parse_options(config: pytest.Config) -> RunOptions:
     from bench.run.executors import SlurmOptions
 
     opt = config.getoption
+    refuse_empty(config)
     profile = build_profile(config)
     labels = option_labels(profile, config)
     profile, lines = fold_duplicates(profile, labels)
@@ -371,6 +353,8 @@ def parse_options(config: pytest.Config) -> RunOptions:
         raise pytest.UsageError(f"--rollouts {rollouts}: give episodes per task >= 0")
     if rollouts:
         check_rollouts_possible(profile, rollouts)
+    check_sim_suites_possible(profile, f"--profile {opt('--profile')}" if opt("--profile")
+                              else f"{opt('--grid')}: profile {profile.name}")
     rollout_batch = check_rollout_batch(opt("--rollout-batch"), rollouts)
     check_executor_options(config)
     slurm = SlurmOptions(partition=opt("--slurm-partition"), time_min=opt("--slurm-time"),

@@ -207,8 +207,11 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
     try:
         gs.finish(sections)
-    except Exception as e:  # a report bug must not hide the cell results
-        sys.stderr.write(f"\n[graftbench] REPORT.md not written: {type(e).__name__}: {e}\n")
+    except Exception as e:  # a report bug must not hide the cell results, nor pass as a success
+        gs.report_error = f"{type(e).__name__}: {e}"
+        sys.stderr.write(f"\n[graftbench] REPORT.md not written: {gs.report_error}\n")
+        if session.exitstatus == 0:
+            session.exitstatus = pytest.ExitCode.INTERNAL_ERROR
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
@@ -220,7 +223,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
     terminalreporter.write_sep("-", "graftbench")
     lines = summary_lines(gs.profile.name, gs.profile.protocol.hash, gs.outcomes,
                           len(gs.selected), gs.results_dir, gs.report_path,
-                          gs.report_written is not None)
+                          gs.report_written is not None, gs.report_error)
     if gs.screening is not None:
         lines[2:2] = screen_summary_lines(gs.screening.outcomes, gs.screening.dropped)
     for line in lines:

@@ -69,6 +69,7 @@ class GraftSession:
         self.screens_selected: list[str] = []  # test_screen cases collected (screen ids)
         self._screening = None
         self.report_written: Path | None = None
+        self.report_error: str | None = None  # why REPORT.md could not be written, if it failed
         self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
         # Names, user paths, output folders: checked here when this run collects the grid (an
         # xdist worker's controller checked them); else at collection (bench.plugin).

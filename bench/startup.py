@@ -101,15 +101,10 @@ def check_rollouts_possible(profile, rollouts: int) -> None:
         raise pytest.UsageError(
             f"--rollouts: profile {profile.name!r} uses generated synthetic suites, which have no "
             "simulator; use --profile sim (scripted demos in LIBERO scenes) or --profile paper")
-    from bench.sim.env import INSTALL_HINT, libero_available
-
-    if not libero_available():
-        raise pytest.UsageError(f"--rollouts {rollouts}: the LIBERO simulator (the libero "
-                                f"extra) is not installed; fix: {INSTALL_HINT}")
     if profile.data_source == "sim":
-        from bench.sim.demos import demo_spec
+        from bench.sim.demos import DEFAULT_SPECS, demo_spec
 
-        for suite in profile.suites:
+        for suite in (s for s in profile.suites if s in DEFAULT_SPECS):  # others: validate_names
             spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos, profile.sim_demo_noise,
                              profile.sim_demo_speed)
             # demos use init states 0.. (at most max_attempts), rollouts 49, 48, ...: disjoint
@@ -118,6 +113,36 @@ def check_rollouts_possible(profile, rollouts: int) -> None:
                     f"--rollouts {rollouts}: with {spec.episodes_per_task} demonstrations per "
                     f"task (init states 0..{spec.max_attempts - 1}) rollouts would reuse a "
                     f"demonstration's init state; give --rollouts <= {50 - spec.max_attempts}")
+    # After the values' own bounds: a bad value is named the same with or without the extra.
+    from bench.sim.env import INSTALL_HINT, libero_available
+
+    if not libero_available():
+        raise pytest.UsageError(f"--rollouts {rollouts}: the LIBERO simulator (the libero "
+                                f"extra) is not installed; fix: {INSTALL_HINT}")
+
+
+def check_sim_suites_possible(profile, label: str) -> None:
+    """The sim profile's suites: each generated already (the cache holds it) or the libero
+    extra installed to generate it. Without this, every cell started and failed on its own
+    (14 failure records, a traceback each) when the extra was missing."""
+    if profile.data_source != "sim":
+        return
+    from bench.sim.demos import DEFAULT_SPECS, demo_spec, suite_path
+    from bench.sim.env import INSTALL_HINT, libero_available
+
+    if libero_available():
+        return
+    for suite in profile.suites:
+        if suite not in DEFAULT_SPECS or suite in dict(profile.datasets):
+            continue  # an unknown name is refused by validate_names; a --dataset is the user's
+        spec = demo_spec(suite, profile.sim_tasks, profile.sim_demos, profile.sim_demo_noise,
+                         profile.sim_demo_speed)
+        path = suite_path(spec)
+        if not (path / "meta" / "info.json").is_file():
+            raise pytest.UsageError(
+                f"{label}: the simulated suite {suite!r} is not generated yet ({path}) and "
+                f"generating it needs the LIBERO simulator (the libero extra), which is not "
+                f"installed; fix: {INSTALL_HINT}, or use --profile tiny (generated suites)")
 
 
 def check_rollout_batch(batch, rollouts: int) -> int:

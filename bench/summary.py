@@ -39,7 +39,8 @@ def headline(report: Path) -> str | None:
 
 
 def summary_lines(profile: str, protocol_hash: str, outcomes: dict[str, str], selected: int,
-                  results_dir: Path, report: Path, written: bool) -> list[str]:
+                  results_dir: Path, report: Path, written: bool,
+                  report_error: str | None = None) -> list[str]:
     measured = sum(1 for o in outcomes.values() if o == "measured")
     resumed = sum(1 for o in outcomes.values() if o == "resumed")
     failed = {c: o for c, o in outcomes.items() if o not in ("measured", "resumed")}
@@ -49,11 +50,13 @@ def summary_lines(profile: str, protocol_hash: str, outcomes: dict[str, str], se
              f"records: {results_dir / CELLS}"]
     if written:
         lines.append(f"report: {report}")
+    elif report_error is not None:
+        lines.append(f"report: NOT WRITTEN to {report} ({report_error})")
     elif report.exists():
         lines.append(f"report: {report} left as it was (this run finished no new cell)")
     else:
         lines.append("report: not written (no cell finished)")
-    answer = headline(report) if report.exists() else None
+    answer = headline(report) if report.is_file() else None
     if answer:
         lines.append(f"answer: {answer}")
     lines += [f"FAILED {cell}: {reason}" for cell, reason in sorted(failed.items())]

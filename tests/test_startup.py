@@ -22,6 +22,7 @@ import pytest
 import backbones  # noqa: F401
 import bench.run.screen  # noqa: F401  (--screen options parse there)
 import bench.run.userworld  # noqa: F401
+import bench.sim.env  # noqa: F401  (its libero_available is replaced by tests below)
 import bench.suites.user  # noqa: F401
 import encoders  # noqa: F401
 from external.paths import REPO_ROOT
@@ -61,6 +62,23 @@ BAD_INPUTS = [
     (["--controls", "nope"], "--controls nope", "valid: native, native_wrapped"),
     (["--seeds", "0,x"], "--seeds 0,x", "not a non-negative integer"),
     (["--steps", "0"], "--steps 0", "at least 1"),
+    # An empty list is not the default grid (a script's unset variable would launch a study).
+    (["--encoders", ""], "--encoders ''", "empty (an unset variable?); give a value (e.g. "
+     "--encoders dinov2_s,siglip_b16), or leave --encoders out for the default"),
+    (["--encoders", ","], "--encoders ','", "no item in the list; give a comma list"),
+    (["--backbones", ""], "--backbones ''", "empty (an unset variable?)"),
+    (["--backbones", " , "], "--backbones ' , '", "no item in the list"),
+    (["--suites", ""], "--suites ''", "empty (an unset variable?)"),
+    (["--seeds", ""], "--seeds ''", "empty (an unset variable?)"),
+    (["--seeds", ",,"], "--seeds ',,'", "no item in the list"),
+    (["--controls", ""], "--controls ''", "empty (an unset variable?)"),
+    (["--controls", ","], "--controls ','", "no item in the list"),
+    (["--profile", ""], "--profile ''", "empty (an unset variable?); give a value"),
+    (["--results-dir", ""], "--results-dir ''", "empty"),
+    (["--report", ""], "--report ''", "empty"),
+    (["--grid", " "], "--grid ' '", "empty"),
+    (["--camera-map", ""], "--camera-map ''", "empty"),
+    (["--profile", "sim", "--sim-tasks", ","], "--sim-tasks ','", "no item in the list"),
     (["--profile", "nope"], "unknown profile 'nope'", "(--profile NAME)"),
     (["--rollouts", "-1"], "--rollouts -1", ">= 0"),
     (["--rollout-batch", "0"], "--rollout-batch 0", "rolled out at once >= 1"),
@@ -153,6 +171,67 @@ def test_rollouts_without_the_libero_extra_say_how_to_install_it(monkeypatch):
         check_rollouts_possible(get_profile("sim"), 2)
     assert str(error.value) == ("--rollouts 2: the LIBERO simulator (the libero extra) is not "
                                 "installed; fix: install the extra: bash scripts/install_libero.sh")
+
+
+def _without_libero(monkeypatch, tmp_path) -> None:
+    """The libero extra missing and an empty cache (no simulated suite generated yet)."""
+    import importlib
+
+    # The module object the checks import (imported above, before pytester's snapshot).
+    monkeypatch.setattr(importlib.import_module("bench.sim.env"), "libero_available", lambda: False)
+    monkeypatch.setenv("GRAFTBENCH_CACHE", str(tmp_path / "empty-cache"))
+
+
+def test_the_sim_profile_without_the_libero_extra_is_one_line_at_start(bench_run, monkeypatch,
+                                                                       tmp_path):
+    """Were the check gone, each of the grid's cells would start and fail on its own (exit 1,
+    a failure record each)."""
+    _without_libero(monkeypatch, tmp_path)
+    out = bench_run("--profile", "sim", "--encoders", "pixels", "--controls", "none")
+    assert out.ret == pytest.ExitCode.USAGE_ERROR, out.screen
+    lines = [line for line in out.screen.splitlines() if line.strip()]
+    assert lines[0].startswith("ERROR: --profile sim: the simulated suite 'spatial' is not "
+                               "generated yet ("), out.screen
+    assert lines[0].endswith("generating it needs the LIBERO simulator (the libero extra), which "
+                             "is not installed; fix: install the extra: bash "
+                             "scripts/install_libero.sh, or use --profile tiny (generated suites)")
+    assert len(lines) <= 3 and "collected" not in out.screen and out.records == [], out.screen
+
+
+def test_a_rollout_count_too_large_is_named_without_the_extra_too(bench_run, monkeypatch,
+                                                                 tmp_path):
+    """The value's own bound comes before the machine's: the line BAD_INPUTS reads on a machine
+    with the extra is the line a machine without it shows."""
+    _without_libero(monkeypatch, tmp_path)
+    out = bench_run("--profile", "sim", "--sim-demos", "20", "--rollouts", "30")
+    assert out.ret == pytest.ExitCode.USAGE_ERROR, out.screen
+    assert out.screen.splitlines()[0] == (
+        "ERROR: --rollouts 30: with 20 demonstrations per task (init states 0..23) rollouts "
+        "would reuse a demonstration's init state; give --rollouts <= 26"), out.screen
+
+
+def test_a_report_naming_a_folder_is_refused_at_start(bench_run):
+    """Before: every cell measured, then "REPORT.md not written: IsADirectoryError", exit 0."""
+    folder = bench_run.path / "reports"
+    folder.mkdir()
+    for given in (str(folder), str(bench_run.path / "new-folder") + "/"):
+        out = bench_run(*NO_CELLS, "--report", given)
+        assert out.ret == pytest.ExitCode.USAGE_ERROR, out.screen
+        assert out.screen.splitlines()[0] == (
+            f"ERROR: --report {given}: a folder; --report names the report's file (its plots, "
+            f"CSV and JSON go beside it), e.g. --report {Path(given) / 'REPORT.md'}"), out.screen
+        assert "collected" not in out.screen and out.records == [], out.screen
+
+
+def test_a_report_that_could_not_be_written_is_said_not_left_as_it_was(tmp_path):
+    """The summary after a report that failed to write (were --report's start-up check
+    bypassed, or the disk full): it was "left as it was (this run finished no new cell)"."""
+    from bench.summary import summary_lines
+
+    lines = summary_lines("tiny", "h", {"pi05-spatial-pixels-seed0": "measured"}, 1, tmp_path,
+                          tmp_path, False, "IsADirectoryError: [Errno 21] Is a directory")
+    assert lines[3] == (f"report: NOT WRITTEN to {tmp_path} (IsADirectoryError: [Errno 21] Is a "
+                        "directory)"), lines
 
 
 def test_the_check_runs_under_collect_only_and_xdist(bench_run):
