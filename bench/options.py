@@ -15,6 +15,7 @@ from bench.grid.gridfile import read_grid_file
 from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import Profile, get_profile, with_overrides
+from bench.run.robust_run import add_robustness_option, with_robustness
 from bench.option_values import listed, positive, refuse_empty, report_file, seeds
 from bench.startup import (check_rollout_batch, check_rollouts_possible,
                            check_sim_suites_possible)
@@ -58,6 +59,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      "encoder's numbers bit for bit, twice the disk)")
     _add_sim_options(g)
     _add_screen_options(g)
+    add_robustness_option(g)  # the robustness tier (bench.run.robust_run)
     _add_executor_options(g)
     from bench.regression.run import add_baseline_options
 
@@ -342,6 +344,7 @@ def parse_options(config: pytest.Config) -> RunOptions:
     opt = config.getoption
     refuse_empty(config)
     profile = build_profile(config)
+    profile = with_robustness(profile, opt("--robustness"))  # checked: exit 4 if bad
     labels = option_labels(profile, config)
     profile, lines = fold_duplicates(profile, labels)
     profile, screen, screen_lines = screen_options(config, profile)

@@ -135,6 +135,9 @@ def pytest_pycollect_makeitem(collector, name: str, obj):
     if name in ("test_screen", "test_short_graft") and collector.path == GRID_MODULE:
         gs: GraftSession = collector.config.stash[SESSION_KEY]
         return [] if gs.screen_options is None else None
+    if name == "test_robust" and collector.path == GRID_MODULE:  # --robustness only
+        gs = collector.config.stash[SESSION_KEY]
+        return [] if not gs.profile.robustness else None
     return None
 
 
@@ -150,6 +153,13 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         metafunc.parametrize("tier_cell", [
             pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))
             for c in tier_cells(session.profile)])
+        return
+    if "robust_cell" in names:  # --robustness: after every cell, in bench/test_grid.py's order
+        from bench.run.robust_run import robust_cells
+
+        metafunc.parametrize("robust_cell", [
+            pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))
+            for c in robust_cells(session.profile)])
         return
     if "graft_cell" not in names and "control_cell" not in names:
         return
@@ -169,6 +179,8 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items) -> None:
     gs: GraftSession = config.stash[SESSION_KEY]
     gs.selected, gs.screens_selected = [], []
+    gs.robust_selected = [i.callspec.params["robust_cell"].id for i in items
+                          if "robust_cell" in getattr(getattr(i, "callspec", None), "params", {})]
     cells = []
     for item in items:
         params = getattr(getattr(item, "callspec", None), "params", {})
@@ -195,7 +207,7 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     if hasattr(session.config, "workerinput"):
         return  # xdist worker: the controller compares and reports from the shared store
     gs: GraftSession = session.config.stash.get(SESSION_KEY, None)
-    if gs is None or not (gs.selected or gs.screens_selected):
+    if gs is None or not (gs.selected or gs.screens_selected or gs.robust_selected):
         return
     try:
         sections = gs.finish_baseline()

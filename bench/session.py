@@ -67,6 +67,8 @@ class GraftSession:
         self.records: dict = {}  # cell id -> the Record this run measured or resumed
         self.selected: list[str] = []
         self.screens_selected: list[str] = []  # test_screen cases collected (screen ids)
+        self.robust_selected: list[str] = []  # test_robust cases collected (cell ids)
+        self._robustness = None
         self._screening = None
         self.report_written: Path | None = None
         self.report_error: str | None = None  # why REPORT.md could not be written, if it failed
@@ -124,6 +126,15 @@ class GraftSession:
                                         self.workspace, feature_dtype=self.feature_dtype,
                                         rerun=self.rerun, run_cell=self.run)
         return self._screening
+
+    @property
+    def robustness(self):
+        """The run's robustness cases (bench.run.robust_run); --robustness only."""
+        if self._robustness is None:
+            from bench.run.robust_run import RobustRun
+
+            self._robustness = RobustRun(self.profile, self.workspace, rerun=self.rerun)
+        return self._robustness
 
     # --- one cell: plan, then run ------------------------------------------------------------
     def run(self, cell: CellSpec):
@@ -205,6 +216,8 @@ class GraftSession:
         from bench.summary import OUTCOME_PROPERTY, cell_id_of, failure_line
 
         cell = cell_id_of(report.nodeid)
+        if "::test_robust[" in report.nodeid:  # a robustness case, not its cell's outcome
+            return
         if cell in self.screens_selected and report.when == "call":
             self.screening.note_report(cell, report)  # an xdist worker's screen
         if cell is None or cell not in self.selected or report.when != "call":
@@ -283,13 +296,15 @@ class GraftSession:
         """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
         nothing new finished (an existing report is left as it is)."""
         outcomes = list(self.outcomes.values())
+        if self._robustness is not None:
+            outcomes += list(self._robustness.outcomes.values())
         if self.screening is not None:
             outcomes += list(self.screening.outcomes.values())
             if self.selected and self.screening.dropped:  # grid.json: what was meant to run
                 self.store.write_grid(self.ran_cells, self.profile.name)
         measured = any(o == "measured" for o in outcomes)
         resumed = any(o == "resumed" for o in outcomes)
-        if not (self.selected or self.screens_selected) or not (
+        if not (self.selected or self.screens_selected or self.robust_selected) or not (
                 measured or (resumed and not self.report_path.exists())):
             return None
         self.report_written = self.report_builder(self.results_dir, self.report_path,

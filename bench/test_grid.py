@@ -3,6 +3,8 @@
 
 Under --screen, `test_screen[backbone-suite-encoder]` cases come first (bench.run.screen_run),
 then the short grafts `test_short_graft[...-short_1_8-seed0]` (a tier of the ladder).
+Under --robustness, `test_robust[cell id]` cases come last: each rescores a stored cell on
+perturbed held-out windows (bench.run.robust).
 A case asserts what must hold of any cell (finite loss that went down, the freeze, a finite
 recorded MSE); it never asserts a ranking: rankings are the report's business.
 """
@@ -56,3 +58,12 @@ def test_graft(graft_cell, graft_session, record_property):
 def test_control(control_cell, graft_session, record_property):
     _check_record(graft_session.run(control_cell), control_cell)
     record_property(OUTCOME_PROPERTY, graft_session.outcomes.get(control_cell.id))
+
+
+def test_robust(robust_cell, graft_session, record_property):
+    """--robustness only, after every cell: the cell's stored projector rescored on perturbed
+    held-out windows (bench.run.robust); every perturbation asked for is in the record."""
+    record = graft_session.robustness.run(robust_cell)
+    wanted = set(graft_session.profile.robustness)
+    assert wanted <= {f"{e.kind}:{e.severity}" for e in record.entries}
+    record_property(OUTCOME_PROPERTY, graft_session.robustness.outcomes.get(robust_cell.id))

@@ -65,6 +65,44 @@ class PixelsEncoder(_KnownEncoder):
         return centred_patches(images.float(), PIXEL_PATCH)
 
 
+class ConstantBlockPixelsEncoder(PixelsEncoder):
+    """`pixels` beside a constant block: (B, 3, H, W) -> (B, 384, H/8, W/8), channels 0..191
+    `pixels`' centred patches, 192..383 = `constant`.
+
+    Why beside `pixels`: the wrapper's LayerNorm normalises each token over its channels, so a
+    gain on every pixel (a dimmer scene) leaves `pixels`' tokens where they were (measured: its
+    graft's MSE moved by < 0.3% at gain 0.4). The constant is not scaled with the pixels, so here
+    the LayerNorm keeps how bright the scene is: a graft of this encoder sees a brightness
+    change, as a real encoder would."""
+
+    channels = 2 * 3 * PIXEL_PATCH * PIXEL_PATCH
+    weights_id = "none:centred+const0.05"
+    # About a pooled token's spread of centred pixels on the tiny suites (std 0.03-0.07): the
+    # LayerNorm's scale then depends on the pixels and on the constant alike, so the pixels keep
+    # most of their weight and a gain on them still shows.
+    constant = 0.05
+
+    def forward(self, images: Tensor) -> Tensor:
+        patches = self.scaled(super().forward(images))
+        return torch.cat([patches, torch.full_like(patches, self.constant)], dim=1)
+
+    def scaled(self, centred: Tensor) -> Tensor:
+        return centred
+
+
+class NormalisedConstantBlockPixelsEncoder(ConstantBlockPixelsEncoder):
+    """`pixels_ones` with each image's centred pixels divided by their standard deviation: the
+    planted invariance of the robustness tier. A gain (brightness) or a contrast change about
+    the image's mean scales the centred image by one factor, which the division takes out
+    again: the features, and so the graft's MSE, stay where they were (up to rounding)."""
+
+    weights_id = "none:centred-unit-std+const0.05"
+
+    def scaled(self, centred: Tensor) -> Tensor:
+        # clamp, not + eps: a scaled image then gives the same features up to rounding
+        return centred / centred.std(dim=(1, 2, 3), keepdim=True).clamp_min(1e-6)
+
+
 class TowerPatchPixelsEncoder(_KnownEncoder):
     """The image resized to 64 px (antialiased bilinear), mean-centred, cut in 16 x 16 px
     patches: (B, 3, H, W) -> (B, 768, 4, 4), channel c*256 + dy*16 + dx.
@@ -104,6 +142,18 @@ register(EncoderSpec(
     name="pixels", timm_name=None, input_size=64, layout="map",
     description="known answer: mean-centred 8x8 pixel patches, 192 ch, (H/8)x(W/8) grid; all "
                 "visual information but the mean colour, no learning"), PixelsEncoder)
+
+register(EncoderSpec(
+    name="pixels_ones", timm_name=None, input_size=64, layout="map",
+    description="known answer: pixels plus a constant block, 384 ch, (H/8)x(W/8) grid; keeps "
+                "the scene's brightness through the wrapper's LayerNorm"),
+    ConstantBlockPixelsEncoder)
+
+register(EncoderSpec(
+    name="pixels_ones_norm", timm_name=None, input_size=64, layout="map",
+    description="known answer: pixels_ones with each image's pixels divided by their std, "
+                "384 ch; blind to a brightness or contrast change (a planted invariance)"),
+    NormalisedConstantBlockPixelsEncoder)
 
 register(EncoderSpec(
     name="pixels_p16", timm_name=None, input_size=64, layout="map",

@@ -21,6 +21,8 @@ EXPECTED = {
     "repvit": (384, 64, 2),
     "pixels": (192, 192, 8),
     "pixels_p16": (768, 768, 4),
+    "pixels_ones": (384, 384, 8),
+    "pixels_ones_norm": (384, 384, 8),
     "blind": (16, 16, 2),
     # real ImageNet weights (encoders/real.py): their own input size in every profile
     "effnet_lite0": (1280, 1280, 7), "effnet_lite1": (1280, 1280, 8),

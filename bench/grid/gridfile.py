@@ -11,6 +11,7 @@ Schema (every key optional; lists are TOML arrays):
     controls = []                    # control kinds (bench/grid/kinds.py), [] runs none; e.g. ["native"]
     control_encoders = ["pixels"]    # encoders the control cells run for
     steps = 60                       # projector steps (the same as [protocol] steps: give one)
+    robustness = ["brightness", "blur:1,3"]  # the robustness tier: perturbation kinds (all: every one)
 
     [protocol]                       # any bench.grid.protocol.Protocol field by name, its type kept:
     lr = 0.003                       #   int, float (an int is taken), str, list of str
@@ -184,6 +185,7 @@ KEYS: dict[str, Callable] = {
     "controls": _controls,
     "control_encoders": _strings,
     "steps": _steps,
+    "robustness": _strings,  # perturbations, checked with --robustness's rules (bench.options)
 }
 def _named_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
     if not isinstance(table, dict) or not all(isinstance(v, str) and v for v in table.values()):
@@ -213,7 +215,8 @@ def _camera_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
 TABLES: dict[str, Callable] = {"protocol": _protocol, "policies": _named_table,
                                "datasets": _named_table, "camera_map": _camera_table}
 USER_WORLD_TABLES = {"policies": "policies", "datasets": "datasets", "camera_map": "camera_map"}
-PROFILE_FIELDS = ("backbones", "suites", "encoders", "seeds", "controls", "control_encoders")
+PROFILE_FIELDS = ("backbones", "suites", "encoders", "seeds", "controls", "control_encoders",
+                  "robustness")
 
 
 def parse_grid(data: dict, info: GridFileInfo) -> GridFile:

@@ -136,6 +136,10 @@ class Profile:
     sim_demos: int = 0
     sim_demo_noise: float = 0.0  # --sim-demo-noise: DemoSpec.action_noise (DART-style)
     sim_demo_speed: float = 1.0  # --sim-demo-speed: DemoSpec.expert_speed (1: the original)
+    # The robustness tier (--robustness, the grid file's `robustness`): perturbations as
+    # "kind:severity" (bench.run.perturbations), () = off. Not part of `protocol`: it adds cases
+    # (test_robust) and their own records; the cells' numbers do not depend on it.
+    robustness: tuple[str, ...] = ()
 
     @property
     def data_source(self) -> str:

@@ -27,6 +27,7 @@ from bench.results.store import Results, load_results
 from bench.report.closed_loop import closed_loop_section
 from bench.report.context import ReportContext
 from bench.report.provenance import per_task_section, provenance_section
+from bench.report.robustness import robustness_section
 from bench.report.screen import (SCATTER_TITLE, SECTION_TITLE, calibrations, scatter_points,
                                  screen_agreements, screen_section)
 from bench.report.sections import (
@@ -49,6 +50,7 @@ SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
     ("Closed loop: success beside offline MSE", closed_loop_section),
     ("Per-task breakdown", per_task_section),
     (SECTION_TITLE, screen_section),  # only when the store holds screens
+    ("Robustness", robustness_section),  # only when the store holds robustness records
     ("Plots", plots_section),
     ("Provenance", provenance_section),
 ]

@@ -205,9 +205,14 @@ class Workspace:
         the CPU, read from disk and pooled to `grid` per batch; `view.shape` is (N, rows*cols, C).
         The file is built on first use (resumable) and opened once per session. `transform`:
         a planted degradation applied to every batch read (bench.run.plan.CellContext)."""
+        return self.feature_store().pooled_features(
+            self.encoder(encoder_name), self.suite(suite_name), grid,
+            transform=transform)
+
+    def feature_store(self) -> FeatureStore:
+        """The session's feature store (opened lazily, in `feature_dtype`): sources other than a
+        suite (the robustness tier's perturbed windows) are stored through it too."""
         if self._features is None or self._features.dtype != self.feature_dtype:
             self._features = FeatureStore(self.cache / "features", dtype=self.feature_dtype,
                                           progress=self.progress)
-        return self._features.pooled_features(
-            self.encoder(encoder_name), self.suite(suite_name), grid,
-            transform=transform)
+        return self._features

@@ -1,0 +1,220 @@
+"""The robustness tier's analysis: per backbone x suite, each encoder's MSE under every
+perturbation, its degradation relative to its clean MSE with paired window-bootstrap intervals,
+a robustness ranking with its tie band, whether the clean winner stays the winner per kind, and
+the transfer question (does the small backbone's most robust encoder stay the most robust on the
+large one?). Pure functions of stored records (bench.results.record, bench.results.robust).
+
+Degradation of one cell under one perturbation, per window w: (perturbed_w - clean_w) / clean,
+`clean` the cell's clean MSE over the same windows; its mean over windows is the relative
+degradation ((perturbed - clean) / clean), averaged over seeds. Intervals are the rankings'
+(bench.analysis.rankings.paired_window_bootstrap): windows resampled once per replicate for every
+row and seed, seeds kept; the clean level is held fixed (its own uncertainty is the rankings').
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from bench.analysis.rankings import (DEFAULT_RESAMPLES, PRIMARY, backbone_order,
+                                     paired_window_bootstrap, top_tier_mask)
+from bench.analysis.transfer import rank_agreement
+from bench.grid.kinds import GRAFT, column_label
+from bench.results.record import Record
+from bench.results.robust import RobustRecord
+
+
+@dataclass
+class Degradation:
+    """One row (an encoder, native or native_wrapped) under one perturbation."""
+
+    row: str
+    perturbation: str  # "kind:severity"
+    mse: float  # perturbed MSE, mean over seeds
+    clean: float  # clean MSE on the same windows, mean over seeds
+    relative: float  # mean relative degradation
+    ci: tuple[float, float]
+
+
+@dataclass
+class RobustnessTable:
+    """One backbone x suite: rows (grafts by encoder first, then native, native_wrapped)."""
+
+    backbone: str
+    suite: str
+    rows: list[str] = field(default_factory=list)
+    perturbations: list[str] = field(default_factory=list)  # "kind:severity", table order
+    params: dict[str, dict] = field(default_factory=dict)
+    cells: dict[tuple[str, str], Degradation] = field(default_factory=dict)
+    ranking: list[tuple[str, float, tuple[float, float], bool]] = field(default_factory=list)
+    clean_winner: str | None = None
+    winners: dict[str, dict[int, str]] = field(default_factory=dict)  # kind -> severity -> row
+    n_windows: int = 0
+    seeds: list[int] = field(default_factory=list)
+    stale: list[str] = field(default_factory=list)
+
+    @property
+    def most_robust(self) -> str | None:
+        return self.ranking[0][0] if self.ranking else None
+
+    def stays(self, kind: str) -> bool | None:
+        """Whether the clean winner is the winner under `kind` at every severity measured."""
+        won = self.winners.get(kind)
+        return None if not won or self.clean_winner is None else all(
+            w == self.clean_winner for w in won.values())
+
+    def to_dict(self) -> dict:
+        return {"backbone": self.backbone, "suite": self.suite, "rows": self.rows,
+                "perturbations": self.perturbations, "params": self.params,
+                "degradation": [vars(d) for d in self.cells.values()],
+                "ranking": self.ranking, "clean_winner": self.clean_winner,
+                "winners": self.winners, "most_robust": self.most_robust,
+                "n_windows": self.n_windows, "seeds": self.seeds, "stale": self.stale}
+
+
+def _pairs(records: Sequence[Record], robust: Sequence[RobustRecord], backbone: str, suite: str,
+           stale: list[str]) -> list[tuple[str, Record, RobustRecord]]:
+    """(row, cell record, its current robustness record) of one backbone x suite."""
+    by_id = {r.cell_id: r for r in records}
+    out = []
+    for rr in robust:
+        rec = by_id.get(rr.cell_id)
+        if rr.backbone != backbone or rr.suite != suite or rec is None:
+            continue
+        if not rr.is_for(rec):
+            stale.append(rr.cell_id)
+            continue
+        row = column_label(rec)
+        if row is not None:
+            out.append((row, rec, rr))
+    return out
+
+
+def _arrays(pairs, rows: list[str], seeds: list[int], labels: list[str]):
+    """per-window perturbed errors (P, R, S, W) and clean errors (R, S, W); NaN where absent."""
+    windows = pairs[0][2].window_ids
+    shape = (len(rows), len(seeds), len(windows))
+    clean = np.full(shape, np.nan)
+    perturbed = np.full((len(labels),) + shape, np.nan)
+    for row, rec, rr in pairs:
+        if rr.window_ids != windows:
+            continue  # another window subset: cannot be paired
+        r, s = rows.index(row), seeds.index(int(rec.seed))
+        position = {w: i for i, w in enumerate(rec.scores.window_ids)}
+        full = np.asarray(rec.scores.per_window_in(PRIMARY), dtype=float)
+        clean[r, s] = full[[position[w] for w in windows]]
+        for e in rr.entries:
+            label = f"{e.kind}:{e.severity}"
+            if label in labels:
+                perturbed[labels.index(label), r, s] = e.per_window[PRIMARY]
+    return perturbed, clean
+
+
+def _degradation(perturbed: np.ndarray, clean: np.ndarray) -> np.ndarray:
+    """(..., R, S, W) per-window relative degradation against each cell's clean mean."""
+    return (perturbed - clean) / clean.mean(axis=-1, keepdims=True)
+
+
+def robustness_table(records: Sequence[Record], robust: Sequence[RobustRecord], backbone: str,
+                     suite: str, clean_winner: str | None = None, *,
+                     n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0
+                     ) -> RobustnessTable:
+    """Everything the report says about one backbone x suite's robustness (module docstring)."""
+    table = RobustnessTable(backbone, suite, clean_winner=clean_winner)
+    pairs = _pairs(records, robust, backbone, suite, table.stale)
+    if not pairs:
+        return table
+    grafts = sorted({row for row, rec, _ in pairs if rec.kind == GRAFT})
+    table.rows = grafts + sorted({row for row, rec, _ in pairs if rec.kind != GRAFT})
+    table.seeds = sorted({int(rec.seed) for _, rec, _ in pairs})
+    entries = {(e.kind, e.severity): e.perturbation for _, _, rr in pairs for e in rr.entries}
+    order = _kind_order([rr for _, _, rr in pairs])
+    keys = sorted(entries, key=lambda k: (order.index(k[0]), k[1]))
+    table.perturbations = [f"{k}:{s}" for k, s in keys]
+    table.params = {f"{k}:{s}": entries[(k, s)]["params"] for k, s in keys}
+    perturbed, clean = _arrays(pairs, table.rows, table.seeds, table.perturbations)
+    table.n_windows = clean.shape[-1]
+    degradation = _degradation(perturbed, clean)
+    boot = dict(n_resamples=n_resamples, random_seed=random_seed)
+    for p, label in enumerate(table.perturbations):
+        result = paired_window_bootstrap(degradation[p], 0, **boot)
+        for r, row in enumerate(table.rows):
+            if np.isfinite(perturbed[p, r]).any():
+                table.cells[(row, label)] = Degradation(
+                    row, label, float(np.nanmean(perturbed[p, r].mean(axis=-1))),
+                    float(np.nanmean(clean[r].mean(axis=-1))), float(result.mean[r]),
+                    (float(result.mean_lo[r]), float(result.mean_hi[r])))
+    table.ranking = _ranking(degradation[:, : len(grafts)], grafts, boot)
+    table.winners = _winners(perturbed[:, : len(grafts)], grafts, keys)
+    return table
+
+
+def _kind_order(robust: Sequence[RobustRecord]) -> list[str]:
+    """Kinds in the order the records list them (the table's order when they were measured)."""
+    return list(dict.fromkeys(e.kind for rr in robust for e in rr.entries))
+
+
+def _ranking(degradation: np.ndarray, grafts: list[str], boot: dict):
+    """Grafts by mean degradation over every perturbation all of them have, least first, with
+    its interval and whether it is in the tie band of the most robust (paired difference
+    interval contains 0)."""
+    if not grafts:
+        return []
+    complete = [p for p in range(len(degradation)) if np.isfinite(
+        np.nanmean(degradation[p], axis=(1, 2))).all()]
+    if not complete:
+        return []
+    score = degradation[complete].mean(axis=0)  # (E, S, W): mean over perturbations
+    point = np.nanmean(score.mean(axis=-1), axis=1)
+    leader = int(np.nanargmin(point))
+    result = paired_window_bootstrap(score, leader, **boot)
+    tier = top_tier_mask(result.diff_lo, result.diff_hi, leader)
+    order = sorted(range(len(grafts)), key=lambda i: (result.mean[i], grafts[i]))
+    return [(grafts[i], float(result.mean[i]), (float(result.mean_lo[i]),
+             float(result.mean_hi[i])), bool(tier[i])) for i in order]
+
+
+def _winners(perturbed: np.ndarray, grafts: list[str], keys) -> dict[str, dict[int, str]]:
+    """kind -> severity -> the graft with the lowest perturbed MSE (mean over seeds)."""
+    winners: dict[str, dict[int, str]] = {}
+    for p, (kind, severity) in enumerate(keys):
+        means = np.nanmean(perturbed[p].mean(axis=-1), axis=1) if grafts else np.array([])
+        if len(means) and np.isfinite(means).any():
+            winners.setdefault(kind, {})[severity] = grafts[int(np.nanargmin(means))]
+    return winners
+
+
+def robustness_all(records: Sequence[Record], robust: Sequence[RobustRecord],
+                   clean_winners: dict[tuple[str, str], str], **boot) -> list[RobustnessTable]:
+    """One table per backbone x suite with robustness records, small backbone first."""
+    pairs = sorted({(rr.backbone, rr.suite) for rr in robust})
+    order = backbone_order([b for b, _ in pairs])
+    pairs.sort(key=lambda p: (p[1], order.index(p[0])))
+    return [robustness_table(records, robust, b, s, clean_winners.get((b, s)), **boot)
+            for b, s in pairs]
+
+
+def robustness_transfer(tables: Sequence[RobustnessTable]) -> list[dict]:
+    """Per suite and pair of backbones (small, large): each one's most robust graft, whether
+    they are the same, and the rank agreement of the robustness scores they share."""
+    out = []
+    for suite in sorted({t.suite for t in tables}):
+        mine = [t for t in tables if t.suite == suite and t.ranking]
+        order = backbone_order([t.backbone for t in mine])
+        mine.sort(key=lambda t: order.index(t.backbone))
+        for i, small in enumerate(mine):
+            for large in mine[i + 1:]:
+                a, b = dict((r[0], r[1]) for r in small.ranking), dict(
+                    (r[0], r[1]) for r in large.ranking)
+                common = sorted(set(a) & set(b))
+                out.append({"suite": suite, "small": small.backbone, "large": large.backbone,
+                            "small_most_robust": small.most_robust,
+                            "large_most_robust": large.most_robust,
+                            "large_tie_band": [r[0] for r in large.ranking if r[3]],
+                            "same": small.most_robust == large.most_robust,
+                            "encoders": common,
+                            "agreement": rank_agreement([a[e] for e in common],
+                                                        [b[e] for e in common])})
+    return out

@@ -1,0 +1,151 @@
+"""REPORT.md's "Robustness" section (the robustness tier): per backbone x suite, each encoder's
+MSE under every perturbation and its degradation relative to clean with paired intervals, the
+robustness ranking with its tie band, whether the clean winner stays the winner per kind, a plot
+of degradation against severity per encoder, and the transfer question. Left out of a report
+whose results dir holds no robustness record (the tier is off by default)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from bench.analysis.rankings import CONFIDENCE
+from bench.analysis.robustness import RobustnessTable, robustness_all, robustness_transfer
+from bench.report.context import ReportContext
+from bench.report.format import bullets, interval, num, pct, table, yes_no
+from bench.results.robust import load_all_robust
+
+PLOT_NAME = "robustness.png"
+METHOD = (
+    "Each trained cell's stored projector (native: the released policy as is) rescored, without "
+    "retraining, on perturbed copies of every 4th held-out window (the same windows and the same "
+    "perturbed frames for every cell of a suite: bench/run/perturbations.py, drawn per window "
+    "from a fixed seed). **Degradation** = (perturbed - clean) / clean normalised MSE on those "
+    "windows, mean over seeds; its "
+    f"{CONFIDENCE:.0%} interval is the rankings' paired window bootstrap (windows resampled once "
+    "per replicate for every encoder and seed; the clean level held fixed). Offline MSE under an "
+    "image perturbation, not closed-loop success under a scene change.")
+
+
+def robustness_section(ctx: ReportContext) -> str | None:
+    robust, skipped = load_all_robust(ctx.results.root)
+    if not robust:
+        return None
+    winners = {(r.backbone, r.suite): r.leader for r in ctx.rankings if r.leader}
+    tables = robustness_all(ctx.records, robust, winners, n_resamples=ctx.n_resamples or 2000)
+    parts = [METHOD]
+    for t in tables:
+        parts += [f"### {t.backbone} x {t.suite}", _table_text(t)]
+    parts.append("### Does the most robust encoder transfer across backbones?")
+    parts.append(_transfer_text(robustness_transfer(tables)))
+    plot = _plot(tables, ctx) if ctx.plots else None
+    if plot is not None:
+        parts.append(f"![degradation against severity]"
+                     f"({plot.relative_to(ctx.out_path.parent).as_posix()})")
+    if skipped:
+        parts.append(bullets([f"skipped {f}: {why}" for f, why in skipped]))
+    return "\n\n".join(parts)
+
+
+def _table_text(t: RobustnessTable) -> str:
+    if not t.rows:
+        note = f" (stale, the cell was measured again: {', '.join(t.stale)})" if t.stale else ""
+        return f"_No current robustness record{note}._"
+    head = (f"{t.n_windows} windows, seeds {t.seeds}. Cell: perturbed MSE, then degradation "
+            f"[{CONFIDENCE:.0%} CI].")
+    rows = []
+    for label in t.perturbations:
+        cells = [t.cells.get((row, label)) for row in t.rows]
+        rows.append([label, _params(t.params[label])] + [
+            f"{num(c.mse, 3)}, {pct(c.relative)} [{pct(c.ci[0])}, {pct(c.ci[1])}]"
+            if c is not None else "n/a" for c in cells])
+    clean = [next((c.clean for (r, _), c in t.cells.items() if r == row), None)
+             for row in t.rows]
+    rows.insert(0, ["clean", ""] + [num(c, 3) for c in clean])
+    parts = [head, table(rows, ["perturbation", "parameters"] + t.rows)]
+    parts.append(_ranking_text(t))
+    parts.append(_winner_text(t))
+    if t.stale:
+        parts.append(f"Stale robustness records left out (their cell was measured again; "
+                     f"rerun their cases): {', '.join(t.stale)}.")
+    return "\n\n".join(parts)
+
+
+def _params(params: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in params.items())
+
+
+def _ranking_text(t: RobustnessTable) -> str:
+    if not t.ranking:
+        return "_No robustness ranking: fewer than one graft with every perturbation._"
+    rows = [[i + 1, name, pct(mean), f"[{pct(ci[0])}, {pct(ci[1])}]", yes_no(tier)]
+            for i, (name, mean, ci, tier) in enumerate(t.ranking)]
+    tie = [r[0] for r in t.ranking if r[3]]
+    return ("Robustness ranking (grafts; mean degradation over every perturbation above; the "
+            "tie band is the most robust plus every graft whose paired difference to it has an "
+            f"interval containing 0): **{t.most_robust}** most robust, tie band {tie}.\n\n"
+            + table(rows, ["rank", "encoder", "mean degradation", "CI", "tie band"]))
+
+
+def _winner_text(t: RobustnessTable) -> str:
+    if t.clean_winner is None or not t.winners:
+        return "_Clean winner: not known (no ranking of the grafts)._"
+    rows = [[kind, ", ".join(f"{s}: {w}" for s, w in sorted(won.items())),
+             yes_no(t.stays(kind))] for kind, won in t.winners.items()]
+    return (f"Does the clean winner (**{t.clean_winner}**, lowest clean MSE on all held-out "
+            "windows) stay the winner (lowest perturbed MSE) under each kind?\n\n"
+            + table(rows, ["kind", "winner per severity", "clean winner stays"]))
+
+
+def _transfer_text(transfers: list[dict]) -> str:
+    if not transfers:
+        return ("_Not measured: it needs robustness rankings of two backbones on one suite._")
+    lines = []
+    for x in transfers:
+        tau = x["agreement"].get("tau_b")
+        lines.append(
+            f"{x['suite']}: most robust on {x['small']} **{x['small_most_robust']}**, on "
+            f"{x['large']} **{x['large_most_robust']}** ("
+            + ("the same" if x["same"] else "different; " + (
+                "inside" if x["small_most_robust"] in x["large_tie_band"] else "outside")
+               + f" {x['large']}'s tie band {x['large_tie_band']}")
+            + f"); Kendall tau-b of the robustness scores over {len(x['encoders'])} encoders: "
+              f"{num(tau, 2)}")
+    return bullets(lines)
+
+
+def _plot(tables: list[RobustnessTable], ctx: ReportContext) -> Path | None:
+    """Degradation against severity, one panel per backbone x suite and kind, a line per row."""
+    panels = [(t, kind) for t in tables if t.rows
+              for kind in dict.fromkeys(p.split(":")[0] for p in t.perturbations)]
+    if not panels:
+        return None
+    cols = min(len(panels), 4)
+    rows = -(-len(panels) // cols)
+    fig = Figure(figsize=(3.2 * cols, 2.8 * rows), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    for ax in axes[len(panels):]:
+        ax.set_visible(False)
+    for ax, (t, kind) in zip(axes, panels):
+        labels = [p for p in t.perturbations if p.startswith(kind + ":")]
+        for row in t.rows:
+            points = [(int(p.split(":")[1]), t.cells[(row, p)]) for p in labels
+                      if (row, p) in t.cells]
+            if points:  # severity 0 is the clean image: no degradation by definition
+                ax.plot([0] + [s for s, _ in points], [0.0] + [100 * c.relative
+                                                              for _, c in points],
+                        marker="o", label=row)
+        ax.axhline(0, color="grey", lw=0.5)
+        ax.set_xticks(range(4))
+        ax.set_title(f"{t.backbone} x {t.suite}: {kind}", fontsize=8)
+        ax.set_xlabel("severity", fontsize=7)
+        ax.set_ylabel("degradation (%)", fontsize=7)
+        ax.legend(fontsize=6)
+    folder = ctx.out_path.parent / f"{ctx.out_path.stem}_plots"
+    folder.mkdir(parents=True, exist_ok=True)
+    fig.savefig(folder / PLOT_NAME, dpi=100)
+    return folder / PLOT_NAME

@@ -1,0 +1,188 @@
+"""The robustness case of one cell: its stored projector (or the released policy as is) rescored
+on perturbed held-out windows, no retraining. Read top to bottom: the cell's stored record ->
+its projector from disk -> per perturbation, the perturbed windows' features (through the
+feature store, keyed by the perturbation) or images -> the same scorer as the cell -> one
+robustness record (bench.results.robust).
+
+Windows: every `WINDOW_STRIDE`-th held-out window of the split (the same for every cell of a
+suite), so a case costs a fraction of its cell (docs/PERFORMANCE.md); the clean reference is the
+cell record's own per-window errors on those windows (the scorer gives a window the same bits
+in any batch: tests/test_robustness.py checks it at severity 0).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from bench.grid.cells import CellSpec
+from bench.grid.kinds import GRAFT
+from bench.results.record import Record
+from bench.results.robust import RobustEntry, RobustRecord, base_of, load_robust, stamped
+from bench.run.evaluate import score
+from bench.run.features import encode_pooled
+from bench.run.perturbations import Applied
+from bench.run.projectors import ProjectorFileError, load_projector
+from bench.run.runner import cell_inputs
+from external.graft import GraftFeed, Projector
+
+WINDOW_STRIDE = 4  # one held-out window in 4 (tiny: 37 of 148 per suite)
+EVAL_BATCH = 64  # windows per sampler call: twice the tiny protocol's, the same bits
+
+
+class RobustUnavailable(RuntimeError):
+    """The cell has nothing to rescore (no record, no projector): one line with the command."""
+
+
+def robust_windows(windows: Tensor, stride: int = WINDOW_STRIDE) -> Tensor:
+    """(W,) the held-out windows a robustness case scores: every `stride`-th, in split order."""
+    return windows[::stride]
+
+
+@dataclass
+class PerturbedWindows:
+    """The held-out windows' frames under one perturbation, as a feature store source: row i is
+    `windows[i]` (bench.run.features.FeatureSource)."""
+
+    suite: object
+    windows: Tensor
+    applied: Applied
+
+    @property
+    def name(self) -> str:
+        return f"{self.suite.name}[{self.applied.label}]"
+
+    @property
+    def camera_keys(self) -> tuple[str, ...]:
+        return self.suite.camera_keys
+
+    @property
+    def state(self) -> Tensor:
+        return self.suite.state[self.windows]
+
+    @property
+    def fingerprint(self) -> str:
+        """The suite, the windows and the perturbation (parameters, seed, version)."""
+        blob = json.dumps({"suite": self.suite.fingerprint, "windows": self.windows.tolist(),
+                           "perturbation": self.applied.to_json()}, sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+    def images(self, rows: Tensor) -> dict[str, Tensor]:
+        frames = self.windows[torch.as_tensor(rows, dtype=torch.long).reshape(-1)]
+        return self.applied.images(self.suite.images(frames), frames)
+
+
+def rerun_hint(cell: CellSpec, results_dir) -> str:
+    test = "test_graft" if cell.kind == GRAFT else "test_control"
+    return (f"measure it first: pytest bench -k \"{test} and {cell.id}\" --results-dir "
+            f"{results_dir} (with this run's other options), then rerun the robustness case")
+
+
+def stored_cell(cell: CellSpec, ws) -> tuple[Record, dict | None]:
+    """The cell's stored record and its projector's state; RobustUnavailable naming the
+    command that measures them when either is missing."""
+    record = ws.store.load(cell.id)
+    if record is None:
+        raise RobustUnavailable(f"{cell.id}: no stored record to rescore under perturbations; "
+                                + rerun_hint(cell, ws.store.root))
+    if not cell.trains_projector:
+        return record, None
+    try:
+        state = load_projector(ws.store.root, cell.id, record.training.projector_file,
+                               record.training.projector_sha256)
+    except ProjectorFileError as e:
+        raise RobustUnavailable(f"{cell.id}: no stored projector to rescore: {e}") from None
+    return record, state
+
+
+def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
+                   rerun: bool = False, window_stride: int = WINDOW_STRIDE
+                   ) -> tuple[RobustRecord, bool]:
+    """The robustness record of `cell` under `perturbations` (stored entries of the same
+    measurement and windows resumed unless `rerun`), written to the store; (record, measured
+    anything)."""
+    t_start = time.perf_counter()
+    record, state = stored_cell(cell, ws)
+    root = ws.store.root
+    windows = robust_windows(ws.split(cell.suite).windows, window_stride)
+    stored = None if rerun else load_robust(root, cell.id)
+    if stored is not None and not (stored.is_for(record)
+                                   and stored.window_ids == windows.tolist()):
+        stored = None  # rescored from an earlier measurement of the cell, or other windows
+    wanted = [a.to_json() for a in perturbations]
+    kept = [e for e in (stored.entries if stored else []) if e.perturbation not in wanted]
+    entries, measured = [], False
+    scorer = None
+    for applied, key in zip(perturbations, wanted):
+        entry = stored.entry(key) if stored is not None else None
+        if entry is None:
+            scorer = scorer or _Scorer(cell, ws, record, state, windows)
+            entry, measured = scorer.entry(applied), True
+        entries.append(entry)
+    out = RobustRecord(cell.id, cell.kind, cell.backbone, cell.suite, cell.encoder, cell.seed,
+                       base_of(record), windows.tolist(), kept + entries,
+                       timings_s={"total": round(time.perf_counter() - t_start, 3)})
+    if measured or stored is None or out.entries != stored.entries:
+        from bench.results.robust import write_robust
+
+        out = stamped(out)
+        write_robust(root, out)
+    else:
+        out = stored
+    return out, measured
+
+
+class _Scorer:
+    """The cell's policy and graft, rebuilt from its stored projector, scoring perturbed windows
+    exactly as the cell scored its clean ones (same sampler, noise per window, features)."""
+
+    def __init__(self, cell: CellSpec, ws, record: Record, state: dict | None, windows: Tensor):
+        p = ws.profile.protocol
+        self.cell, self.ws, self.windows, self.noise_seed = cell, ws, windows, p.eval_noise_seed
+        self.suite = ws.suite(cell.suite)
+        self.backbone = ws.backbone(cell.backbone, cell.suite)
+        device = next(self.backbone.policy.parameters()).device
+        self.inputs = cell_inputs(cell, p, self.suite, ws.split(cell.suite), self.backbone,
+                                  device)
+        self.loop = record.measured.features_mode == "loop"
+        self.feed = None
+        if state is not None:
+            projector = Projector(int(state["linear.weight"].shape[1]),
+                                  self.backbone.info.lm_width).to(device)
+            projector.load_state_dict(state)
+            projector.eval()
+            tower = self.backbone.native_tower_grid if cell.spec.tower else None
+            self.feed = GraftFeed(projector, self.backbone.camera_keys, self.inputs.grid,
+                                  tower=tower)
+        if cell.encoder is not None:
+            self.inputs.encoder = ws.encoder(cell.encoder)
+
+    def entry(self, applied: Applied) -> RobustEntry:
+        t0 = time.perf_counter()
+        features_for = images_for = None
+        if self.cell.encoder is not None:
+            features_for = self._features_for(applied)
+        else:
+            images_for = lambda pos, frames, imgs: applied.images(imgs, frames)  # noqa: E731
+        scores = score(self.backbone, self.suite, self.windows, EVAL_BATCH, self.noise_seed,
+                       feed=self.feed, features_for=features_for, images_for=images_for)
+        return RobustEntry(applied.to_json(), scores.mse, scores.per_window,
+                           eval_s=round(time.perf_counter() - t0, 3))
+
+    def _features_for(self, applied: Applied):
+        """features_for(positions, frames) of bench.run.evaluate.score under `applied`."""
+        encoder, grid = self.inputs.encoder, self.inputs.grid
+        if self.loop:  # the cell ran its encoder in the loop: so does its rescoring
+            return lambda pos, frames: encode_pooled(
+                encoder, applied.images(self.suite.images(frames), frames), grid)
+        if applied.severity == 0:  # the identity: the very features the cell read
+            views = self.ws.features(self.cell.encoder, self.cell.suite, grid)
+            return lambda pos, frames: {k: v[frames] for k, v in views.items()}
+        source = PerturbedWindows(self.suite, self.windows, applied)
+        views = self.ws.feature_store().pooled_features(encoder, source, grid)
+        return lambda pos, frames: {k: v[pos] for k, v in views.items()}
