@@ -1,0 +1,168 @@
+"""The robustness tier (issue 39): the perturbation table, its known answers on the tiny world,
+its bad input, and `pytest bench --robustness` end to end.
+
+Known answers: `blind` degrades by exactly 0 under every perturbation; severity 0 gives the
+clean record's bits (graft, native tower through the wrapper, native); the planted invariance:
+`pixels_ones_norm` does not move under brightness or contrast while `pixels_ones` does, and the
+released policy (whose tower has no such invariance) degrades under a dimmer scene by a paired
+interval. Cells train a few steps: no answer here reads a training margin.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from bench.analysis.robustness import robustness_table
+from bench.grid.cells import CellSpec
+from bench.grid.protocol import TINY, with_overrides
+from bench.run.perturbations import PERTURBATIONS, Applied, parse_robustness
+from bench.run.robust import RobustUnavailable, measure_robust
+from bench.run.runner import run_cell
+
+FEW_STEPS = with_overrides(TINY, steps=12)
+BACKBONE = "smolvla"
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A 12-step tiny world with its own results store, and the cells measured in it."""
+    from bench.results.store import ResultStore
+    from tests.worlds import lent_workspace
+
+    ws = lent_workspace(FEW_STEPS, ResultStore(tmp_path_factory.mktemp("robust")))
+    records = {}
+
+    def cell(kind, encoder=None):
+        spec = CellSpec(kind, BACKBONE, "spatial", 0, encoder)
+        if spec.id not in records:
+            records[spec.id] = run_cell(spec, ws)
+        return spec, records[spec.id]
+
+    return ws, cell
+
+
+def clean_on(record, robust) -> np.ndarray:
+    """The cell record's normalised per-window errors on the robustness record's windows."""
+    position = {w: i for i, w in enumerate(record.scores.window_ids)}
+    return np.asarray(record.scores.per_window["normalized"])[[position[w]
+                                                              for w in robust.window_ids]]
+
+
+def test_parse_names_kinds_and_severities_and_refuses_the_rest():
+    assert len(parse_robustness(["all"], "x")) == 3 * len(PERTURBATIONS)
+    assert [a.label for a in parse_robustness(["blur:3,1", "brightness"], "x")] == [
+        "brightness:1", "brightness:2", "brightness:3", "blur:1", "blur:3"]
+    with pytest.raises(ValueError, match=r"--robustness: unknown perturbation kind 'fog'; "
+                                         r"valid: brightness, .*occlusion"):
+        parse_robustness(["fog"], "--robustness")
+    with pytest.raises(ValueError, match=r"severity 4 out of range; give severities in 0..3"):
+        parse_robustness(["noise:4"], "--robustness")
+
+
+def test_each_kind_is_the_identity_at_zero_and_a_fixed_draw_per_window():
+    images = {"cam": torch.rand(3, 3, 64, 64)}
+    frames = torch.tensor([5, 9, 12])
+    for kind in PERTURBATIONS:
+        assert Applied(kind, 0).images(images, frames) is images
+        moved = Applied(kind, 3).images(images, frames)["cam"]
+        assert not torch.equal(moved, images["cam"]), kind
+        assert moved.min() >= 0 and moved.max() <= 1
+        # window 9 alone gets the same frame as in the batch: the draw is the window's own
+        alone = Applied(kind, 3).images({"cam": images["cam"][1:2]}, frames[1:2])["cam"]
+        torch.testing.assert_close(alone[0], moved[1], rtol=0, atol=1e-6)
+    assert Applied("blur", 2).to_json()["params"] == {"sigma_frac": 0.01}
+
+
+def test_blind_degrades_by_exactly_zero_and_severity_zero_gives_the_clean_bits(world):
+    ws, cell = world
+    everything = parse_robustness(["all", "brightness:0"], "test")
+    spec, record = cell("graft", "blind")
+    robust, measured = measure_robust(spec, ws, everything)
+    assert measured and len(robust.entries) == len(everything)
+    clean = clean_on(record, robust)
+    for entry in robust.entries:  # blind's features ignore the image: the very same bits
+        assert entry.per_window["normalized"] == clean.tolist(), entry.perturbation
+    for kind in ("graft", "native_wrapped", "native"):
+        spec, record = cell(kind, "pixels" if kind == "graft" else None)
+        robust, _ = measure_robust(spec, ws, parse_robustness(["brightness:0"], "test"))
+        assert robust.entries[0].per_window["normalized"] == clean_on(record, robust).tolist()
+    again, measured = measure_robust(CellSpec("graft", BACKBONE, "spatial", 0, "blind"), ws,
+                                     everything)
+    assert not measured and again.entries == robust_entries(ws, "blind")
+
+
+def robust_entries(ws, encoder):
+    from bench.results.robust import load_robust
+
+    return load_robust(ws.store.root, f"{BACKBONE}-spatial-{encoder}-seed0").entries
+
+
+def test_planted_invariance_holds_and_the_released_tower_degrades(world):
+    ws, cell = world
+    lighting = parse_robustness(["brightness", "contrast"], "test")
+    moved = {}
+    for encoder in ("pixels_ones", "pixels_ones_norm"):
+        spec, record = cell("graft", encoder)
+        robust, _ = measure_robust(spec, ws, lighting)
+        clean = clean_on(record, robust)
+        moved[encoder] = max(np.abs(np.asarray(e.per_window["normalized"]) - clean).max()
+                             / clean.mean() for e in robust.entries)
+    assert moved["pixels_ones_norm"] < 1e-4 < 0.01 < moved["pixels_ones"], moved
+    spec, native = cell("native")
+    robust, _ = measure_robust(spec, ws, lighting)
+    from bench.results.robust import load_all_robust
+
+    table = robustness_table([native], load_all_robust(ws.store.root)[0], BACKBONE, "spatial",
+                             n_resamples=500)
+    degradation = table.cells[("native", "brightness:3")]
+    assert degradation.ci[0] > 0.05, degradation  # a dimmer scene: worse, by a paired interval
+
+
+def test_a_cell_without_record_or_projector_names_the_command(world, tmp_path):
+    ws, cell = world
+    missing = CellSpec("graft", BACKBONE, "spatial", 5, "pixels")
+    with pytest.raises(RobustUnavailable, match=r"no stored record .* pytest bench -k "
+                                                r"\"test_graft and smolvla-spatial-pixels-seed5\""):
+        measure_robust(missing, ws, parse_robustness(["blur:1"], "t"))
+    spec, record = cell("graft", "pixels")
+    (ws.store.root / record.training.projector_file).rename(tmp_path / "kept.safetensors")
+    try:
+        with pytest.raises(RobustUnavailable, match=r"no stored projector.*is missing: run the "
+                                                    r"cell again .*pytest bench -k"):
+            measure_robust(spec, ws, parse_robustness(["blur:1"], "t"))
+    finally:
+        (tmp_path / "kept.safetensors").rename(ws.store.root / record.training.projector_file)
+
+
+def test_bad_perturbations_stop_at_start_up_in_one_line(bench_cli, tmp_path):
+    for args, line in ((["--robustness", "fog"], "unknown perturbation kind 'fog'"),
+                       (["--robustness", "blur:1,5"], "severity 5 out of range")):
+        out = bench_cli(tmp_path, *args)
+        assert out.returncode == pytest.ExitCode.USAGE_ERROR, out.stdout + out.stderr
+        assert f"ERROR: --robustness {args[1]}: " in out.stderr and line in out.stderr
+    study = tmp_path / "study.toml"
+    study.write_text('robustness = ["noise:9"]\n')
+    out = bench_cli(tmp_path, "--grid", str(study))
+    assert out.returncode == pytest.ExitCode.USAGE_ERROR
+    assert f"{study}: robustness: 'noise:9': severity 9 out of range" in out.stderr
+
+
+def test_robust_cases_run_resume_and_report(bench_cli, tmp_path):
+    args = ["--backbones", BACKBONE, "--suites", "spatial", "--encoders", "blind",
+            "--seeds", "0", "--controls", "native", "--steps", "3", "--robustness", "occlusion:2"]
+    first = bench_cli(tmp_path, *args, "-v")
+    assert first.returncode == 0, first.stdout[-3000:]
+    assert "test_robust[smolvla-spatial-blind-seed0] PASSED" in first.stdout
+    assert "test_robust[smolvla-spatial-native-seed0] PASSED" in first.stdout
+    stored = json.loads((tmp_path / "results/robust/smolvla-spatial-blind-seed0.json").read_text())
+    assert stored["entries"][0]["perturbation"]["params"] == {"side_frac": 0.25, "grey": 0.5}
+    report = (tmp_path / "REPORT.md").read_text()
+    assert "## Robustness" in report and "occlusion:2" in report
+    again = bench_cli(tmp_path, *args, "-k", "test_robust")
+    assert again.returncode == 0 and "2 passed" in again.stdout
+    off = bench_cli(tmp_path, *args[:-2], "--co", "-q")
+    assert "::test_robust[" not in off.stdout and "2 tests collected" in off.stdout
