@@ -238,6 +238,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
                           gs.report_written is not None, gs.report_error)
     if gs.screening is not None:
         lines[2:2] = screen_summary_lines(gs.screening.outcomes, gs.screening.dropped)
+    lines += [f"set aside: {line}" for line in gs.set_aside_lines]
     for line in lines:
         terminalreporter.write_line(line)
     gs.baseline.summary(terminalreporter)

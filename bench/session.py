@@ -72,6 +72,7 @@ class GraftSession:
         self._screening = None
         self.report_written: Path | None = None
         self.report_error: str | None = None  # why REPORT.md could not be written, if it failed
+        self.set_aside_lines: list[str] = []  # unreadable records moved aside (store.set_aside)
         self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
         # Names, user paths, output folders: checked here when this run collects the grid (an
         # xdist worker's controller checked them); else at collection (bench.plugin).
@@ -148,16 +149,32 @@ class GraftSession:
             pytest.skip(DROPPED + why)
         if cell.id in self.records:  # a short graft the selection ran before its own case
             return self.records[cell.id]
-        cell_plan = self.plan(cell)
-        if cell_plan.resume is not None:
-            record = cell_plan.resume
-            self.outcomes[cell.id] = "resumed"
-        else:
-            record = self._measure(cell_plan)
-            self.outcomes[cell.id] = "measured"
+        with self._claim(cell):  # another run on this results dir waits here, then resumes
+            if (line := self.store.set_aside(cell.id)) is not None:
+                self.set_aside_lines.append(line)
+                say(self.progress_sink(), line)
+            cell_plan = self.plan(cell)
+            if cell_plan.resume is not None:
+                record = cell_plan.resume
+                self.outcomes[cell.id] = "resumed"
+            else:
+                record = self._measure(cell_plan)
+                self.outcomes[cell.id] = "measured"
         self.baseline.check_cell(cell, record)
         self.records[cell.id] = record
         return record
+
+    def _claim(self, cell: CellSpec):
+        """The results store's claim on `cell` while it is planned and measured here (a job
+        array measures in its own tasks: the array is the one claimant, nothing to claim)."""
+        import contextlib
+
+        if self.options.executor != "local":
+            return contextlib.nullcontext()
+        return self.store.cell_lock(cell.id, on_wait=lambda: say(
+            self.progress_sink(), f"{cell.id}: another process is measuring it (its claim "
+                                  f"{self.store.cell_path(cell.id).parent}/.{cell.id}.lock); "
+                                  "waiting for its record"))
 
     @property
     def projectors(self) -> dict:

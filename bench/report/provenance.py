@@ -108,7 +108,9 @@ def provenance_section(ctx: ReportContext) -> str:
         f"Cells: {len(records)} finished, {len(res.failed)} failed, {len(res.missing)} missing"
         + (f" of {len(res.expected)} expected (grid.json)" if res.expected is not None
            else " (no grid.json: missing cells cannot be listed)")
-        + f", {len(res.skipped)} unreadable files skipped",
+        + f", {len(res.skipped)} unreadable files skipped"
+        + (f", {len(res.set_aside)} unreadable record(s) moved aside to `unreadable/` and "
+           "measured again" if res.set_aside else ""),
     ]
     grid_files = Counter((g["path"], g["sha256"]) for r in records if (g := r.measured.grid_file))
     if grid_files:  # runs without --grid: no line, the report as it was

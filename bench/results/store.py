@@ -6,13 +6,20 @@
     RESULTS_DIR/grid.json               optional: {"expected": [cell_id, ...], "profile": "tiny"}
     RESULTS_DIR/screens/...             the screen tier (--screen): bench.results.screen
     RESULTS_DIR/rollouts/<cell_id>.json closed-loop episodes of a cell still rolling out (EpisodeLog)
+    RESULTS_DIR/unreadable/<cell_id>.<time>.json  a record that could not be read, moved aside
+                                        before its cell was measured again (set_aside)
+    RESULTS_DIR/cells/.<cell_id>.lock   the claim on a cell while a process measures it
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import tempfile
+import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +33,7 @@ from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord,
 CELLS, FAILED, GRID = "cells", "failed", "grid.json"  # the folder and file names, only here
 SCREENS, SELECTIONS = "screens", "selections"  # screens/, screens/selections/
 ROLLOUTS = "rollouts"
+UNREADABLE = "unreadable"
 _GRID_EXPECTED, _GRID_PROFILE = "expected", "profile"
 _LOG_KEY, _LOG_EPISODES = "key", "episodes"
 
@@ -76,6 +84,7 @@ class Results:
     screens: list[ScreenRecord] = field(default_factory=list)
     screen_failures: list[ScreenFailure] = field(default_factory=list)
     selections: list[ScreenSelection] = field(default_factory=list)
+    set_aside: list[str] = field(default_factory=list)  # unreadable/ file names (set_aside)
 
     @property
     def missing(self) -> list[str]:
@@ -113,6 +122,7 @@ def load_results(results_dir: str | Path) -> Results:
         if failure.cell_id not in seen:  # a later successful rerun supersedes a failure
             results.failed.append(failure)
     _load_screens(root, results)
+    results.set_aside = sorted(p.name for p in (root / UNREADABLE).glob("*.json"))
     if (root / GRID).exists():
         try:
             grid = _read_json(root / GRID)
@@ -199,6 +209,9 @@ class EpisodeLog:
 
     def clear(self) -> None:
         self.path.unlink(missing_ok=True)
+
+
+_HELD = threading.local()  # the cell claims this thread holds (ResultStore.cell_lock)
 
 
 class ResultStore:
@@ -290,10 +303,57 @@ class ResultStore:
         path = _screen_file(self.root, sid)
         return exclusive(path.with_name(f".{path.stem}.lock"))
 
-    def cell_lock(self, cell_id: str):
-        """Held while a short graft (a tier cell) is planned and run: under -n N a worker's
-        --screen-by short selection and another worker's case may both want it."""
-        return exclusive(self.root / CELLS / f".{cell_id}.lock")
+    @contextlib.contextmanager
+    def cell_lock(self, cell_id: str, on_wait=None):
+        """The claim on a cell, held while it is planned and measured: another process on this
+        results dir (a second run, an xdist worker, a --screen-by short selection) waits, then
+        resumes the record the claimant stored, instead of measuring the cell twice. A flock:
+        the kernel frees it when the claimant dies (kill -9). `on_wait()` is called once when
+        the cell is claimed elsewhere, before waiting. Re-entrant within a thread (a short
+        graft's selection claims it, then runs it through the session, which claims it too)."""
+        path = self.root / CELLS / f".{cell_id}.lock"
+        held = _HELD.__dict__.setdefault("paths", set())
+        if path in held:
+            yield
+            return
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if on_wait is not None:
+                    on_wait()
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            held.add(path)
+            try:
+                yield
+            finally:
+                held.discard(path)
+        finally:
+            os.close(fd)  # releases the flock
+
+    def set_aside(self, cell_id: str) -> str | None:
+        """Move a stored record that cannot be read (truncated, not JSON, invalid) to
+        unreadable/, keeping its bytes for a look; returns the one line that says so, or None
+        when the record is absent or reads. Call it under the cell's claim."""
+        path = self.cell_path(cell_id)
+        if not path.exists():
+            return None
+        try:
+            read_record(path)
+            return None
+        except (OSError, ValueError) as e:
+            reason = " ".join(f"{type(e).__name__}: {e}".split())
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        aside = self.root / UNREADABLE / f"{cell_id}.{stamp}.json"
+        aside.parent.mkdir(parents=True, exist_ok=True)
+        for n in range(1, 1000):  # a second one within the same second keeps the first
+            if not aside.exists():
+                break
+            aside = aside.with_name(f"{cell_id}.{stamp}-{n}.json")
+        os.replace(path, aside)
+        return (f"{CELLS}/{path.name} is unreadable ({reason}): moved to "
+                f"{UNREADABLE}/{aside.name}; {cell_id} is measured again")
 
     def write_screen(self, item: ScreenRecord | ScreenFailure) -> Path:
         """A finished screen, or a failed one (replaced by the next success)."""
