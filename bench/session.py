@@ -173,8 +173,7 @@ class GraftSession:
             return contextlib.nullcontext()
         return self.store.cell_lock(cell.id, on_wait=lambda: say(
             self.progress_sink(), f"{cell.id}: another process is measuring it (its claim "
-                                  f"{self.store.cell_path(cell.id).parent}/.{cell.id}.lock); "
-                                  "waiting for its record"))
+                                  f"{self.store.claim_path(cell.id)}); waiting for its record"))
 
     @property
     def projectors(self) -> dict:

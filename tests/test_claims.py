@@ -105,5 +105,5 @@ def test_two_runs_on_one_results_dir_measure_each_cell_once(bench_cli, tmp_path)
     assert "measured 2, resumed from store 0" in theirs, theirs[-2000:]
     assert "measured 0, resumed from store 2" in mine.stdout, mine.stdout[-2000:]
     assert (f"{CELL_IDS[0]}: another process is measuring it (its claim "
-            f"{tmp_path / 'results' / 'cells'}/.{CELL_IDS[0]}.lock); waiting for its record"
+            f"{tmp_path / 'results' / '.claims' / CELL_IDS[0]}.lock); waiting for its record"
             in mine.stdout), mine.stdout[-3000:]

@@ -8,7 +8,7 @@
     RESULTS_DIR/rollouts/<cell_id>.json closed-loop episodes of a cell still rolling out (EpisodeLog)
     RESULTS_DIR/unreadable/<cell_id>.<time>.json  a record that could not be read, moved aside
                                         before its cell was measured again (set_aside)
-    RESULTS_DIR/cells/.<cell_id>.lock   the claim on a cell while a process measures it
+    RESULTS_DIR/.claims/<cell_id>.lock  the claim on a cell while a process measures it
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord,
 CELLS, FAILED, GRID = "cells", "failed", "grid.json"  # the folder and file names, only here
 SCREENS, SELECTIONS = "screens", "selections"  # screens/, screens/selections/
 ROLLOUTS = "rollouts"
+CLAIMS = ".claims"  # hidden: a folder of lock files, no results
 UNREADABLE = "unreadable"
 _GRID_EXPECTED, _GRID_PROFILE = "expected", "profile"
 _LOG_KEY, _LOG_EPISODES = "key", "episodes"
@@ -303,6 +304,11 @@ class ResultStore:
         path = _screen_file(self.root, sid)
         return exclusive(path.with_name(f".{path.stem}.lock"))
 
+    def claim_path(self, cell_id: str) -> Path:
+        # Not in cells/: that folder holds records only (readers list it). The files stay:
+        # removing a lock file another process waits on would let a third take a new one.
+        return self.root / CLAIMS / f"{cell_id}.lock"
+
     @contextlib.contextmanager
     def cell_lock(self, cell_id: str, on_wait=None):
         """The claim on a cell, held while it is planned and measured: another process on this
@@ -311,7 +317,8 @@ class ResultStore:
         the kernel frees it when the claimant dies (kill -9). `on_wait()` is called once when
         the cell is claimed elsewhere, before waiting. Re-entrant within a thread (a short
         graft's selection claims it, then runs it through the session, which claims it too)."""
-        path = self.root / CELLS / f".{cell_id}.lock"
+        path = self.claim_path(cell_id)
+        path.parent.mkdir(exist_ok=True)
         held = _HELD.__dict__.setdefault("paths", set())
         if path in held:
             yield
