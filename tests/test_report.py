@@ -16,7 +16,8 @@ from bench.report.screen import SECTION_TITLE
 
 ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 RESAMPLES = 200
-HEADINGS = [title for title, _ in SECTIONS if title != SECTION_TITLE]  # screens: test_screen_run
+# Sections left out when their records are absent: screens (test_screen_run), robustness.
+HEADINGS = [title for title, _ in SECTIONS if title not in (SECTION_TITLE, "Robustness")]
 
 
 def full_grid() -> list[dict]:
@@ -84,9 +85,9 @@ def test_full_report_sections_and_answer(full_report):
     for title in HEADINGS + ["Against baseline"]:
         assert f"\n## {title}\n" in text
     assert "could not be rendered" not in text
-    assert ("the small-backbone winner (**siglip** on smolvla) **is not** in the large "
-            "backbone's (pi05) top tier on suite **spatial**") in text
-    assert "tiny" in text and "say **nothing** about real encoders" in text
+    assert ("Transfer on suite **spatial**: the small-backbone winner (**siglip** on smolvla) "
+            "**is not** in the large backbone's (pi05) top tier") in text
+    assert "tiny" in text and "say **nothing** about real VLAs" in text
     assert "p >= 0.0833" in text
     assert "+50.0%" in text and "-50.0%" in text  # wrapper neutrality 0.10 -> 0.15, 0.02 -> 0.01
     assert "not closed-loop" in text.replace("**", "")
@@ -204,12 +205,17 @@ def test_report_flags_rankings_that_measure_nothing(tmp_path):
 
 
 def test_provenance_lists_study_constants_and_disagreements(full_report):
-    _, text = full_report
+    out, text = full_report
     provenance = text[text.index("## Provenance"):]
     assert "**Protocol constants: the study's and ours.**" in provenance
     assert re.search(r"\| learning rate +\| 0\.0001 +\| 0\.003 +\| \*\*DISAGREES\*\*", provenance)
-    assert re.search(r"\| warmup_steps +\| not given +\| 30 +\| ours \(study silent\)",
-                     provenance)
+    # Rows equal to the study's or ours where it is silent: in the JSON, not the table.
+    assert "| warmup_steps " not in provenance and "key `protocol_constants`" in provenance
+    (rows,) = json.loads((out.parent / "REPORT_summary.json").read_text())[
+        "protocol_constants"].values()
+    assert {"constant": "warmup_steps", "study": "not given", "ours": "30",
+            "status": "ours (study silent)", "field": "warmup_steps",
+            "note": "Protocol field"} in rows
     assert "Disagreements with the study under" in provenance
     assert "learning rate (study 0.0001, ours 0.003)" in provenance
     assert "**Constants that differ from the published study's**" in text

@@ -26,12 +26,13 @@ from bench.grid.kinds import GRAFT
 from bench.results.store import Results, load_results
 from bench.report.closed_loop import closed_loop_section
 from bench.report.context import ReportContext
-from bench.report.provenance import per_task_section, provenance_section
+from bench.report.lead import answer_lines
+from bench.report.provenance import per_task_section, protocol_constants, provenance_section
 from bench.report.robustness import robustness_section
 from bench.report.screen import (SCATTER_TITLE, SECTION_TITLE, calibrations, scatter_points,
                                  screen_agreements, screen_section)
 from bench.report.sections import (
-    answer_lines, caveats, controls_section, plots_section,
+    caveats, controls_section, plots_section,
     rankings_section, seed_section, tie_section, transfer_section, vision_section,
     wrapper_section,
 )
@@ -171,6 +172,7 @@ def summary(ctx: ReportContext) -> dict:
         "closed_loop": ctx.closed_loop, "vision_use": ctx.vision,
         "screen_agreement": ctx.screen_agreements,
         "screen_calibration": ctx.screen_calibrations,
+        "protocol_constants": protocol_constants(ctx.records),
         "cells": {"finished": len(ctx.records), "failed": [f.cell_id for f in res.failed],
                   "missing": res.missing, "skipped": res.skipped},
         "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},

@@ -58,8 +58,8 @@ def closed_loop_caveat(ctx: ReportContext) -> str:
 
 def closed_loop_section(ctx: ReportContext) -> str:
     if not ctx.closed_loop:
-        return CLOSED_LOOP_INTRO + "\n\n_No cell was rolled out (run with `--rollouts N` on a " \
-            "simulated suite, see docs/LIBERO_SIM.md)._"
+        return ("_No cell was rolled out (run with `--rollouts N` on a simulated suite, see "
+                "docs/LIBERO_SIM.md)._")
     parts = [CLOSED_LOOP_INTRO, "Tie rule (here the cheaper tier is offline -MSE and the graft "
              f"score is closed-loop success): {TIE_RULE}"]
     for cl in ctx.closed_loop:

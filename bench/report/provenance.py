@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections import Counter, defaultdict
@@ -68,21 +69,52 @@ STUDY_TABLE_INTRO = (
 )
 
 
-def study_constants_section(records: list[dict]) -> str:
-    """The study-vs-ours table per protocol hash, disagreements listed under it."""
+def changed_by_run(records: list) -> set[str]:
+    """Protocol fields whose recorded value differs from the profile's own (--steps, a grid
+    file's values): what this run changed, which the trimmed table keeps."""
+    from bench.grid.protocol import PROFILES
+
+    changed = set()
+    for r in records:
+        base = PROFILES.get(r.measured.profile)
+        if base is None:
+            continue
+        own = json.loads(json.dumps(base.protocol.to_dict()))  # as stored: tuples are lists
+        changed |= {k for k, v in (r.measured.protocol or {}).items() if own.get(k, v) != v}
+    return changed
+
+
+def study_constants_section(records: list[dict], summary_name: str | None = None) -> str:
+    """The study-vs-ours table per protocol hash, trimmed to the rows that differ from the study
+    (or are not recorded) and the fields this run changed; every row is in the JSON summary
+    (`protocol_constants`), linked here."""
     if not records:
         return STUDY_TABLE_INTRO + "\n\n_No records: nothing to compare._"
     parts = [STUDY_TABLE_INTRO]
+    changed = changed_by_run(records)
     for h, rows in compare_records(records).items():
-        parts.append(f"Protocol `{h}`:\n\n" + table(
+        shown = [r for r in rows if r.status in (DISAGREES, NOT_RECORDED) or r.field in changed]
+        rest = len(rows) - len(shown)
+        where = (f"[{summary_name}]({summary_name}), key `protocol_constants`" if summary_name
+                 else "the JSON summary beside this report, key `protocol_constants`")
+        intro = (f"Protocol `{h}`: the {len(shown)} constant(s) that differ from the study, are "
+                 f"not recorded, or that this run changed from its profile; the other {rest} "
+                 f"(equal to the study's, or ours where the study is silent): {where}.")
+        parts.append(intro if not shown else intro + "\n\n" + table(
             [[r.constant, r.study, r.ours, f"**{r.status}**" if r.status == DISAGREES
-              else r.status, r.field or "(none)", r.note] for r in rows],
+              else r.status, r.field or "(none)", r.note] for r in shown],
             ["constant", "study", "ours", "status", "Protocol field", "note"]))
         differ = [f"{r.constant} (study {r.study}, ours {r.ours})" for r in rows
                   if r.status == DISAGREES]
         parts.append(f"Disagreements with the study under `{h}`: "
                      + ("; ".join(differ) if differ else "none") + ".")
     return "\n\n".join(parts)
+
+
+def protocol_constants(records: list) -> dict:
+    """Every row of the study-vs-ours table, by protocol hash: the JSON summary's copy."""
+    return {h: [dataclasses.asdict(r) for r in rows]
+            for h, rows in compare_records(records).items()}
 
 
 def provenance_section(ctx: ReportContext) -> str:
@@ -120,7 +152,7 @@ def provenance_section(ctx: ReportContext) -> str:
     for h, recs in hashes.items():
         parts.append(f"Protocol `{h}`:\n\n```json\n"
                      f"{json.dumps(recs[0].measured.protocol or {}, indent=1, sort_keys=True)}\n```")
-    parts.append(study_constants_section(records))
+    parts.append(study_constants_section(records, f"{ctx.out_path.stem}_summary.json"))
     totals = {p: sum(float(r.run.timings_s.get(p, 0.0)) for r in records)
               for p in PHASES}
     parts.append("Wall time per phase, summed over finished cells (seconds):\n\n"

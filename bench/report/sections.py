@@ -12,6 +12,8 @@ from bench.analysis.transfer import SUPPORT_RULES, min_exact_kendall_p
 from bench.grid.kinds import get_kind
 from bench.report.closed_loop import closed_loop_caveat
 from bench.report.context import ReportContext
+from bench.report.encoders import encoder_infos, encoders_caveat, encoders_table
+from bench.report.screen import SCATTER_TITLE
 from bench.report.format import bullets, half_width, interval, num, pct, table, yes_no
 from bench.report.study import DISAGREES, compare_records
 from bench.results.record import RAW
@@ -48,56 +50,6 @@ def vision_text(check: VisionCheck | None) -> str:
             f"control present ({'; '.join(_gap(c) for c in check.comparisons)}).")
 
 
-def _vision_answer(ctx: ReportContext) -> list[str]:
-    flagged = [f"{v.backbone} x {v.suite} ({v.best_encoder} not better than "
-               f"{', '.join(v.failed_controls)})" for v in ctx.vision if v.flagged]
-    unchecked = [f"{v.backbone} x {v.suite}" for v in ctx.vision if not v.checked]
-    lines = []
-    if flagged:
-        lines.append("**Encoder rankings that measure nothing** (best graft not better than a "
-                     "no-vision control by a paired interval; see Vision use): "
-                     + "; ".join(flagged) + ".")
-    if unchecked:
-        lines.append(f"Vision use not checked on {', '.join(unchecked)}: run the blind or "
-                     "zero_image control.")
-    return lines
-
-
-def answer_lines(ctx: ReportContext) -> list[str]:
-    """The short answer at the top: is the small backbone's winner in the large one's tier?"""
-    if not ctx.records:
-        return [f"No finished cells under `{ctx.results.root}` yet: nothing to answer."]
-    lines = []
-    for t in ctx.transfers:
-        if not t.complete:
-            lines.append(f"Suite **{t.suite}**: no answer yet ({t.missing}).")
-            continue
-        verdict = {True: "**is**", False: "**is not**", None: "cannot be placed"}
-        tier = next(r.top_tier for r in ctx.rankings
-                    if r.backbone == t.large and r.suite == t.suite)
-        lines.append(
-            f"On this grid, the small-backbone winner (**{t.small_winner}** on {t.small}) "
-            f"{verdict[t.small_winner_in_large_tier]} in the large backbone's ({t.large}) top "
-            f"tier on suite **{t.suite}** (top tier: {', '.join(tier)}; Kendall tau-b "
-            f"{num(t.agreement.get('tau_b'), 2)} over {len(t.encoders)} encoders; wrapper "
-            f"delta {t.small} {ctx.wrapper_text(t.small, t.suite)}, {t.large} "
-            f"{ctx.wrapper_text(t.large, t.suite)}).")
-        blind_sides = [b for b in (t.small, t.large)
-                       if (v := ctx.vision_of(b, t.suite)) is not None and v.flagged]
-        if blind_sides:
-            lines[-1] += (f" **But the ranking on {' and '.join(blind_sides)} x {t.suite} "
-                          f"measures nothing** (best graft not better than a no-vision control), "
-                          f"so this transfer answer is not evidence either way.")
-    lines += _vision_answer(ctx)
-    s = ctx.support
-    if s["comparisons_total"] or s["seed_cells_total"]:
-        lines.append(
-            f"{s['comparisons_supporting']} of {s['comparisons_total']} backbone-suite "
-            f"comparisons and {s['seed_cells_supporting']} of {s['seed_cells_total']} seed-level "
-            f"cells support backbone-dependent rankings (rules under Rank transfer).")
-    return lines
-
-
 def caveats(ctx: ReportContext) -> str:
     profiles = sorted({r.measured.profile for r in ctx.records if r.measured.profile}
                       | ({ctx.results.grid_profile} if ctx.results.grid_profile else set()))
@@ -117,9 +69,9 @@ def caveats(ctx: ReportContext) -> str:
         "delta (native-wrapped vs native) is shown beside every ranking: "
         + ("; ".join(wrapper) if wrapper else "not measured in these results") + ".",
         f"**Profile(s) that ran: {', '.join(profiles) or 'unknown'}.**"
-        + (" Tiny-profile numbers come from tiny random-init encoders, tiny policies and "
-           "generated suites: they exercise the code paths and say **nothing** about real "
-           "encoders." if any(p.startswith("tiny") for p in profiles) else ""),
+        + (" The tiny profile's policies and suites are tiny and generated: its numbers exercise "
+           "the code paths and say **nothing** about real VLAs, whatever the encoder."
+           if any(p.startswith("tiny") for p in profiles) else ""),
         "**What offline action MSE means here**: held-out whole EPISODES per task, split with a "
         f"fixed split seed{split} that does not "
         "depend on the cell seed, so every cell of a suite is scored on identical windows; the "
@@ -135,6 +87,9 @@ def caveats(ctx: ReportContext) -> str:
         "compare rankings across backbones, never levels; every plot gives each backbone its "
         "own axis.",
     ]
+    encoders = encoders_caveat(encoder_infos(ctx.records))
+    if encoders is not None:  # beside the profile line: what the encoders' numbers can say
+        lines.insert(3, encoders)
     flagged = [f"{v.backbone} x {v.suite}" for v in ctx.vision if v.flagged]
     unchecked = [f"{v.backbone} x {v.suite}" for v in ctx.vision if not v.checked]
     if flagged or unchecked:
@@ -160,7 +115,10 @@ def rankings_section(ctx: ReportContext) -> str:
         return "No graft cells in the results: nothing to rank."
     parts = [f"Ranked by mean normalised MSE over seeds (lower is better); raw MSE beside it. "
              f"{INTERVAL_METHOD} {ctx.n_resamples} replicates. Differences in raw units are "
-             f"against the normalised leader. {TIER_RULE}"]
+             f"against the normalised leader. {TIER_RULE}",
+             "The encoders ranked: where each comes from, its weights (the records' "
+             "`encoder_weights`) and the side its input was resized to:",
+             encoders_table(encoder_infos(ctx.records))]
     for r in ctx.rankings:
         parts.append(f"### {r.backbone} x {r.suite}")
         parts.append(f"Wrapper neutrality delta on {r.backbone} x {r.suite}: "
@@ -186,6 +144,10 @@ def rankings_section(ctx: ReportContext) -> str:
 
 
 def transfer_section(ctx: ReportContext) -> str:
+    if not any(t.complete for t in ctx.transfers):
+        ran = sorted({r.backbone for r in ctx.rankings}) or ["none"]
+        return (f"_No transfer to measure: it needs both backbones of a suite with grafts of "
+                f"the same encoders; backbones with grafts here: {', '.join(ran)}._")
     sizes = sorted({len(t.encoders) for t in ctx.transfers if t.complete} | {4})
     min_ps = ", ".join(f"n = {n}: p >= {num(min_exact_kendall_p(n), 3)}" for n in sizes)
     parts = [
@@ -229,6 +191,8 @@ def transfer_section(ctx: ReportContext) -> str:
 
 
 def tie_section(ctx: ReportContext) -> str:
+    if not any(r.encoders for r in ctx.rankings):
+        return "_No ranking: no tie band._"
     rows = [[r.backbone, r.suite, r.leader, ", ".join(r.top_tier), len(r.top_tier),
              yes_no(len(r.top_tier) > 1),
              ", ".join(f"s{s}: {w}" for s, w in r.seed_winners.items()),
@@ -239,6 +203,8 @@ def tie_section(ctx: ReportContext) -> str:
 
 
 def seed_section(ctx: ReportContext) -> str:
+    if not any(r.seed_winners for r in ctx.rankings):
+        return "_No ranking: no per-seed winners._"
     parts = ["Per-seed winners (lowest normalised MSE within one seed):"]
     rows = []
     for r in ctx.rankings:
@@ -256,7 +222,7 @@ def seed_section(ctx: ReportContext) -> str:
             ["suite", "small -> large", "small seed", "large seed", "n enc.", "small winner",
              "large winner", "tau-b", "weighted tau", "supports"]))
     else:
-        parts.append("_Needs graft cells on both backbones of a suite._")
+        parts[-1] = "Seed-level cells: none (they need grafts on both backbones of a suite)."
     return "\n\n".join(parts)
 
 
@@ -275,7 +241,7 @@ def wrapper_section(ctx: ReportContext) -> str:
              "seed and averaged over seeds. 0 would mean the wrapper alone costs nothing; the "
              "published study found +45..56% on SmolVLA and -50..52% on pi0.5.")
     if not rows:
-        return intro + "\n\n_No native_wrapped cells in the results._"
+        return "_No native_wrapped cells: the wrapper's neutrality is not measured here._"
     return intro + "\n\n" + table(rows, ["backbone", "suite", "seed", "native norm. MSE",
                                          "wrapped norm. MSE", "Δ norm.", "Δ raw", "note"])
 
@@ -293,13 +259,12 @@ def vision_section(ctx: ReportContext) -> str:
                          interval(c.diff_ci, 3),
                          "graft better" if c.better else "**FLAGGED: not better**"])
     notes = [f"{v.backbone} x {v.suite}: {n}" for v in ctx.vision for n in v.notes]
-    parts = [VISION_RULE + f" {ctx.n_resamples} replicates."]
     if not rows:
-        parts.append("_No graft cells in the results._")
-    else:
-        parts.append(table(rows, ["backbone", "suite", "best graft", "graft norm. MSE",
-                                  "control", "seeds", "control norm. MSE",
-                                  "control - graft", f"{CONFIDENCE:.0%} CI", "verdict"]))
+        return "_No graft cells: no vision check._"
+    parts = [VISION_RULE + f" {ctx.n_resamples} replicates.",
+             table(rows, ["backbone", "suite", "best graft", "graft norm. MSE", "control",
+                          "seeds", "control norm. MSE", "control - graft",
+                          f"{CONFIDENCE:.0%} CI", "verdict"])]
     if notes:
         parts.append(bullets(notes))
     return "\n\n".join(parts)
@@ -314,15 +279,17 @@ def controls_section(ctx: ReportContext) -> str:
              "lora and pooling show whether a little backbone capacity or another token grid "
              "moves the score.")
     if not rows:
-        return intro + "\n\n_No control cells in the results._"
+        return "_No control cells in the results._"
     return intro + "\n\n" + table(rows, ["backbone", "suite", "control", "seed", "norm. MSE",
                                          "reference", "reference norm. MSE", "Δ norm.",
                                          "Δ raw"])
 
 
 def plots_section(ctx: ReportContext) -> str:
-    if not ctx.plots:
+    # The screen's scatter is drawn in its own section, once (it was printed twice).
+    figures = [(title, path) for title, path in ctx.plots if title != SCATTER_TITLE]
+    if not figures:
         return "_No figures (plots turned off, or no cells with data to draw)._"
     base = ctx.out_path.parent
     return "\n\n".join(f"![{title}]({path.relative_to(base).as_posix()})"
-                       for title, path in ctx.plots)
+                       for title, path in figures)

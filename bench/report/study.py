@@ -1,8 +1,8 @@
 """The published study's settings as a frozen table, and how a record's protocol compares.
 
 Source: Zeng & She, "Encoder Winners Do Not Reliably Transfer Across VLA Backbone Scale"
-(arXiv 2606.14153), as given by SECONDARY summaries (docs: ../shared/MISSION.md): verify against
-the paper before citing. Each constant maps to a `bench.grid.protocol.Protocol` field where one exists;
+(arXiv 2606.14153), as given by SECONDARY summaries of the paper: verify against the paper
+before citing. Each constant maps to a `bench.grid.protocol.Protocol` field where one exists;
 the others are compared with what the records carry (device, pooling grid, windows, seeds,
 checkpoint) or with facts of our code stated in OUR_CODE (each guarded by a test).
 
@@ -21,7 +21,7 @@ from backbones import BACKBONES, study_backbone
 if TYPE_CHECKING:  # this table stays light: no record code at import
     from bench.results.record import Record
 
-STUDY_SOURCE = ("Zeng & She, arXiv 2606.14153, via secondary summaries (MISSION.md): verify "
+STUDY_SOURCE = ("Zeng & She, arXiv 2606.14153, via secondary summaries of the paper: verify "
                 "against the paper")
 
 # Row statuses.
@@ -188,7 +188,11 @@ def observed_from_records(records: Sequence[Record]) -> dict[str, Any]:
     sources = {PROFILES[p].source if p in PROFILES else None for p in profiles}
     encoders = sorted({r.encoder for r in grafts})
     sizes = OUR_CODE["input sizes"]
-    if sources == {"hub"} and encoders and all(e in sizes for e in encoders):
+    recorded = {r.encoder: r.training.encoder_input_size for r in grafts
+                if r.training.encoder_input_size}
+    if encoders and all(e in recorded for e in encoders):  # each encoder's own, as it ran
+        out["preprocessing: input px"] = {e: recorded[e] for e in encoders}
+    elif sources == {"hub"} and encoders and all(e in sizes for e in encoders):
         out["preprocessing: input px"] = {e: sizes[e] for e in encoders}
     elif sources == {"tiny"}:
         out["preprocessing: input px"] = "tiny encoders at 56-64 px or native size"

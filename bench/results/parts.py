@@ -137,6 +137,9 @@ class Training:
     loss_curve: list = field(default_factory=list)  # [[step, loss], ...]
     probe_loss: dict | None = None  # {"before": float, "after": float}
     encoder_weights: str | None = None
+    # The side (px) the encoder's input was resized to: its own (a pretrained encoder's, e.g.
+    # 224), not the profile's; None: no encoder, or a record from before this field.
+    encoder_input_size: int | None = None
     # The trained projector, kept for bench.export (bench.run.projectors): its file relative to
     # the results dir and the file's sha256.
     projector_file: str | None = None

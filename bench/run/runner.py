@@ -290,9 +290,16 @@ def training_fields(backbone, graft: Graft | None, training: Training, encoder,
         loss_curve=training.curve,
         probe_loss=training.probe_losses,
         encoder_weights=getattr(encoder, "weights_id", None),
+        encoder_input_size=_input_size(encoder),
         projector_file=projector_kept[0], projector_sha256=projector_kept[1],
         train_steps=training.steps,
     )
+
+
+def _input_size(encoder) -> int | None:
+    """The side the encoder resizes its input to (timm, user and known encoders keep it)."""
+    size = getattr(encoder, "input_size", None)
+    return int(size) if size is not None else None
 
 
 def _add_lora(backbone, p) -> int:
