@@ -147,9 +147,14 @@ def screen_options(config: pytest.Config, profile):
                                 "local, or rank by a proxy (logme, ridge, knn, entropy)")
     added = tuple(r for r in REFERENCES if r not in profile.encoders)
     screened = [e for e in profile.encoders if e not in REFERENCES]
-    lines = [f"[graftbench] --screen: {len(screened)} encoder(s) screened per backbone x suite; "
-             f"grafted: the best {options.keep or 'all'} by {options.by}, and the references "
-             f"{', '.join(REFERENCES)}" + (" (added to --encoders)" if added else "")]
+    # The references are screened too (every listed encoder is): count what will run.
+    pairs = len(profile.backbones) * len(profile.suites)
+    listed_n = len(screened) + len(REFERENCES)
+    lines = [f"[graftbench] --screen: {listed_n} encoder(s) screened on each of {pairs} backbone "
+             f"x suite ({listed_n * pairs} screens, the references {', '.join(REFERENCES)} "
+             f"included" + (", added to --encoders" if added else "") + f"); grafted: the best "
+             f"{options.keep or 'all'} of the {len(screened)} others by {options.by}, and the "
+             "references"]
     if options.keep is not None and options.keep > len(screened):
         lines.append(f"[graftbench] --screen-keep {options.keep} is more than the "
                      f"{len(screened)} listed encoder(s) (references aside): all are grafted")

@@ -135,6 +135,11 @@ def pytest_pycollect_makeitem(collector, name: str, obj):
     if name in ("test_screen", "test_short_graft") and collector.path == GRID_MODULE:
         gs: GraftSession = collector.config.stash[SESSION_KEY]
         return [] if gs.screen_options is None else None
+    if name == "test_control" and collector.path == GRID_MODULE:
+        # --controls none: no case at all (an empty parametrisation showed test_control[NOTSET],
+        # "1 skipped", in every such run).
+        gs = collector.config.stash[SESSION_KEY]
+        return [] if not control_cells(gs.profile) else None
     if name == "test_robust" and collector.path == GRID_MODULE:  # --robustness only
         gs = collector.config.stash[SESSION_KEY]
         return [] if not gs.profile.robustness else None

@@ -62,3 +62,12 @@ def test_profile_overrides_and_errors():
     assert p.protocol.steps == 7 and p.seeds == (3,) and p.protocol.hash != TINY.protocol.hash
     with pytest.raises(ValueError, match="unknown profile 'papr'"):
         get_profile("papr")
+
+
+def test_a_screen_id_spells_the_encoder_as_its_grafts_cell_id_does():
+    """Graft ids said effl_pretrained where screen ids said effl:pretrained."""
+    from bench.grid.cells import ScreenCase
+
+    for encoder in ("effl:pretrained", "timm:resnet18", "dinov2_s"):
+        graft = CellSpec("graft", "smolvla", "spatial", 0, encoder).id
+        assert ScreenCase("smolvla", "spatial", encoder).id + "-seed0" == graft

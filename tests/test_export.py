@@ -287,3 +287,64 @@ def test_lerobot_eval_runs_one_short_libero_episode_of_the_export(world):
         (world["root"] / "lerobot-eval.log").read_text()[-3000:]
     log = (world["root"] / "lerobot-eval.log").read_text()
     assert "'n_episodes': 1" in log and "End of eval" in log
+
+
+# --- the command line without a world: records alone (no projector is read) ---------------
+
+def test_list_says_when_nothing_exports_and_why(tmp_path, capsys):
+    """Before: `--list` printed nothing, exit 0. A user encoder's and a known-answer graft."""
+    from bench.export.__main__ import main
+
+    save_record(tmp_path, make_record(encoder="mypkg.effl:pretrained"))
+    save_record(tmp_path, make_record(encoder="pixels"))
+    assert main(["--list", "--results-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"bench.export: nothing to export in {tmp_path}: 2 graft cell(s), none "
+                          "exportable (its encoder 'mypkg.effl:pretrained' is your own module's "
+                          "(PKG.MODULE:FACTORY), and the LeRobot plugin rebuilds encoders from "
+                          "timm by name only;"), out
+    assert "its encoder 'pixels' is a known-answer function" in out
+
+
+def test_a_user_encoders_graft_is_refused_before_anything_is_written(tmp_path, capsys):
+    from bench.export.__main__ import main
+
+    save_record(tmp_path / "results", make_record(encoder="mypkg.effl:pretrained"))
+    cell = "smolvla-spatial-mypkg.effl_pretrained-seed0"
+    assert main([cell, "--results-dir", str(tmp_path / "results"),
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"bench.export: cell {cell} cannot be exported: its encoder "
+                          "'mypkg.effl:pretrained' is your own module's") and err.count("\n") == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_best_with_an_unknown_backbone_names_what_is_there(tmp_path, capsys):
+    """Before: `--best nope spatial` suggested running `pytest bench -k "nope and spatial"`."""
+    from bench.export.__main__ import main
+
+    save_record(tmp_path, make_record(backbone="pi05", encoder="dinov2_s"))
+    assert main(["--best", "nope", "spatial", "--results-dir", str(tmp_path), "--out",
+                 str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == (
+        f"bench.export: --best nope spatial: no backbone 'nope' in {tmp_path}; backbones there: "
+        "pi05\n")
+    assert main(["--best", "pi05", "spatail", "--results-dir", str(tmp_path), "--out",
+                 str(tmp_path / "out")]) == 2
+    assert "no suite 'spatail' in" in capsys.readouterr().err
+
+
+def test_an_export_folder_is_readable_by_the_group(tmp_path):
+    from bench.export.build import share_with_group
+
+    folder = tmp_path / "export"
+    (folder / "smolvlm").mkdir(parents=True)
+    for path in (folder / "config.json", folder / "smolvlm" / "config.json"):
+        path.write_text("{}")
+        path.chmod(0o600)
+    (folder / "smolvlm").chmod(0o700)
+    share_with_group(folder)
+    modes = {p.relative_to(folder).as_posix(): p.stat().st_mode & 0o777
+             for p in [folder, *folder.rglob("*")]}
+    assert modes == {".": 0o755, "smolvlm": 0o755, "config.json": 0o644,
+                     "smolvlm/config.json": 0o644}

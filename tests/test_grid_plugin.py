@@ -84,3 +84,24 @@ def test_a_record_measured_on_other_weights_is_measured_again_not_resumed(bench_
     again = bench_cli(tmp_path, *one)
     assert again.returncode == 0 and "measured 1, resumed from store 0" in again.stdout
     assert json.loads(path.read_text())["checkpoint"]["revision"] != "sha256:0000000000000000"
+
+
+def test_controls_none_collects_no_empty_control_case(bench_cli, tmp_path):
+    """Before: every `--controls none` run showed "1 skipped" (test_control[NOTSET])."""
+    out = bench_cli(tmp_path, "--backbones", "pi05", "--suites", "spatial", "--encoders",
+                    "pixels", "--seeds", "0", "--controls", "none", "--collect-only", "-q")
+    assert out.returncode == 0, out.stdout[-2000:]
+    assert "NOTSET" not in out.stdout and "::test_control[" not in out.stdout
+    assert "1 test collected" in out.stdout
+
+
+def test_the_screen_start_line_counts_the_screens_that_will_run(bench_cli, tmp_path):
+    """Before: "2 encoder(s) screened" when 4 ran (the references are screened too)."""
+    out = bench_cli(tmp_path, "--backbones", "pi05", "--suites", "spatial", "--encoders",
+                    "pixels,blind,dinov2_s,siglip", "--seeds", "0", "--controls", "none",
+                    "--screen", "--screen-keep", "1", "--collect-only", "-q")
+    assert out.returncode == 0, out.stdout[-2000:]
+    assert ("[graftbench] --screen: 4 encoder(s) screened on each of 1 backbone x suite (4 "
+            "screens, the references pixels, blind included); grafted: the best 1 of the 2 "
+            "others by logme, and the references") in out.stdout, out.stdout[-2000:]
+    assert out.stdout.count("::test_screen[") == 4

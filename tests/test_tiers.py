@@ -88,7 +88,7 @@ def test_the_report_section_from_a_store_of_screens(tmp_path):
     row = next(line for line in section.splitlines() if "| ridge " in line and "| 7 " in line)
     assert "1 [1, 1]" in row  # tau-b 1 with its interval
     assert "| entropy " in section and "undefined" in section  # entropy ties: no order
-    assert "`smolvla-spatial-timm:broken`: OSError: no file" in section
+    assert "`smolvla-spatial-timm_broken`: OSError: no file" in section
     assert f"dropped `{ENCODERS[6]}`: ridge rank 7 of 7" in section
     assert "screen_scatter.png" in section and (tmp_path / "REPORT_plots" / "screen_scatter.png").is_file()
     # A top-K selection naming no calibration study says it has none.
@@ -140,3 +140,19 @@ def test_the_short_graft_tier_against_the_graft_by_hand():
     assert eighth.point.top1_regret == pytest.approx(0.01)  # model_1's graft 0.06 - 0.05
     assert short_graft_agreement(grafts(), "smolvla", "spatial", "1_4").missing.startswith(
         "not measured: 0 encoder(s)")
+
+
+def test_the_cost_table_counts_the_extraction_a_screen_found_stored():
+    """A screen that opened the graft's stored features spent 0.017 s; the file took 300 s to
+    extract. The table showed 0.017: the screen looked free."""
+    from bench.report.screen import cost_table
+    from bench.results.screen import ScreenConditions, ScreenScores, new_screen_record
+
+    conditions = ScreenConditions("h", "f", "fp16")
+    stored = [new_screen_record(ScreenScores("dinov2_s", "smolvla", "spatial", seconds=0.5),
+                                conditions, 0.017, extraction_seconds=300.0),
+              new_screen_record(ScreenScores("pixels", "smolvla", "spatial", seconds=0.5),
+                                conditions, 2.0)]  # a record from before extraction_seconds
+    row = next(line for line in cost_table(stored, []).splitlines() if "| smolvla" in line)
+    assert [c.strip() for c in row.strip("|").split("|")][:5] == [
+        "smolvla", "spatial", "2", "0.5", "151"]  # (300 + 2) / 2

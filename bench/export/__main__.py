@@ -30,17 +30,29 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def list_cells(results_dir: str) -> int:
+    """Each exportable graft cell with its MSE; the others with why not; a line when none is."""
+    from bench.export.locate import results_of, why_not_exportable
+    from bench.grid.kinds import GRAFT
+
+    grafts = [r for r in results_of(results_dir).records if r.kind == GRAFT]
+    why = {r.cell_id: why_not_exportable(r) for r in grafts}
+    for record in grafts:
+        if why[record.cell_id] is None:
+            print(f"{record.cell_id}  mse {record.mse_in('normalized'):.6g}")
+    if not any(w is None for w in why.values()):
+        reasons = sorted({w for w in why.values() if w})
+        print(f"bench.export: nothing to export in {results_dir}: {len(grafts)} graft cell(s)"
+              + (f", none exportable ({'; '.join(reasons)})" if grafts else
+                 " (run `pytest bench` with --results-dir there first)"))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
     try:
         if args.list:
-            from bench.export.locate import exportable, results_of
-            from bench.grid.kinds import GRAFT
-
-            for record in results_of(args.results_dir).records:
-                if record.kind == GRAFT and exportable(record):
-                    print(f"{record.cell_id}  mse {record.mse_in('normalized'):.6g}")
-            return 0
+            return list_cells(args.results_dir)
         from bench.export.build import export_cell
 
         note = None

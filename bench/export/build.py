@@ -16,7 +16,7 @@ import tempfile
 from pathlib import Path
 
 from bench.export.card import write_card
-from bench.export.locate import ExportError, exportable, find_record
+from bench.export.locate import ExportError, find_record, why_not_exportable
 from bench.grid.protocol import Protocol, get_profile
 from bench.results.record import Record, checkpoint_revision
 from bench.results.store import ResultStore
@@ -35,9 +35,9 @@ def export_cell(results_dir: str | Path, cell_id: str, out: str | Path, *,
     if not out.parent.is_dir():
         raise ExportError(f"--out {out}: its parent folder {out.parent} does not exist")
     record = find_record(results_dir, cell_id)
-    if not exportable(record):
-        raise ExportError(f"cell {cell_id}'s encoder {record.encoder!r} is not a timm "
-                          "architecture: only timm encoders export (the plugin rebuilds them)")
+    why = why_not_exportable(record)
+    if why is not None:  # said before anything is rebuilt or written
+        raise ExportError(f"cell {cell_id} cannot be exported: {why}")
     try:
         projector = load_projector(results_dir, cell_id, record.training.projector_file,
                                    record.training.projector_sha256)
@@ -52,6 +52,7 @@ def export_cell(results_dir: str | Path, cell_id: str, out: str | Path, *,
                    getattr(backbone, "rename_map", None) or {},
                    (suite.repo_id or f"local/{suite.name}", str(suite.root or "DATASET_ROOT")))
         check_relocatable(staging)
+        share_with_group(staging)
         staging.rename(out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -150,6 +151,17 @@ def write_folder(staging: Path, record: Record, backbone, encoder, projector: di
             bundle_tokenizer(clone)
         clone.save_pretrained(staging)
     return config.type
+
+
+def share_with_group(folder: Path) -> None:
+    """Folders 0755, files 0644, as LeRobot's own saves under the usual umask: copied cache
+    files (the bundled VLM: atomic temp files) came 0600 in 0700 folders, which a teammate
+    reading a shared copy could not open."""
+    for path in [folder, *folder.rglob("*")]:
+        if path.is_dir():
+            path.chmod(0o755)
+        elif path.is_file():
+            path.chmod(0o644)
 
 
 def check_relocatable(folder: Path) -> None:

@@ -45,14 +45,29 @@ def find_record(results_dir: str | Path, cell_id: str) -> Record:
 
 def exportable(record: Record) -> bool:
     """A graft whose encoder is a timm architecture (the plugin rebuilds it by name)."""
+    return why_not_exportable(record) is None
+
+
+def why_not_exportable(record: Record) -> str | None:
+    """Why the LeRobot plugin cannot rebuild this graft's encoder (None: it can). The plugin
+    rebuilds an encoder from timm by its architecture name alone: a user's PKG.MODULE:FACTORY
+    or a known-answer encoder has no such name."""
     from encoders import get_spec, is_user_encoder
 
-    if record.encoder is None or is_user_encoder(record.encoder):
-        return False
+    if record.encoder is None:
+        return "it has no encoder"
+    if is_user_encoder(record.encoder):
+        return (f"its encoder {record.encoder!r} is your own module's (PKG.MODULE:FACTORY), and "
+                "the LeRobot plugin rebuilds encoders from timm by name only; export a graft of "
+                "a registry or timm: encoder (README, Export)")
     try:
-        return get_spec(record.encoder).timm_name is not None
-    except Exception:
-        return False
+        spec = get_spec(record.encoder)
+    except Exception as err:  # noqa: BLE001 - a name this checkout no longer knows
+        return f"its encoder {record.encoder!r} is unknown here ({type(err).__name__})"
+    if spec.timm_name is None:
+        return (f"its encoder {record.encoder!r} is a known-answer function, not a timm "
+                "architecture: nothing for the plugin to rebuild")
+    return None
 
 
 def best_cell(results_dir: str | Path, backbone: str, suite: str) -> tuple[Record, str]:
@@ -61,6 +76,14 @@ def best_cell(results_dir: str | Path, backbone: str, suite: str) -> tuple[Recor
     from bench.analysis.rankings import rank_encoders
 
     results = results_of(results_dir)
+    for option, name, present in (("BACKBONE", backbone, {r.backbone for r in results.records}),
+                                  ("SUITE", suite, {r.suite for r in results.records})):
+        if name not in present:  # a typo: name what is there, not a run to start
+            close = difflib.get_close_matches(name, sorted(present), n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise ExportError(f"--best {backbone} {suite}: no {option.lower()} {name!r} in "
+                              f"{results_dir}{hint}; {option.lower()}s there: "
+                              f"{', '.join(sorted(present)) or 'none'}")
     ranking = rank_encoders(results.records, backbone, suite)
     if ranking.error:
         raise ExportError(f"no graft cells of {backbone} x {suite} in {results_dir}: run them "

@@ -5,14 +5,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, CellKind, cell_id, get_kind, tier_kinds
+from bench.grid.kinds import (CELL_KINDS, GRAFT, NATIVE, CellKind, cell_id, encoder_slot,
+                              get_kind, tier_kinds)
 from bench.grid.protocol import Profile
 
 
 
 def screen_id(backbone: str, suite: str, encoder: str) -> str:
-    """smolvla-spatial-timm:convnext_atto: the pytest id of the screen case and its record."""
-    return f"{backbone}-{suite}-{encoder}"
+    """smolvla-spatial-timm_convnext_atto: the pytest id of the screen case and its record, the
+    encoder spelt as in its grafts' cell ids (bench.grid.kinds: ':' and '/' become '_')."""
+    return f"{backbone}-{suite}-{encoder_slot(encoder)}"
 
 
 @dataclass(frozen=True)

@@ -127,7 +127,7 @@ class CellKind:
         """The middle of the cell id (between backbone-suite and seed)."""
         if self.encoder == "none":
             return [self.name]
-        slot = (encoder or NATIVE_SLOT).replace(":", "_").replace("/", "_")
+        slot = encoder_slot(encoder or NATIVE_SLOT)
         if not self.control:
             return [slot]
         tag = (self.tag or self.name).format(variant=variant)
@@ -206,6 +206,12 @@ register_kind(CellKind(SHORT_GRAFT, "the graft trained for 1/8 or 1/4 of its ste
                        "short-graft tier)", variants=("1_8", SHORT_BY_VARIANT),
                        train_fraction=(("1_8", (1, 8)), (SHORT_BY_VARIANT, (1, 4))),
                        tag="short_{variant}", tier=True))
+
+
+def encoder_slot(encoder: str) -> str:
+    """An encoder name as ids spell it (cell ids, screen ids: one spelling): "timm:resnet18"
+    -> "timm_resnet18", a user's "pkg.mod:make" -> "pkg.mod_make"; a hub name's '/' too."""
+    return encoder.replace(":", "_").replace("/", "_")
 
 
 def cell_id(kind: str, backbone: str, suite: str, encoder: str | None, seed: int,

@@ -112,8 +112,9 @@ def scatter_points(screens: Sequence, records: Sequence) -> list[tuple[str, list
 
 def cost_table(stored: Sequence, records: Sequence) -> str:
     """Seconds per encoder of each tier per backbone x suite: the screen's solve, the feature
-    extraction it ran (0 when the store already held them: the graft needs them too), each short
-    graft's cell (measured wall time, per seed), the graft's."""
+    extraction (the stored file's, whichever tier ran it: a screen that found the graft's
+    features stored is not free), each short graft's cell (measured wall time, per seed), the
+    graft's."""
     variants = get_kind(SHORT_GRAFT).variants
     rows = []
     for backbone, suite in _panels([r.scores for r in stored]):
@@ -122,14 +123,20 @@ def cost_table(stored: Sequence, records: Sequence) -> str:
         graft = _mean_seconds(records, backbone, suite, GRAFT, None)
         shorts = [_mean_seconds(records, backbone, suite, SHORT_GRAFT, v) for v in variants]
         rows.append([backbone, suite, len(mine), num(solve, 3),
-                     num(sum(r.feature_seconds for r in mine) / len(mine), 3)]
+                     num(sum(_extraction(r) for r in mine) / len(mine), 3)]
                     + [num(s, 3) if s is not None else "no record" for s in shorts]
                     + [num(graft, 3) if graft is not None else "no graft record",
                        f"{100 * solve / graft:.2g}%" if graft else "n/a"])
     return table(rows, ["backbone", "suite", "screens", "screen s / encoder",
-                        "features s / encoder (extraction, when the screen ran it)"]
+                        "features s / encoder (extraction, whichever tier ran it)"]
                  + [f"{short_tier(v)} s / cell" for v in variants]
                  + ["graft s / cell", "screen / graft"])
+
+
+def _extraction(screen) -> float:
+    """A screen's feature extraction seconds: its file's, else (older records) its own."""
+    return (screen.extraction_seconds if screen.extraction_seconds is not None
+            else screen.feature_seconds)
 
 
 def _mean_seconds(records: Sequence, backbone: str, suite: str, kind: str,

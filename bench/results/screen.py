@@ -21,7 +21,7 @@ from bench.grid.cells import screen_id
 from bench.stats import Measure, Undefined
 
 # Bump when a proxy's definition changes: older screen records are then measured again.
-SCREEN_VERSION = 1
+SCREEN_VERSION = 2  # 2: LogME in the n - 1 centred dims, finite where D > N
 OK, FAILED = "ok", "failed"
 _STATUS = "status"  # the envelope key; every other key is a field name
 
@@ -86,6 +86,9 @@ class ScreenRecord:
     conditions: ScreenConditions
     feature_seconds: float = 0.0  # opening (on first use: extracting) the stored features
     created: str = ""
+    # How long extracting the stored features took, whichever tier did it (the file's build_s):
+    # a screen that found the graft's features stored spent ~0 s, yet they were not free.
+    extraction_seconds: float | None = None
 
     @property
     def screen_id(self) -> str:
@@ -105,7 +108,8 @@ class ScreenRecord:
         try:
             scores = ScreenScores.from_json(data["scores"])
             conditions = ScreenConditions(**data["conditions"])
-            rest = {f.name: data[f.name] for f in fields(cls)[2:]}
+            rest = {f.name: data[f.name] for f in fields(cls)[2:4]}
+            rest["extraction_seconds"] = data.get("extraction_seconds")  # absent before it
         except (KeyError, TypeError, AttributeError) as e:
             raise ValueError(f"{type(e).__name__}: {e}") from None
         for proxy, values in scores.proxies.items():
@@ -115,9 +119,10 @@ class ScreenRecord:
 
 
 def new_screen_record(scores: ScreenScores, conditions: ScreenConditions,
-                      feature_seconds: float) -> ScreenRecord:
+                      feature_seconds: float,
+                      extraction_seconds: float | None = None) -> ScreenRecord:
     created = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
-    return ScreenRecord(scores, conditions, feature_seconds, created)
+    return ScreenRecord(scores, conditions, feature_seconds, created, extraction_seconds)
 
 
 @dataclass(frozen=True)

@@ -44,9 +44,12 @@ def measure_screen(ws, encoder: str, backbone: str, suite: str,
     except Exception as e:  # noqa: BLE001 - any encoder may fail; the screen goes on
         return ScreenFailure(backbone, suite, encoder, " ".join(f"{type(e).__name__}: {e}".split()))
     feature_seconds = time.perf_counter() - start
+    # The stored file's own extraction time, whoever built it (the graft, an earlier screen).
+    built = [v.stored.manifest.get("build_s") for v in views.values()]
+    extraction = max((float(b) for b in built if b is not None), default=None)
     scores = screen_features(views, ws.suite(suite), ws.split(suite), bb.normalize_actions,
                              bb.info.chunk_size, (encoder, backbone, suite))
-    return new_screen_record(scores, conditions, feature_seconds)
+    return new_screen_record(scores, conditions, feature_seconds, extraction)
 
 
 class ScreenRun:
