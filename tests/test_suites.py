@@ -294,3 +294,34 @@ def test_validate_features_names_a_wrong_shape():
     features[STATE_KEY] = {"dtype": "float32", "shape": (7,)}
     with pytest.raises(SuiteUnavailable, match=r"'observation.state' has shape \(7,\), expected \(8,\)"):
         libero.validate_features(features, "t/x")
+
+
+def test_an_unselected_suite_the_tiny_release_needs_says_why_it_loads(tmp_path, monkeypatch):
+    """--suites spatial still loads (on a fresh clone: generates) the object suite: the tiny
+    release trains on both, so the numbers do not depend on the selection. It used to load
+    without a word of why."""
+    import bench.run.workspace as workspace
+    from bench.grid.protocol import TINY, with_overrides
+    from bench.results.store import ResultStore
+
+    class Lines:
+        def __init__(self):
+            self.lines = []
+
+        def line(self, text):
+            self.lines.append(text)
+
+    monkeypatch.delenv("GRAFTBENCH_QUIET", raising=False)
+    stub = Suite.__new__(Suite)
+    stub.state, stub.episode_index = torch.zeros(3, 8), torch.zeros(3, dtype=torch.long)
+    monkeypatch.setattr(workspace, "load_suite", lambda *a, **k: stub)
+    sink = Lines()
+    ws = workspace.Workspace(with_overrides(TINY, suites=("spatial",)), ResultStore(tmp_path),
+                             progress=sink)
+    ws.suite("object")
+    ws.suite("spatial")
+    assert sink.lines[0] == ("[graftbench] suite object (tiny): loading (generated on first use, "
+                             "then cached; not selected, but the tiny release trains on both tiny "
+                             "suites, so its numbers do not depend on the selection)")
+    assert sink.lines[2] == ("[graftbench] suite spatial (tiny): loading (generated on first "
+                             "use, then cached)")

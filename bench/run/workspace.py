@@ -73,8 +73,12 @@ class Workspace:
 
     def suite(self, name: str):
         if name not in self._suites:
+            why = ""
+            if name not in self.profile.suites and self.profile.data_source == "tiny":
+                why = ("; not selected, but the tiny release trains on both tiny suites, so "
+                       "its numbers do not depend on the selection")
             say(self.progress, f"suite {name} ({self.profile.data_source}): loading "
-                               "(generated on first use, then cached)")
+                               f"(generated on first use, then cached{why})")
             start = time.monotonic()
             datasets = dict(self.profile.datasets)
             suite = (load_user_suite(name, datasets[name]) if name in datasets
