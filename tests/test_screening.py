@@ -133,3 +133,24 @@ def test_norm_entropy_by_hand():
     grid[:, 1] = 4.0
     assert np.allclose(token_norms(grid), 5.0)
     assert "every token norm is 0" in norm_entropy(np.zeros((2, 4))).reason
+
+
+@pytest.mark.parametrize("signal", [0.3, 0.0], ids=["planted", "noise"])
+def test_screen_logme_is_the_evidence_orthogonal_to_the_ones_vector_when_d_exceeds_n(signal):
+    # The study's real encoders screen 2,568 dims on 721 windows; centring leaves n - 1 dims, and
+    # over all n the evidence had no bound there (NaN in every such screen record).
+    rng = np.random.default_rng(3)
+    f = rng.normal(size=(40, 120))
+    y = signal * f @ rng.normal(size=(120, 3)) + rng.normal(size=(40, 3))
+    z, yc = (f - f.mean(0)) / f.std(0), y - y.mean(0)
+    basis = np.linalg.qr(np.eye(40) - 1 / 40)[0][:, :39]  # orthonormal, orthogonal to ones
+    fq, yq = basis.T @ z, basis.T @ yc
+    fits = logme_fit(fq, yq)
+    explicit = [explicit_evidence(fq, yq[:, c], a, b) for c, (_, a, b) in enumerate(fits)]
+    assert logme_moments(moments(f, y)) == pytest.approx(np.mean(explicit), abs=1e-6)
+
+
+def test_screen_logme_prefers_informative_features_when_d_exceeds_n():
+    f, y = planted(60, 150)
+    noise = np.random.default_rng(9).normal(size=f.shape)
+    assert logme_moments(moments(f, y)) > logme_moments(moments(noise, y))

@@ -33,6 +33,8 @@ KNN_GRID = (1, 2, 3, 5, 8, 13, 21, 34, 55)
 CONSTANT_REL_VAR = 1e-10
 LOGME_MAX_ITER = 100_000
 LOGME_TOL = 1e-13
+# Eigenvalues of F^T F below this fraction of the largest are rounding of exact zeros.
+ZERO_EIGEN_REL = 1e-12
 
 
 @dataclass
@@ -114,19 +116,27 @@ def standardise(m: Moments) -> Standardised | Undefined:
 
 
 def _evidence(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int, alpha: np.ndarray,
-              beta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(log evidence, gamma, m^T m, residual), each (C,), at (alpha, beta) (C,) from the
-    eigenvalues `sigma` (d,) of F^T F and z = V^T F^T Y (d, C): every one of the d eigenvalues
-    enters ln|A| = sum ln(alpha + beta sigma), so D > N is exact."""
-    denom = alpha[None, :] + beta[None, :] * sigma[:, None]  # (d, C)
-    z2 = z ** 2
-    mm = beta ** 2 * np.sum(z2 / denom ** 2, axis=0)
-    res = np.maximum(yy - 2 * beta * np.sum(z2 / denom, axis=0)
-                     + beta ** 2 * np.sum(sigma[:, None] * z2 / denom ** 2, axis=0), 1e-300)
-    gamma = np.sum(beta[None, :] * sigma[:, None] / denom, axis=0)
-    log_ev = (n / 2 * np.log(beta) + len(sigma) / 2 * np.log(alpha) - n / 2 * np.log(2 * np.pi)
-              - beta / 2 * res - alpha / 2 * mm - 0.5 * np.sum(np.log(denom), axis=0))
-    return log_ev, gamma, mm, res
+              beta: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(log evidence, gamma, n - gamma, m^T m, residual), each (C,), at (alpha, beta) (C,) from the
+    nonzero eigenvalues `sigma` (d,) of F^T F and z = V^T F^T Y (d, C): every eigenvalue
+    enters ln|A| = sum ln(alpha + beta sigma) (a zero one adds nothing), so D > N is exact."""
+    # Written in lam = alpha / beta, with n - gamma and the residual as sums of positive terms:
+    # where the features span the targets (D >= N) the fixed point drives lam to 0 and beta to
+    # its cap, and beta ** 2, n - gamma or yy - (fit) computed directly is inf or rounding.
+    lam = np.clip(alpha / beta, 1e-300, 1e300)[None, :]
+    denom = lam + sigma[:, None]  # (d, C): (alpha + beta sigma) / beta
+    weights = z / denom  # the posterior mean m in the eigenbasis
+    mm = np.sum(weights ** 2, axis=0)
+    unfit = np.maximum(yy - np.sum(z ** 2 / sigma[:, None], axis=0), 0.0)  # least squares' residual
+    res = np.maximum(unfit + np.sum((weights * lam) ** 2 / sigma[:, None], axis=0), 1e-300)
+    gamma = np.sum(sigma[:, None] / denom, axis=0)
+    free = (n - len(sigma)) + np.sum(lam / denom, axis=0)  # n - gamma, without the rounding
+    lam = lam[0]
+    # d/2 ln(lam) - 1/2 sum ln(lam + sigma) as one sum of log1p: no two large terms cancel
+    # where lam is large (features the targets do not need: alpha -> infinity).
+    log_ev = (n / 2 * np.log(beta) - n / 2 * np.log(2 * np.pi) - beta / 2 * (res + lam * mm)
+              - 0.5 * np.sum(np.log1p(sigma[:, None] / lam[None, :]), axis=0))
+    return log_ev, gamma, free, mm, res
 
 
 def logme_columns(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int
@@ -136,11 +146,11 @@ def logme_columns(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int
     evidence of every column moves less than LOGME_TOL per sample. When D >= N the optimum can
     lie at beta -> infinity (a noise-free fit): the evidence then converges while beta grows."""
     alpha, beta = np.ones(z.shape[1]), np.ones(z.shape[1])
-    log_ev, gamma, mm, res = _evidence(sigma, z, yy, n, alpha, beta)
+    log_ev, gamma, free, mm, res = _evidence(sigma, z, yy, n, alpha, beta)
     for _ in range(LOGME_MAX_ITER):
         alpha = np.minimum(gamma / np.maximum(mm, 1e-300), 1e300)
-        beta = np.minimum((n - gamma) / res, 1e300)
-        new_ev, gamma, mm, res = _evidence(sigma, z, yy, n, alpha, beta)
+        beta = np.minimum(free / res, 1e300)
+        new_ev, gamma, free, mm, res = _evidence(sigma, z, yy, n, alpha, beta)
         moved = np.max(np.abs(new_ev - log_ev)) / n
         log_ev = new_ev
         if moved < LOGME_TOL:
@@ -148,27 +158,38 @@ def logme_columns(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int
     return log_ev / n, alpha, beta
 
 
+def _spectrum(gram: np.ndarray, fty: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The nonzero eigenvalues (d,) of F^T F (D, D) and z = V^T F^T Y (d, C) on their vectors.
+    A zero eigenvalue adds ln(alpha) / 2 to the evidence and takes it away again, and its z is
+    zero: the evidence is exact without it, and with D > N most of the D eigenvalues are zero."""
+    sigma, vecs = np.linalg.eigh(gram)
+    if sigma.max() <= 0:
+        return sigma[:0], fty[:0]
+    rank = sigma > ZERO_EIGEN_REL * sigma.max()
+    return sigma[rank], vecs[:, rank].T @ fty
+
+
 def logme_gram(gram: np.ndarray, fty: np.ndarray, yty: np.ndarray, n: int) -> Measure:
-    """Mean over the C target columns of LogME from F^T F (D, D), F^T Y (D, C), Y^T Y diag (C,)."""
+    """Mean over the C target columns of LogME from F^T F (D, D), F^T Y (D, C), Y^T Y diag (C,),
+    `n` the dimension the targets live in (the windows, less one where both are centred)."""
     if n < 2:
         return Undefined(f"{n} window(s): too few windows")
     if not np.any(yty > 0):
         return Undefined("every target column is zero")
-    sigma, vecs = np.linalg.eigh(gram)
-    sigma = np.clip(sigma, 0.0, None)
-    if sigma.max() <= 0:
+    sigma, z = _spectrum(gram, fty)
+    if len(sigma) == 0:
         return Undefined("features are all zero")
     live = yty > 0
-    return float(np.mean(logme_columns(sigma, vecs.T @ fty[:, live], yty[live], n)[0]))
+    value = float(np.mean(logme_columns(sigma, z[:, live], yty[live], n)[0]))
+    return value if np.isfinite(value) else Undefined(f"LogME's evidence is not finite ({value})")
 
 
 def logme_fit(features: np.ndarray, targets: np.ndarray) -> list[tuple[float, float, float]]:
     """Per target column (log evidence per sample, alpha, beta) at LogME's optimum; features
     (N, D), targets (N, C), as given. For checks against an explicit N x N evidence."""
     f, y = np.asarray(features, float), np.asarray(targets, float)
-    sigma, vecs = np.linalg.eigh(f.T @ f)
-    ev, alpha, beta = logme_columns(np.clip(sigma, 0.0, None), vecs.T @ (f.T @ y),
-                                    (y * y).sum(axis=0), len(f))
+    sigma, z = _spectrum(f.T @ f, f.T @ y)
+    ev, alpha, beta = logme_columns(sigma, z, (y * y).sum(axis=0), len(f))
     return list(zip(ev.tolist(), alpha.tolist(), beta.tolist()))
 
 
@@ -180,11 +201,15 @@ def logme(features: np.ndarray, targets: np.ndarray) -> Measure:
 
 
 def logme_moments(m: Moments) -> Measure:
-    """The screen's LogME: of the training-standardised features for the centred targets."""
+    """The screen's LogME: of the training-standardised features for the centred targets.
+    Centring leaves the targets and features n - 1 dimensions (all orthogonal to the ones
+    vector): the evidence is taken there. Over all n, the noise variance along the ones vector
+    could shrink to zero for free once features span the rest (D >= n - 1): beta -> infinity
+    and an evidence without bound (NaN in float64)."""
     s = standardise(m)
     if isinstance(s, Undefined):
         return s
-    return logme_gram(s.gram, s.zy, s.yy, s.n)
+    return logme_gram(s.gram, s.zy, s.yy, s.n - 1)
 
 
 def ridge_path(m: Moments, ratios: tuple[float, ...]
