@@ -1,7 +1,10 @@
 """A claim on a cell (ResultStore.cell_lock, taken by GraftSession.run): two runs on one
 results dir measure each cell once, the later one waiting for the claimant's record; a killed
 claimant frees its claim (a flock); a record that cannot be read is named, moved aside to
-unreadable/ and measured again, and the report counts it."""
+unreadable/ and measured again, and the report counts it.
+
+Time: the two-run test (slow: a second interpreter) 26 s on this 2-core machine beside one
+other busy process, 54 s beside two; the others ~3 s together once the tiny world is loaded."""
 
 from __future__ import annotations
 
