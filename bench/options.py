@@ -153,7 +153,7 @@ def screen_options(config: pytest.Config, profile):
     lines = [f"[graftbench] --screen: {listed_n} encoder(s) screened on each of {pairs} backbone "
              f"x suite ({listed_n * pairs} screens, the references {', '.join(REFERENCES)} "
              f"included" + (", added to --encoders" if added else "") + f"); grafted: the best "
-             f"{options.keep or 'all'} of the {len(screened)} others by {options.by}, and the "
+             f"{options.keep or 'all'} of the {len(screened)} listed by {options.by}, and the "
              "references"]
     if options.keep is not None and options.keep > len(screened):
         lines.append(f"[graftbench] --screen-keep {options.keep} is more than the "

@@ -103,5 +103,5 @@ def test_the_screen_start_line_counts_the_screens_that_will_run(bench_cli, tmp_p
     assert out.returncode == 0, out.stdout[-2000:]
     assert ("[graftbench] --screen: 4 encoder(s) screened on each of 1 backbone x suite (4 "
             "screens, the references pixels, blind included); grafted: the best 1 of the 2 "
-            "others by logme, and the references") in out.stdout, out.stdout[-2000:]
+            "listed by logme, and the references") in out.stdout, out.stdout[-2000:]
     assert out.stdout.count("::test_screen[") == 4

@@ -185,7 +185,7 @@ def test_more_kept_than_listed_is_allowed_and_said(bench_cli, tmp_path):
     assert out.returncode == 0, out.stdout[-2000:]
     assert ("--screen-keep 5 is more than the 2 listed encoder(s) (references aside): all are "
             "grafted") in out.stdout
-    assert "(added to --encoders)" in out.stdout  # pixels, blind: always grafted
+    assert "included, added to --encoders)" in out.stdout  # pixels, blind: always grafted
     ids = [line for line in out.stdout.splitlines() if "::test_" in line]
     assert ids[0].endswith("test_screen[smolvla-spatial-dinov2_s]") and len(
         [i for i in ids if "test_screen[" in i]) == 8  # 2 backbones x (2 listed + 2 references)
@@ -201,13 +201,13 @@ def test_screen_files_are_validated_round_trip_and_a_bad_one_is_skipped(tmp_path
     scores.proxies = {"ridge": {"state": 0.4, "state+features": 0.3, "gain": 0.1}}
     record = new_screen_record(scores, ScreenConditions("abc", "fp", "fp16"), 1.5)
     path = store.write_screen(record)
-    assert path.name == "pi05-object-timm:resnet10t.json"
-    again = store.load_screen("pi05-object-timm:resnet10t")
+    assert path.name == "pi05-object-timm_resnet10t.json"
+    again = store.load_screen("pi05-object-timm_resnet10t")
     assert again.to_json() == record.to_json() and again.scores.entropy == Undefined("no tokens")
     store.write_selection(ScreenSelection("pi05", "object", "ridge", 1, ("a",), ("pixels",)))
     path.write_text(path.read_text().replace('"gain"', '"gian"'))
-    assert store.load_screen("pi05-object-timm:resnet10t") is None  # measured again
+    assert store.load_screen("pi05-object-timm_resnet10t") is None  # measured again
     results = load_results(tmp_path)
     assert results.screens == [] and results.selections[0].kept == ("a",)
-    assert results.skipped == [("screens/pi05-object-timm:resnet10t.json",
+    assert results.skipped == [("screens/pi05-object-timm_resnet10t.json",
                                 "ValueError: proxy ridge has no gain")]

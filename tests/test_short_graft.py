@@ -127,7 +127,7 @@ def test_screen_by_short_is_accepted_at_start_up_and_collects_the_tier(bench_cli
                     "--backbones", "smolvla", "--suites", "spatial", "--seeds", "0",
                     "--collect-only", "-q")
     assert out.returncode == 0, out.stdout[-2000:]
-    assert "grafted: the best 3 by short" in out.stdout
+    assert "grafted: the best 3 of the 1 listed by short" in out.stdout
     ids = [line.split("::", 1)[1] for line in out.stdout.splitlines() if "::test_" in line]
     shorts = [i for i in ids if i.startswith("test_short_graft[")]
     assert len(shorts) == 3 * 2  # dinov2_s, pixels, blind x 1/8, 1/4
