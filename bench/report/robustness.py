@@ -13,6 +13,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from bench.analysis.rankings import CONFIDENCE
+from bench.analysis.robust_loop import LoopRow, Rate, closed_loop_rows
 from bench.analysis.robustness import RobustnessTable, robustness_all, robustness_transfer
 from bench.report.context import ReportContext
 from bench.report.format import bullets, interval, num, pct, table, yes_no
@@ -39,6 +40,9 @@ def robustness_section(ctx: ReportContext) -> str | None:
     parts = [METHOD]
     for t in tables:
         parts += [f"### {t.backbone} x {t.suite}", _table_text(t)]
+    loop = _closed_loop_text(closed_loop_rows(ctx.records, robust))
+    if loop is not None:
+        parts += ["### In closed loop", loop]
     parts.append("### Does the most robust encoder transfer across backbones?")
     parts.append(_transfer_text(robustness_transfer(tables)))
     plot = _plot(tables, ctx) if ctx.plots else None
@@ -98,6 +102,29 @@ def _winner_text(t: RobustnessTable) -> str:
     return (f"Does the clean winner (**{t.clean_winner}**, lowest clean MSE on all held-out "
             "windows) stay the winner (lowest perturbed MSE) under each kind?\n\n"
             + table(rows, ["kind", "winner per severity", "clean winner stays"]))
+
+
+def _closed_loop_text(rows: list[LoopRow]) -> str | None:
+    """Success under each perturbation beside the clean success (Wilson 95%), per cell."""
+    if not rows:
+        return None
+    labels = list(dict.fromkeys(label for r in rows for label in r.perturbed))
+    body = [[f"{r.backbone} x {r.suite}", r.cell_id, _rate(r.clean)]
+            + [f"{_rate(r.perturbed[label])}, -{r.lost[label]}/+{r.gained[label]}"
+               if label in r.perturbed else "n/a" for label in labels] for r in rows]
+    return ("Native and the best graft (lowest clean MSE) rolled out again with every rendered "
+            "frame perturbed as offline (bench/run/robust_loop.py): the same episodes (init "
+            "states, env seeds) as the clean rollouts. Cell: successes/episodes, rate [Wilson "
+            "95%], then -lost/+gained: episodes that succeeded clean and failed perturbed, and "
+            "the reverse (paired by episode).\n\n"
+            + table(body, ["backbone x suite", "cell", "clean"] + labels))
+
+
+def _rate(rate: Rate | None) -> str:
+    if rate is None:
+        return "n/a (no clean rollouts in the record)"
+    lo, hi = rate.ci
+    return f"{rate.successes}/{rate.episodes} = {rate.rate:.0%} [{lo:.0%}, {hi:.0%}]"
 
 
 def _transfer_text(transfers: list[dict]) -> str:

@@ -65,6 +65,10 @@ class RobustRecord:
     entries: list[RobustEntry] = field(default_factory=list)
     timings_s: dict = field(default_factory=dict)
     created: str | None = None
+    # Closed loop (--rollouts N too; native and the best graft): "kind:severity" -> the
+    # rollouts under it (bench.run.robust_loop.rollouts_under), paired with the cell record's
+    # run.rollouts episode by episode.
+    rollouts: dict[str, dict] = field(default_factory=dict)
 
     def entry(self, perturbation: dict) -> RobustEntry | None:
         """The stored entry measured under exactly `perturbation` (params, seed, version)."""

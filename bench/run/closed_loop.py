@@ -76,10 +76,15 @@ def make_act(backbone, *, noise_seed: int, feed=None, features_from_images: Obse
 
 ROLLOUT_SEED = 0  # env seeds of rollout episodes (init states are fixed by the episode index)
 
-def cell_act(cell, backbone, *, noise_seed: int, feed=None, encoder=None, grid=None):
-    """`make_act` for a cell: native cells sample as released; grafts encode live pixels."""
+def cell_act(cell, backbone, *, noise_seed: int, feed=None, encoder=None, grid=None,
+             perturb: ObservationFn | None = None):
+    """`make_act` for a cell: native cells sample as released; grafts encode live pixels.
+    `perturb`: applied to every rendered frame before the policy or its encoder sees it (the
+    robustness tier in closed loop: bench.run.robust_loop)."""
     zero = cell.spec.eval_inputs == ZERO
     transform = (lambda images: {k: torch.zeros_like(v) for k, v in images.items()}) if zero else None
+    if perturb is not None:
+        transform = perturb if transform is None else (lambda images: transform(perturb(images)))
     if feed is None:
         return make_act(backbone, noise_seed=noise_seed, images_transform=transform)
     if feed.tower is not None:  # native_wrapped: the feed runs the policy's own tower itself
@@ -136,14 +141,16 @@ def rollout_log_key(spec, render, policy: str) -> str:
 
 def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, encoder=None,
                   grid=None, progress: bool = True, store=None, policy: str = "",
-                  scenes=None, batch: int = 1, env_mode: str = "sync") -> dict:
+                  scenes=None, batch: int = 1, env_mode: str = "sync", perturb=None,
+                  log_id: str | None = None) -> dict:
     """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts".
 
     With a results `store`, every finished episode is kept in the cell's episode log (under
     the spec, render settings and `policy`, a policy_fingerprint) and a rerun after a kill
     resumes from it. `scenes`: bench.sim.rollout.Scenes (LIBERO's unless a test passes one);
     `batch` > 1: that many envs of a task at once in a gym vector env (`env_mode` sync/async),
-    the same episodes, so the episode log's key leaves it out."""
+    the same episodes, so the episode log's key leaves it out. `perturb` (cell_act) and
+    `log_id` (the episode log's name, default the cell id): the robustness tier's rollouts."""
     if cell.spec.eval_inputs in NO_CLOSED_LOOP:
         return {"skipped": NO_CLOSED_LOOP[cell.spec.eval_inputs]}
     from dataclasses import asdict
@@ -153,8 +160,10 @@ def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, e
     scenes = scenes or LIBERO
     spec = rollout_spec(suite, episodes_per_task, backbone.info.chunk_size, scenes.descriptions)
     render = suite_render(suite)
-    act = cell_act(cell, backbone, noise_seed=spec.seed, feed=feed, encoder=encoder, grid=grid)
-    log = store.episode_log(cell.id, rollout_log_key(spec, render, policy)) if store else None
+    act = cell_act(cell, backbone, noise_seed=spec.seed, feed=feed, encoder=encoder, grid=grid,
+                   perturb=perturb)
+    log = (store.episode_log(log_id or cell.id, rollout_log_key(spec, render, policy))
+           if store else None)
     out = run_rollouts(act, spec, progress=progress, render=render,
                        finished=log.finished() if log else [],
                        on_episode=log.add if log else None, scenes=scenes, batch=batch,

@@ -15,7 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -23,7 +23,8 @@ from torch import Tensor
 from bench.grid.cells import CellSpec
 from bench.grid.kinds import GRAFT
 from bench.results.record import Record
-from bench.results.robust import RobustEntry, RobustRecord, base_of, load_robust, stamped
+from bench.results.robust import (RobustEntry, RobustRecord, base_of, load_robust, stamped,
+                                  write_robust)
 from bench.run.evaluate import score
 from bench.run.features import encode_pooled
 from bench.run.perturbations import Applied
@@ -101,11 +102,12 @@ def stored_cell(cell: CellSpec, ws) -> tuple[Record, dict | None]:
 
 
 def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
-                   rerun: bool = False, window_stride: int = WINDOW_STRIDE
-                   ) -> tuple[RobustRecord, bool]:
+                   rerun: bool = False, window_stride: int = WINDOW_STRIDE,
+                   rollouts: int = 0, scenes=None) -> tuple[RobustRecord, bool]:
     """The robustness record of `cell` under `perturbations` (stored entries of the same
     measurement and windows resumed unless `rerun`), written to the store; (record, measured
-    anything)."""
+    anything). `rollouts` > 0: also rolled out that many episodes per task under each
+    perturbation (bench.run.robust_loop; `scenes`: a test's stand-in for LIBERO)."""
     t_start = time.perf_counter()
     record, state = stored_cell(cell, ws)
     root = ws.store.root
@@ -126,14 +128,24 @@ def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
         entries.append(entry)
     out = RobustRecord(cell.id, cell.kind, cell.backbone, cell.suite, cell.encoder, cell.seed,
                        base_of(record), windows.tolist(), kept + entries,
-                       timings_s={"total": round(time.perf_counter() - t_start, 3)})
+                       timings_s={"total": round(time.perf_counter() - t_start, 3)},
+                       rollouts=dict(stored.rollouts) if stored else {})
     if measured or stored is None or out.entries != stored.entries:
-        from bench.results.robust import write_robust
-
         out = stamped(out)
         write_robust(root, out)
     else:
         out = stored
+    for applied in perturbations if rollouts else ():
+        from bench.run.robust_loop import has_rollouts, rollouts_under
+
+        if has_rollouts(out.rollouts.get(applied.label), applied, rollouts):
+            continue
+        scorer = scorer or _Scorer(cell, ws, record, state, windows)
+        done = rollouts_under(applied, cell, ws, scorer, record, rollouts, scenes=scenes)
+        # written after each perturbation: a kill keeps the ones finished before it
+        out = stamped(replace(out, rollouts={**out.rollouts, applied.label: done}))
+        write_robust(root, out)
+        measured = True
     return out, measured
 
 

@@ -89,10 +89,14 @@ class RobustRun:
         """The robustness record of `cell`; the case fails in one line (naming the command that
         measures what is missing) when the cell has no stored record or projector."""
         from bench.run.robust import RobustUnavailable, measure_robust
+        from bench.run.robust_loop import rolls_out
 
+        ws = self.workspace()
+        # with --rollouts N: native and the best graft also roll out under each perturbation
+        episodes = ws.rollouts if ws.rollouts and rolls_out(cell, self.profile, ws.store) else 0
         try:
-            record, measured = measure_robust(cell, self.workspace(), applied(self.profile),
-                                              rerun=self.rerun)
+            record, measured = measure_robust(cell, ws, applied(self.profile), rerun=self.rerun,
+                                              rollouts=episodes)
         except RobustUnavailable as e:
             self.outcomes[cell.id] = str(e)
             pytest.fail(str(e), pytrace=False)
