@@ -194,8 +194,8 @@ def observed_from_records(records: Sequence[Record]) -> dict[str, Any]:
         out["preprocessing: input px"] = {e: recorded[e] for e in encoders}
     elif sources == {"hub"} and encoders and all(e in sizes for e in encoders):
         out["preprocessing: input px"] = {e: sizes[e] for e in encoders}
-    elif sources == {"tiny"}:
-        out["preprocessing: input px"] = "tiny encoders at 56-64 px or native size"
+    # Tiny records from before encoder_input_size: not recorded. A guess ("56-64 px") was false
+    # for the encoders that keep their own size in every profile (encoders/real.py: 224 px).
     grids: dict[str, set[str]] = {}
     for r in grafts:
         if r.measured.grid is not None:
