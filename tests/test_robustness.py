@@ -166,3 +166,17 @@ def test_robust_cases_run_resume_and_report(bench_cli, tmp_path):
     assert again.returncode == 0 and "2 passed" in again.stdout
     off = bench_cli(tmp_path, *args[:-2], "--co", "-q")
     assert "::test_robust[" not in off.stdout and "2 tests collected" in off.stdout
+
+
+def test_one_pass_gives_each_perturbation_the_bits_it_gets_alone(world):
+    """A case scores all its perturbations in one pass of repeated windows (bench.run.robust:
+    full sampler batches); each entry must be what that perturbation alone gives."""
+    ws, cell = world
+    labels = ["brightness:3", "noise:2", "brightness:0", "occlusion:1"]
+    for spec, _ in (cell("graft", "pixels_ones"), cell("native")):  # features, then images
+        together, _ = measure_robust(spec, ws, parse_robustness(labels, "t"), rerun=True)
+        for entry in together.entries:
+            label = f"{entry.kind}:{entry.severity}"
+            alone, _ = measure_robust(spec, ws, parse_robustness([label], "t"), rerun=True)
+            assert alone.entries[0].per_window == entry.per_window, (spec.id, label)
+            assert alone.entries[0].mse == entry.mse, (spec.id, label)
