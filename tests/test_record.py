@@ -33,6 +33,13 @@ NOT_RECORDS = {
     "bench/suites/synthetic.py": {"seed"},  # a suite's generation parameters
     "bench/analysis/transfer.py": {"suite"},  # a rank-transfer comparison row
     "bench/report/sections.py": {"suite"},  # the same row, rendered
+    # The robustness tier's own formats: its summary rows, its perturbation's JSON, the feature
+    # store key of perturbed windows, and the robustness record's `base` (what it rescored).
+    "bench/analysis/robustness.py": {"backbone", "suite", "n_windows"},
+    "bench/report/robustness.py": {"suite"},
+    "bench/run/perturbations.py": {"kind", "seed"},
+    "bench/run/robust.py": {"suite"},
+    "bench/results/robust.py": {"protocol_hash", "created", "projector_sha256", "kind"},
 }
 
 

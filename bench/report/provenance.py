@@ -153,19 +153,7 @@ def provenance_section(ctx: ReportContext) -> str:
         parts.append(f"Protocol `{h}`:\n\n```json\n"
                      f"{json.dumps(recs[0].measured.protocol or {}, indent=1, sort_keys=True)}\n```")
     parts.append(study_constants_section(records, f"{ctx.out_path.stem}_summary.json"))
-    totals = {p: sum(float(r.run.timings_s.get(p, 0.0)) for r in records)
-              for p in PHASES}
-    parts.append("Wall time per phase, summed over finished cells (seconds):\n\n"
-                 + table([[num(totals[p], 4) for p in PHASES]], list(PHASES)))
-    rows = []
-    for r in sorted(records, key=lambda r: r.cell_id):
-        t = r.run.timings_s
-        rows.append([r.cell_id] + [num(t.get(p), 3) for p in PHASES]
-                    + [num(r.run.peak_memory_mb, 4), r.training.trainable_params,
-                       r.run.created or ""])
-    parts.append("Per cell (seconds; peak memory in MB):\n\n"
-                 + table(rows, ["cell"] + list(PHASES) + ["peak MB", "trainable params",
-                                                         "created"]))
+    parts += _timing_tables(records)
     parts.append("Cells missing (expected in grid.json, neither finished nor failed): "
                  + (", ".join(f"`{c}`" for c in res.missing) if res.missing else
                     ("none" if res.expected is not None else "unknown (no grid.json)")))
@@ -178,3 +166,18 @@ def provenance_section(ctx: ReportContext) -> str:
         parts.append("Unreadable or invalid files skipped:\n\n"
                      + table([list(s) for s in res.skipped], ["file", "reason"]))
     return "\n\n".join(parts)
+
+
+def _timing_tables(records) -> list[str]:
+    """Wall time per phase summed over the cells, then per cell (with peak memory)."""
+    totals = {p: sum(float(r.run.timings_s.get(p, 0.0)) for r in records) for p in PHASES}
+    rows = []
+    for r in sorted(records, key=lambda r: r.cell_id):
+        t = r.run.timings_s
+        rows.append([r.cell_id] + [num(t.get(p), 3) for p in PHASES]
+                    + [num(r.run.peak_memory_mb, 4), r.training.trainable_params,
+                       r.run.created or ""])
+    return ["Wall time per phase, summed over finished cells (seconds):\n\n"
+            + table([[num(totals[p], 4) for p in PHASES]], list(PHASES)),
+            "Per cell (seconds; peak memory in MB):\n\n"
+            + table(rows, ["cell"] + list(PHASES) + ["peak MB", "trainable params", "created"])]
