@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -157,6 +158,10 @@ def _plot(tables: list[RobustnessTable], ctx: ReportContext) -> Path | None:
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
     for ax in axes[len(panels):]:
         ax.set_visible(False)
+    # One colour per row in every panel, from 20 (the default cycle's 10 repeat past 10 rows).
+    palette = matplotlib.colormaps["tab20"]
+    rows_seen = list(dict.fromkeys(row for t in tables for row in t.rows))
+    colour = {row: palette(i % 20) for i, row in enumerate(rows_seen)}
     for ax, (t, kind) in zip(axes, panels):
         labels = [p for p in t.perturbations if p.startswith(kind + ":")]
         for row in t.rows:
@@ -165,7 +170,7 @@ def _plot(tables: list[RobustnessTable], ctx: ReportContext) -> Path | None:
             if points:  # severity 0 is the clean image: no degradation by definition
                 ax.plot([0] + [s for s, _ in points], [0.0] + [100 * c.relative
                                                               for _, c in points],
-                        marker="o", label=row)
+                        marker="o", label=row, color=colour[row])
         ax.axhline(0, color="grey", lw=0.5)
         ax.set_xticks(range(4))
         ax.set_title(f"{t.backbone} x {t.suite}: {kind}", fontsize=8)
