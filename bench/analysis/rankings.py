@@ -168,9 +168,6 @@ class Ranking:
         """True when different seeds are won by different encoders."""
         return len(set(self.seed_winners.values())) > 1
 
-    def mean_of(self, encoder: str, metric: str = PRIMARY) -> float:
-        return next(e.mean[metric] for e in self.encoders if e.encoder == encoder)
-
     def to_dict(self) -> dict:
         out = asdict(self)
         out.update(leader=self.leader, top_tier=self.top_tier, seed_sensitive=self.seed_sensitive)

@@ -2,7 +2,7 @@
 
     python -m bench.report.build RESULTS_DIR [--out REPORT.md]
 
-Only stored records are read (bench.results.records). Files written beside the report at OUT:
+Only stored records are read (bench.results.store). Files written beside the report at OUT:
 OUT, <stem>_cells.csv, <stem>_summary.json and <stem>_plots/*.png (linked relatively).
 """
 

@@ -35,7 +35,8 @@ OUR_CODE = {
     "optimiser": "AdamW",  # bench/run/train.py: torch.optim.AdamW
     "gradient accumulation": False,  # bench/run/train.py: one optimiser step per batch
     # encoders/timm_encoders.py: one bilinear resize to the encoder's own input size, then its
-    # own mean/std. Input sizes of the paper encoders (timm's pretrained sizes):
+    # own mean/std. The paper encoders' sizes: the study's one 224 px path (timm's pretrained
+    # size, except fastvit_sa12's, 256):
     "input sizes": {"siglip": 224, "dinov2_s": 224, "fastvit": 224, "repvit": 224},
 }
 

@@ -105,10 +105,6 @@ class Scores:
     def to_json(self) -> dict:
         return flat(self)
 
-    def task_mse(self, space: str = NORMALIZED) -> dict[str, float]:
-        """{task: mean MSE over its windows}."""
-        return {t: float(v[space]) for t, v in (self.per_task or {}).items()}
-
 
 def task_score(mse: dict[str, float], n: int) -> dict:
     """One task's entry of `Scores.per_task`: its MSE per space over its `n` windows."""

@@ -377,5 +377,3 @@ class ResultStore:
     def write_grid(self, expected: list[str], profile: str) -> None:
         atomic_write_json(self.root / GRID, {_GRID_EXPECTED: expected, _GRID_PROFILE: profile})
 
-    def read_all(self) -> Results:
-        return load_results(self.root)
