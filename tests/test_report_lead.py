@@ -64,11 +64,13 @@ def test_a_one_backbone_run_names_its_winner_first_and_empty_sections_are_one_li
 
 
 def test_a_controls_only_run_says_so_first(tmp_path):
-    records = [make_record(kind="native", encoder=None, level=0.2)]
+    # Each kind counted by its name: a screen's short grafts are no "control cell(s)".
+    records = [make_record(kind="native", encoder=None, level=0.2),
+               make_record(kind="native_wrapped", encoder=None, level=0.3)]
     text = build_report(write_grid(tmp_path, records), n_resamples=RESAMPLES,
                         plots=False).read_text()
-    assert paragraphs(text)[0].strip() == ("No graft finished: no encoder ranking to answer (1 control "
-                                   "cell(s): see Controls).")
+    assert paragraphs(text)[0].strip() == ("No graft finished: no encoder ranking to answer "
+                                           "(finished: 1 native, 1 native_wrapped).")
 
 
 def test_a_pretrained_encoder_is_named_with_its_weights_and_input_size_not_random_init(tmp_path):

@@ -5,6 +5,8 @@ transfers; then what undermines either (a ranking that measures no vision)."""
 
 from __future__ import annotations
 
+from collections import Counter
+
 from bench.analysis.rankings import CONFIDENCE, PRIMARY, Ranking
 from bench.report.context import ReportContext
 from bench.report.format import interval, num
@@ -83,7 +85,8 @@ def answer_lines(ctx: ReportContext) -> list[str]:
     if not ctx.records:
         return [f"No finished cells under `{ctx.results.root}` yet: nothing to answer."]
     if not ctx.rankings:
-        return [f"No graft finished: no encoder ranking to answer ({len(ctx.records)} control "
-                "cell(s): see Controls)."]
+        kinds = Counter(r.kind for r in ctx.records)
+        return ["No graft finished: no encoder ranking to answer (finished: "
+                + ", ".join(f"{n} {kind}" for kind, n in sorted(kinds.items())) + ")."]
     lines = [ranking_answer(r, ctx) for r in ctx.rankings]
     return lines + transfer_answers(ctx) + _vision_answer(ctx)
