@@ -10,14 +10,20 @@ from pathlib import Path
 
 
 @contextlib.contextmanager
-def exclusive(lock_file: Path):
+def exclusive(lock_file: Path, on_wait=None):
     """An exclusive flock on `lock_file` (created, with its folder) for the block; the kernel
-    releases it if the process dies."""
+    releases it if the process dies. `on_wait()` is called once, before waiting, when another
+    process holds it."""
     lock_file = Path(lock_file)
     lock_file.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if on_wait is not None:
+                on_wait()
+            fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
         os.close(fd)

@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import os
 import tempfile
@@ -318,26 +317,16 @@ class ResultStore:
         the cell is claimed elsewhere, before waiting. Re-entrant within a thread (a short
         graft's selection claims it, then runs it through the session, which claims it too)."""
         path = self.claim_path(cell_id)
-        path.parent.mkdir(exist_ok=True)
         held = _HELD.__dict__.setdefault("paths", set())
         if path in held:
             yield
             return
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                if on_wait is not None:
-                    on_wait()
-                fcntl.flock(fd, fcntl.LOCK_EX)
+        with exclusive(path, on_wait=on_wait):
             held.add(path)
             try:
                 yield
             finally:
                 held.discard(path)
-        finally:
-            os.close(fd)  # releases the flock
 
     def set_aside(self, cell_id: str) -> str | None:
         """Move a stored record that cannot be read (truncated, not JSON, invalid) to
