@@ -16,7 +16,7 @@ ONE_VALUE = ("--profile", "--grid", "--results-dir", "--camera-map", "--screen-k
 REPEATED = ("--policy", "--dataset", "--compare-fail")  # action="append": each value checked
 
 # An example of each comma list, for the fix the message gives.
-LIST_EXAMPLES = {"--backbones": "smolvla,pi05", "--encoders": "dinov2_s,siglip_b16",
+LIST_EXAMPLES = {"--backbones": "smolvla,pi05", "--encoders": "dinov2_s,siglip",
                  "--suites": "spatial,object", "--seeds": "0,1,2", "--controls": "native or none",
                  "--sim-tasks": "0,1,2"}
 

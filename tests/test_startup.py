@@ -64,7 +64,7 @@ BAD_INPUTS = [
     (["--steps", "0"], "--steps 0", "at least 1"),
     # An empty list is not the default grid (a script's unset variable would launch a study).
     (["--encoders", ""], "--encoders ''", "empty (an unset variable?); give a value (e.g. "
-     "--encoders dinov2_s,siglip_b16), or leave --encoders out for the default"),
+     "--encoders dinov2_s,siglip), or leave --encoders out for the default"),
     (["--encoders", ","], "--encoders ','", "no item in the list; give a comma list"),
     (["--backbones", ""], "--backbones ''", "empty (an unset variable?)"),
     (["--backbones", " , "], "--backbones ' , '", "no item in the list"),
