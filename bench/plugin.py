@@ -14,8 +14,8 @@ import pytest
 from bench.grid.cells import (CellSpec, ScreenCase, control_cells, graft_cells, grid_cells,
                               screen_cases, tier_cells)
 from bench.options import pytest_addoption  # noqa: F401  (the hook, found here by name)
-from bench.session import GraftSession
-from bench.startup import check_startup, check_writable
+from bench.session import GraftSession, Selection
+from bench.startup import check_writable
 from bench.summary import cell_id_of
 
 SESSION_KEY = pytest.StashKey[GraftSession]()
@@ -98,9 +98,10 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
             cell_id = cell_id_of(nodeid)
             if cell_id not in backbone_of:
                 return nodeid
-            # gs.selected: the cells the workers collected (pytest_xdist_node_collection_finished)
-            mine = [c for c in gs.selected if backbone_of.get(c) == backbone_of[cell_id]]
-            backbones = {backbone_of[c] for c in gs.selected if c in backbone_of}
+            # the cells the workers collected (pytest_xdist_node_collection_finished)
+            selected = gs.selection.cells
+            mine = [c for c in selected if backbone_of.get(c) == backbone_of[cell_id]]
+            backbones = {backbone_of[c] for c in selected if c in backbone_of}
             groups = max(1, self.numnodes // max(1, len(backbones)))
             position = mine.index(cell_id) if cell_id in mine else 0
             return f"{backbone_of[cell_id]}:{position % groups}"
@@ -114,18 +115,19 @@ def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
     -k/-m) are the selection that the paper preflight checks and grid.json and the report
     expect."""
     gs: GraftSession = node.config.stash[SESSION_KEY]
-    if gs.selected:
+    if gs.selection.cells:
         return  # every worker collects the same items
     known = {c.id: c for c in grid_cells(gs.profile, gs.screen_options is not None)}
-    gs.selected = [c for c in map(cell_id_of, ids) if c in known]
     screens = {c.id for c in screen_cases(gs.profile)} if gs.screen_options else set()
-    gs.screens_selected = [c for c in map(cell_id_of, ids) if c in screens]
-    if gs.selected:
+    case_ids = list(map(cell_id_of, ids))
+    gs.collected(Selection(cells=tuple(c for c in case_ids if c in known),
+                           screens=tuple(c for c in case_ids if c in screens)))
+    if gs.selection.cells:
         try:  # the paper preflight of the selection, here where -k has been applied
-            gs.preflight([known[c] for c in gs.selected])
+            gs.preflight([known[c] for c in gs.selection.cells])
         except pytest.UsageError as e:  # raised inside xdist's loop: an exit, not an INTERNALERROR
             pytest.exit(f"ERROR: {e}", returncode=pytest.ExitCode.USAGE_ERROR)
-        gs.store.write_grid(gs.selected, gs.profile.name)
+        gs.store.write_grid(list(gs.selection.cells), gs.profile.name)
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -168,10 +170,9 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         return
     if "graft_cell" not in names and "control_cell" not in names:
         return
-    if not session.names_checked and not hasattr(metafunc.config, "workerinput"):
+    if not hasattr(metafunc.config, "workerinput"):
         # A grid module outside bench/ (tests' own): checked here, at its collection.
-        session.names_checked = True
-        _write_lines(metafunc.config, check_startup(session.profile))
+        _write_lines(metafunc.config, session.check_names_once())
     cells = graft_cells(session.profile) if "graft_cell" in names else control_cells(session.profile)
     argname = "graft_cell" if "graft_cell" in names else "control_cell"
     metafunc.parametrize(
@@ -183,24 +184,23 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 @pytest.hookimpl(trylast=True)  # after -k/-m deselection: grid.json lists what will run
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items) -> None:
     gs: GraftSession = config.stash[SESSION_KEY]
-    gs.selected, gs.screens_selected = [], []
-    gs.robust_selected = [i.callspec.params["robust_cell"].id for i in items
-                          if "robust_cell" in getattr(getattr(i, "callspec", None), "params", {})]
-    cells = []
+    cells, screens, robust = [], [], []
     for item in items:
         params = getattr(getattr(item, "callspec", None), "params", {})
         cell = params.get("graft_cell", params.get("control_cell", params.get("tier_cell")))
         if isinstance(cell, CellSpec):
-            gs.selected.append(cell.id)
             cells.append(cell)
         elif isinstance(params.get("screen_case"), ScreenCase):
-            gs.screens_selected.append(params["screen_case"].id)
-    if (gs.selected or gs.screens_selected) and not hasattr(config, "workerinput"):
+            screens.append(params["screen_case"].id)
+        elif "robust_cell" in params:
+            robust.append(params["robust_cell"].id)
+    gs.collected(Selection(tuple(c.id for c in cells), tuple(screens), tuple(robust)))
+    if (cells or screens) and not hasattr(config, "workerinput"):
         gs.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
         check_writable("--report", gs.report_path.parent)
         gs.preflight(cells)  # the selected cells' artifacts (after -k)
-    if gs.selected and not hasattr(config, "workerinput"):
-        gs.store.write_grid(gs.selected, gs.profile.name)
+    if cells and not hasattr(config, "workerinput"):
+        gs.store.write_grid([c.id for c in cells], gs.profile.name)
 
 
 @pytest.fixture(scope="session")
@@ -212,7 +212,7 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     if hasattr(session.config, "workerinput"):
         return  # xdist worker: the controller compares and reports from the shared store
     gs: GraftSession = session.config.stash.get(SESSION_KEY, None)
-    if gs is None or not (gs.selected or gs.screens_selected or gs.robust_selected):
+    if gs is None or not gs.selection:
         return
     try:
         sections = gs.finish_baseline()
@@ -235,11 +235,12 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
     from bench.summary import screen_summary_lines, summary_lines
 
     gs: GraftSession | None = config.stash.get(SESSION_KEY, None)
-    if gs is None or not (gs.selected or gs.screens_selected) or hasattr(config, "workerinput"):
+    selection = gs.selection if gs is not None else None
+    if not (selection and (selection.cells or selection.screens)) or hasattr(config, "workerinput"):
         return
     terminalreporter.write_sep("-", "graftbench")
     lines = summary_lines(gs.profile.name, gs.profile.protocol.hash, gs.outcomes,
-                          len(gs.selected), gs.results_dir, gs.report_path,
+                          len(gs.selection.cells), gs.results_dir, gs.report_path,
                           gs.report_written is not None, gs.report_error)
     if gs.screening is not None:
         lines[2:2] = screen_summary_lines(gs.screening.outcomes, gs.screening.dropped)

@@ -1,18 +1,20 @@
 """One pytest run of the grid: `GraftSession` holds the profile, the results store, the
-workspace, the baseline work (save / compare / fail, bench.regression.run) and what ran.
+workspace, the cell service (bench.run.service: every cell goes through it), the baseline work
+(save / compare / fail, bench.regression.run) and what collection selected.
 
-bench.plugin's hooks only hand work on to it. Its seams are public attributes, set before the
-first cell runs: `cell_runner(cell, workspace, context) -> CellResult` (bench.run.runner.measure, with the context
-the cell's plan gave: bench.run.plan),
+bench.plugin's hooks only hand work on to it, through its methods: `collected` freezes the
+selection once collection ends. Its seams are one frozen `Seams` value, replaced before the first
+cell runs through `use_seams` (tests do): `cell_runner(cell, workspace, context) -> CellResult`
+(bench.run.runner.measure, with the context the cell's plan gave: bench.run.plan),
 `workspace_factory(session) -> workspace`, `report_builder(results_dir, path, extra_sections=)`
-(bench.report.build_report). Tests replace those, never private state.
+(bench.report.build_report).
 """
 
 from __future__ import annotations
 
 import os
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -35,15 +37,37 @@ def _unavailable_errors() -> tuple[type, ...]:
 
 
 def _run_cell(cell, ws, context):
-    from bench.run.runner import measure
+    from bench.run.service import measure_here
 
-    return measure(cell, ws, context)
+    return measure_here(cell, ws, context)
 
 
 def _build_report(results_dir, path, extra_sections=()):
     from bench.report.build import build_report
 
     return build_report(results_dir, path, extra_sections=list(extra_sections))
+
+
+@dataclass(frozen=True)
+class Seams:
+    """What tests replace (module docstring); the defaults are the real ones."""
+
+    cell_runner: Callable = _run_cell
+    workspace_factory: Callable = field(default=lambda session: _default_workspace(session))
+    report_builder: Callable = _build_report
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What collection selected (after -k / -m), as ids: grid cells (grafts, controls, short
+    grafts), screen cases, robustness cases. Frozen: set once per collection."""
+
+    cells: tuple[str, ...] = ()
+    screens: tuple[str, ...] = ()
+    robust: tuple[str, ...] = ()
+
+    def __bool__(self) -> bool:
+        return bool(self.cells or self.screens or self.robust)
 
 
 class GraftSession:
@@ -56,31 +80,44 @@ class GraftSession:
         self.options = options = parse_options(config)
         self.startup_lines = list(options.startup_lines)  # printed at the session's start
         offline_env(self.profile.offline)
-        # Seams (module docstring).
-        self.cell_runner: Callable = _run_cell
-        self.workspace_factory: Callable = _default_workspace
-        self.report_builder: Callable = _build_report
+        self.seams = Seams()  # module docstring; replaced only through use_seams
         self.baseline = BaselineRun(options.baseline, self.profile.protocol.hash)
         self._workspace = None
         self._store = None
-        self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
-        self.records: dict = {}  # cell id -> the Record this run measured or resumed
-        self.selected: list[str] = []
-        self.screens_selected: list[str] = []  # test_screen cases collected (screen ids)
-        self.robust_selected: list[str] = []  # test_robust cases collected (cell ids)
+        self._cells = None  # the cell service (bench.run.service), built on first use
+        self.selection = Selection()  # what collection selected: frozen, set by `collected`
         self._robustness = None
         self._screening = None
         self.report_written: Path | None = None
         self.report_error: str | None = None  # why REPORT.md could not be written, if it failed
-        self.set_aside_lines: list[str] = []  # unreadable records moved aside (store.set_aside)
         self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
         # Names, user paths, output folders: checked here when this run collects the grid (an
         # xdist worker's controller checked them); else at collection (bench.plugin).
-        self.names_checked = collects_grid(config) and not hasattr(config, "workerinput")
-        if self.names_checked:
+        self._names_checked = collects_grid(config) and not hasattr(config, "workerinput")
+        if self._names_checked:
             self.startup_lines += check_startup(self.profile, options.labels)
             self.store  # opens (creates, probes) the results dir
             check_writable("--report", self.report_path.parent)
+
+    def use_seams(self, **changes) -> None:
+        """Replace seams (Seams' fields) before the first cell: after it, they would apply to
+        part of the run only."""
+        if self._cells is not None or self._workspace is not None:
+            raise RuntimeError("use_seams after the first cell: set seams at pytest_configure")
+        self.seams = replace(self.seams, **changes)
+
+    def collected(self, selection: Selection) -> None:
+        """Collection's selection (bench.plugin, after -k / -m; an xdist controller: what its
+        workers collected)."""
+        self.selection = selection
+
+    def check_names_once(self) -> list[str]:
+        """The start-up check of names and paths, when no earlier hook ran it (a grid module
+        outside bench/, collected by tests): its lines, or [] when already checked."""
+        if self._names_checked:
+            return []
+        self._names_checked = True
+        return check_startup(self.profile)
 
     # What the options say, by the names the cells' code reads (one value: self.options).
     profile = property(lambda self: self.options.profile)
@@ -106,7 +143,7 @@ class GraftSession:
 
     def workspace(self):
         if self._workspace is None:
-            self._workspace = self.workspace_factory(self)
+            self._workspace = self.seams.workspace_factory(self)
         return self._workspace
 
     def progress_sink(self):
@@ -137,128 +174,74 @@ class GraftSession:
             self._robustness = RobustRun(self.profile, self.workspace, rerun=self.rerun)
         return self._robustness
 
-    # --- one cell: plan, then run ------------------------------------------------------------
+    # --- one cell: through the cell service --------------------------------------------------
+    @property
+    def cells(self):
+        """The run's one cell service (bench.run.service): every cell case, the screen's short
+        grafts and, with --executor, the job array's tasks measure through it."""
+        if self._cells is None:
+            from bench.run.service import CellService, RunSettings
+
+            o = self.options
+            settings = RunSettings(rerun=o.rerun, features_mode=o.features_mode,
+                                   feature_dtype=o.feature_dtype, rollouts=o.rollouts)
+            self._cells = CellService(
+                self.profile, self.store, self.workspace, settings,
+                runner=self.seams.cell_runner,
+                measure_with=self._measure_submitted if o.executor != "local" else None,
+                feature_transform=lambda cell: self.baseline.feature_transform(
+                    cell, self.workspace),
+                order=lambda: self.selection.cells, claim=o.executor == "local")
+        return self._cells
+
+    outcomes = property(lambda self: self.cells.outcomes)  # cell id -> Outcome
+    records = property(lambda self: self.cells.records)
+    set_aside_lines = property(lambda self: self.cells.set_aside_lines)
+
     def run(self, cell: CellSpec):
-        """Plan the cell (resume the stored record, or measure, and with what: bench.run.plan),
-        carry the plan out, then the baseline's cell checks (a regression fails this case in
-        one line). Under --screen, a cell of an encoder the screen dropped is skipped, saying
-        why, before anything trains."""
+        """The cell through the cell service, then the baseline's cell checks (a regression
+        fails this case in one line). Under --screen, a cell of an encoder the screen dropped
+        is skipped, saying why, before anything trains; a missing artifact fails in its line."""
         if self.screening is not None and (why := self.screening.dropped_reason(cell)):
             from bench.run.screen_run import DROPPED
 
             pytest.skip(DROPPED + why)
-        if cell.id in self.records:  # a short graft the selection ran before its own case
-            return self.records[cell.id]
-        with self._claim(cell):  # another run on this results dir waits here, then resumes
-            if (line := self.store.set_aside(cell.id)) is not None:
-                self.set_aside_lines.append(line)
-                say(self.progress_sink(), line)
-            cell_plan = self.plan(cell)
-            if cell_plan.resume is not None:
-                record = cell_plan.resume
-                self.outcomes[cell.id] = "resumed"
-            else:
-                record = self._measure(cell_plan)
-                self.outcomes[cell.id] = "measured"
-        self.baseline.check_cell(cell, record)
-        self.records[cell.id] = record
-        return record
-
-    def _claim(self, cell: CellSpec):
-        """The results store's claim on `cell` while it is planned and measured here (a job
-        array measures in its own tasks: the array is the one claimant, nothing to claim)."""
-        import contextlib
-
-        if self.options.executor != "local":
-            return contextlib.nullcontext()
-        return self.store.cell_lock(cell.id, on_wait=lambda: say(
-            self.progress_sink(), f"{cell.id}: another process is measuring it (its claim "
-                                  f"{self.store.claim_path(cell.id)}); waiting for its record"))
-
-    @property
-    def projectors(self) -> dict:
-        """Projectors measured cells handed back, by `CellContext.keep_as`: later cells' plans
-        take them (a graft's shuffled / zero-at-eval controls)."""
-        if "_projectors" not in self.__dict__:
-            self._projectors = {}
-        return self._projectors
-
-    def plan(self, cell: CellSpec):
-        """Resume or measure `cell` (bench.run.plan.plan: reads the store, writes nothing)."""
-        from bench.results.current import RunConditions
-        from bench.run.plan import plan
-
-        run = RunConditions(protocol_hash=self.profile.protocol.hash,
-                            feature_dtype=self.feature_dtype, rollouts=self.rollouts)
-        return plan(cell, self.store, run, weights=lambda wanted: self._weights(cell, wanted),
-                    rerun=self.rerun, features_mode=self.features_mode,
-                    projectors=self.projectors,
-                    feature_transform=self.baseline.feature_transform(cell, self.workspace))
-
-    def _weights(self, cell: CellSpec, run):
-        """`run` with the weights and normaliser this cell is measured on (loads the policy)."""
-        from bench.results.record import checkpoint_revision
-
-        ws = self.workspace()
-        return replace(run, revision=checkpoint_revision(ws.checkpoint(cell.backbone, cell.suite)),
-                       normalizer_fingerprint=ws.normalizer(cell.backbone, cell.suite).fingerprint)
-
-    def _measure(self, cell_plan):
-        """Measure a planned cell here (or through the job array); keep what it trained."""
-        cell = cell_plan.cell
-        if cell_plan.discard:  # a degraded record never outlives its run
-            self.store.forget(cell.id)
-        self._say_start(cell_plan)
-        if self.options.executor != "local":
-            return self._run_submitted(cell)
         try:
-            result = self.cell_runner(cell, self.workspace(), cell_plan.context)
-        except Exception as e:
-            from bench.results.record import Failure
-
-            self.store.write_failure(Failure.of(cell, self.profile.protocol.hash, e))
-            if isinstance(e, _unavailable_errors()):  # a missing artifact: its line, no traceback
-                pytest.fail(f"{cell.id}: {type(e).__name__}: {e}", pytrace=False)
-            raise
-        if result.trained is not None:
-            self.projectors[cell_plan.context.keep_as] = result.trained
-        record = result.record
-        say(self.workspace().progress, f"{cell.id}: MSE {record.mse_in():.4f} "
-                                       f"normalised ({record.run.total_s:.1f} s)")
+            record = self.cells.run(cell)
+        except _unavailable_errors() as e:  # its one line, no traceback
+            pytest.fail(f"{cell.id}: {type(e).__name__}: {e}", pytrace=False)
+        self.baseline.check_cell(cell, record)
         return record
 
     def pytest_runtest_logreport(self, report) -> None:
         """Each grid case's outcome, serial or from xdist workers (user_properties travel)."""
+        from bench.run.outcome import MEASURED, Outcome, failed
         from bench.summary import OUTCOME_PROPERTY, cell_id_of, failure_line
 
         cell = cell_id_of(report.nodeid)
         if "::test_robust[" in report.nodeid:  # a robustness case, not its cell's outcome
             return
-        if cell in self.screens_selected and report.when == "call":
+        if cell in self.selection.screens and report.when == "call":
             self.screening.note_report(cell, report)  # an xdist worker's screen
-        if cell is None or cell not in self.selected or report.when != "call":
+        if cell is None or cell not in self.selection.cells or report.when != "call":
             return
         if report.skipped and self.screening is not None:
             self.screening.note_report(cell, report)  # dropped by the screen (here or a worker)
         if report.passed:
-            outcome = dict(report.user_properties).get(OUTCOME_PROPERTY)
-            self.outcomes[cell] = outcome or self.outcomes.get(cell, "measured")
+            told = dict(report.user_properties).get(OUTCOME_PROPERTY)
+            self.outcomes[cell] = (Outcome.of_text(told) if told
+                                   else self.outcomes.get(cell, MEASURED))
         elif report.failed:
-            self.outcomes[cell] = failure_line(self.results_dir, cell, report.longreprtext)
+            self.outcomes[cell] = failed(failure_line(self.results_dir, cell,
+                                                      report.longreprtext))
 
-    def _say_start(self, cell_plan) -> None:
-        cell, ws = cell_plan.cell, self.workspace()
-        position = self.selected.index(cell.id) + 1 if cell.id in self.selected else "?"
-        say(ws.progress, f"cell {position}/{len(self.selected)} {cell.id}: "
-                         f"{cell_plan.work(self.profile.protocol.steps)} "
-                         "offline MSE on the held-out windows")
-
-    def _run_submitted(self, cell: CellSpec) -> dict:
-        """--executor slurm|submitit-local: the first case submits every selected cell that has
-        no current record as ONE job array; each case then waits for its own task."""
+    def _measure_submitted(self, cell_plan):
+        """--executor slurm|submitit-local, the cell service's `measure_with`: the first cell
+        submits every selected cell that has no current record as ONE job array (each task runs
+        the cell service in its own process: bench.run.executors); each waits for its task."""
         from bench.run.executors import CellArray, CellJob
+        from bench.run.plan import CellResult
         from external.paths import cache_dir
-        from bench.results.record import Failure
 
         if self._cell_array is None:
             self._cell_array = CellArray(self.options.executor, self.results_dir / "submitit",
@@ -267,17 +250,13 @@ class GraftSession:
             params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
             cells = [p.get("graft_cell", p.get("control_cell", p.get("tier_cell")))
                      for p in params]
-            todo = [c for c in cells if isinstance(c, CellSpec) and self.plan(c).resume is None
+            todo = [c for c in cells if isinstance(c, CellSpec)
+                    and self.cells.plan(c).resume is None
                     and not (self.screening and self.screening.dropped_reason(c))]
             paths = (str(self.results_dir), str(cache_dir()))
-            self._cell_array.submit([CellJob(c, self.profile, *paths, self.features_mode,
-                                             self.rollouts, self.feature_dtype,
+            self._cell_array.submit([CellJob(c, self.profile, *paths, self.cells.settings,
                                              *self.rollout_batch) for c in todo])
-        try:
-            return self._cell_array.result(cell.id)
-        except Exception as e:  # the task died before writing its own failure record
-            self.store.write_failure(Failure.of(cell, self.profile.protocol.hash, e))
-            raise
+        return CellResult(self._cell_array.result(cell_plan.cell.id))
 
     # --- the session's ends -----------------------------------------------------------------
     def preflight(self, cells: list[CellSpec]) -> None:
@@ -301,7 +280,7 @@ class GraftSession:
     def ran_cells(self) -> list[str]:
         """The selected cells the screen did not drop: what grid.json and the baseline expect."""
         dropped = self.screening.dropped if self.screening is not None else {}
-        return [c for c in self.selected if c not in dropped]
+        return [c for c in self.selection.cells if c not in dropped]
 
     def finish_baseline(self) -> list[tuple[str, str]]:
         """The baseline's save / compare over the stored records; the report sections it adds."""
@@ -311,20 +290,21 @@ class GraftSession:
     def finish(self, sections: list[tuple[str, str]] = ()) -> Path | None:
         """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
         nothing new finished (an existing report is left as it is)."""
+        from bench.run.outcome import Status
+
         outcomes = list(self.outcomes.values())
         if self._robustness is not None:
             outcomes += list(self._robustness.outcomes.values())
         if self.screening is not None:
             outcomes += list(self.screening.outcomes.values())
-            if self.selected and self.screening.dropped:  # grid.json: what was meant to run
+            if self.selection.cells and self.screening.dropped:  # grid.json: what was meant to run
                 self.store.write_grid(self.ran_cells, self.profile.name)
-        measured = any(o == "measured" for o in outcomes)
-        resumed = any(o == "resumed" for o in outcomes)
-        if not (self.selected or self.screens_selected or self.robust_selected) or not (
-                measured or (resumed and not self.report_path.exists())):
+        statuses = {o.status for o in outcomes}
+        if not self.selection or not (Status.MEASURED in statuses or (
+                Status.RESUMED in statuses and not self.report_path.exists())):
             return None
-        self.report_written = self.report_builder(self.results_dir, self.report_path,
-                                                  extra_sections=sections)
+        self.report_written = self.seams.report_builder(self.results_dir, self.report_path,
+                                                        extra_sections=sections)
         return self.report_written
 
 

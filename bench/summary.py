@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bench.results.store import CELLS
+from bench.run.outcome import Outcome, tally
 
 OUTCOME_PROPERTY = "graftbench"  # record_property name a grid case reports its outcome under
 
@@ -38,12 +39,10 @@ def headline(report: Path) -> str | None:
     return None
 
 
-def summary_lines(profile: str, protocol_hash: str, outcomes: dict[str, str], selected: int,
+def summary_lines(profile: str, protocol_hash: str, outcomes: dict[str, Outcome], selected: int,
                   results_dir: Path, report: Path, written: bool,
                   report_error: str | None = None) -> list[str]:
-    measured = sum(1 for o in outcomes.values() if o == "measured")
-    resumed = sum(1 for o in outcomes.values() if o == "resumed")
-    failed = {c: o for c, o in outcomes.items() if o not in ("measured", "resumed")}
+    measured, resumed, failed = tally(outcomes)
     lines = [f"profile {profile}, protocol {protocol_hash}",
              f"cells selected {selected}: measured {measured}, resumed from store {resumed}, "
              f"failed {len(failed)}",
@@ -63,13 +62,11 @@ def summary_lines(profile: str, protocol_hash: str, outcomes: dict[str, str], se
     return lines
 
 
-def screen_summary_lines(outcomes: dict[str, str], dropped: dict[str, str]) -> list[str]:
+def screen_summary_lines(outcomes: dict[str, Outcome], dropped: dict[str, str]) -> list[str]:
     """--screen: screens measured / resumed / failed, and each cell the screen dropped, why."""
-    measured = sum(1 for o in outcomes.values() if o == "measured")
-    resumed = sum(1 for o in outcomes.values() if o == "resumed")
-    failed = {s: o for s, o in outcomes.items() if o not in ("measured", "resumed")}
+    measured, resumed, failed = tally(outcomes)
     lines = [f"screens {len(outcomes)}: measured {measured}, resumed from store {resumed}, "
              f"failed {len(failed)}; cells dropped by the screen {len(dropped)}"]
-    lines += [f"SCREEN FAILED {sid}: {o.removeprefix('failed: ')}" for sid, o in sorted(failed.items())]
+    lines += [f"SCREEN FAILED {sid}: {why}" for sid, why in sorted(failed.items())]
     lines += [f"dropped {cell}: {why}" for cell, why in sorted(dropped.items())]
     return lines

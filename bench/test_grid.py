@@ -15,6 +15,12 @@ from bench.results.record import Record, validate_record
 from bench.summary import OUTCOME_PROPERTY
 
 
+def _tell(record_property, outcome) -> None:
+    """The case's outcome (bench.run.outcome) as a report property: how an xdist worker tells
+    the controller what became of it."""
+    record_property(OUTCOME_PROPERTY, outcome.text if outcome is not None else None)
+
+
 def _check_record(record: Record, cell) -> None:
     """What the runner cannot check while it runs: a record resumed from disk is checked like a
     new one (the runner validates what it writes: finite scores, counts, the freeze), and
@@ -40,24 +46,24 @@ def test_screen(screen_case, graft_session, record_property):
     if isinstance(item, ScreenFailure):
         pytest.fail(f"{screen_case.id}: {item.error}", pytrace=False)
     assert item.screen_id == screen_case.id
-    record_property(OUTCOME_PROPERTY, graft_session.screening.outcomes.get(screen_case.id))
+    _tell(record_property, graft_session.screening.outcomes.get(screen_case.id))
 
 
 def test_short_graft(tier_cell, graft_session, record_property):
     """--screen only, after the screens and before the grafts: the graft at a fraction of its
     steps (bench.grid.kinds short_graft), for every listed encoder whatever the selection."""
     _check_record(graft_session.screening.run_tier(tier_cell), tier_cell)
-    record_property(OUTCOME_PROPERTY, graft_session.outcomes.get(tier_cell.id))
+    _tell(record_property, graft_session.outcomes.get(tier_cell.id))
 
 
 def test_graft(graft_cell, graft_session, record_property):
     _check_record(graft_session.run(graft_cell), graft_cell)
-    record_property(OUTCOME_PROPERTY, graft_session.outcomes.get(graft_cell.id))
+    _tell(record_property, graft_session.outcomes.get(graft_cell.id))
 
 
 def test_control(control_cell, graft_session, record_property):
     _check_record(graft_session.run(control_cell), control_cell)
-    record_property(OUTCOME_PROPERTY, graft_session.outcomes.get(control_cell.id))
+    _tell(record_property, graft_session.outcomes.get(control_cell.id))
 
 
 def test_robust(robust_cell, graft_session, record_property):
@@ -66,4 +72,4 @@ def test_robust(robust_cell, graft_session, record_property):
     record = graft_session.robustness.run(robust_cell)
     wanted = set(graft_session.profile.robustness)
     assert wanted <= {f"{e.kind}:{e.severity}" for e in record.entries}
-    record_property(OUTCOME_PROPERTY, graft_session.robustness.outcomes.get(robust_cell.id))
+    _tell(record_property, graft_session.robustness.outcomes.get(robust_cell.id))

@@ -69,7 +69,7 @@ def _placeholders(world: World, raw: dict, n: int) -> dict:
 
 
 def _train_projector(world: World, channels: int, next_batch, steps: int = STEPS) -> None:
-    """`steps` projector steps through bench.run.train.fit, as bench.run.runner.run_cell runs them."""
+    """`steps` projector steps through bench.run.train.fit, as bench.run.service.run_cell runs them."""
     torch.manual_seed(0)
     projector = Projector(channels, world.backbone.info.lm_width)
     feed = GraftFeed(projector, world.backbone.camera_keys, world.grid)

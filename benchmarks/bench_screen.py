@@ -3,7 +3,7 @@
     .venv/bin/pytest benchmarks/bench_screen.py --benchmark-only -p no:randomly
 
 Per encoder on the tiny profile (SmolVLA, spatial, seed 0): one graft cell through
-bench.run.runner.run_cell (1 round: a cell takes ~10-30 s on 2 cores), then its screen through
+bench.run.service.run_cell (1 round: a cell takes ~10-30 s on 2 cores), then its screen through
 bench.run.screen.screen_cell (3 rounds). The feature store is built before either is timed
 (both read the same stored features; extraction is the graft's cost too). The goal: the screen's
 minimum at most 5% of the graft cell's.
@@ -36,7 +36,7 @@ def workspace():
 @pytest.mark.parametrize("encoder", ENCODERS)
 def test_graft_cell(benchmark, workspace, encoder):
     from bench.grid.cells import CellSpec
-    from bench.run.runner import run_cell
+    from bench.run.service import run_cell
 
     cell = CellSpec("graft", BACKBONE, SUITE, 0, encoder)
     benchmark.pedantic(run_cell, args=(cell, workspace), rounds=1, iterations=1)

@@ -4,7 +4,7 @@
         [--dtypes float32,fp16,bf16] [--cells pi05:pixels,pi05:dinov2_s,smolvla:siglip,...]
 
 Each cell (graft, spatial, seed 0; "BACKBONE:ENCODER" or "BACKBONE:ENCODER:pool_VARIANT") runs
-through bench.run.runner.run_cell once per dtype, each dtype with its own fresh feature store and
+through bench.run.service.run_cell once per dtype, each dtype with its own fresh feature store and
 results store in a temporary folder (released checkpoints and suites come from the usual cache).
 Prints per cell the relative change of the normalised and raw MSE of each dtype against the
 first, then the maxima; docs/PERFORMANCE.md ("The feature store") has the measured figures.
@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from bench.grid.cells import CellSpec  # noqa: E402
 from bench.run.features import FeatureStore  # noqa: E402
 from bench.grid.protocol import TINY  # noqa: E402
-from bench.run.runner import run_cell  # noqa: E402
+from bench.run.service import run_cell  # noqa: E402
 from bench.results.store import ResultStore  # noqa: E402
 from bench.run.workspace import Workspace  # noqa: E402
 

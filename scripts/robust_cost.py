@@ -21,7 +21,7 @@ from bench.grid.protocol import TINY
 from bench.results.store import ResultStore
 from bench.run import robust
 from bench.run.perturbations import parse_robustness
-from bench.run.runner import run_cell
+from bench.run.service import run_cell
 from bench.run.workspace import Workspace
 
 

@@ -55,9 +55,9 @@ class _LendWorkspace:
     @pytest.hookimpl(trylast=True)  # after bench.plugin built the session
     def pytest_configure(self, config):
         session = config.stash[SESSION_KEY]
-        session.workspace_factory = lent
+        session.use_seams(workspace_factory=lent)
         if not self.figures:
-            session.report_builder = report_without_figures
+            session.use_seams(report_builder=report_without_figures)
 
 
 class _NoGcAtExit:

@@ -16,7 +16,7 @@ def pytest_configure(config: pytest.Config) -> None:
     from bench.plugin import SESSION_KEY
 
     session = config.stash[SESSION_KEY]
-    measure = session.cell_runner
+    measure = session.seams.cell_runner
     marks = Path(os.environ["GRAFTBENCH_TEST_MARKS"])
     delay = float(os.environ.get("GRAFTBENCH_TEST_CELL_DELAY", "0"))
 
@@ -26,4 +26,4 @@ def pytest_configure(config: pytest.Config) -> None:
         time.sleep(delay)
         return measure(cell, workspace, context)
 
-    session.cell_runner = slowly
+    session.use_seams(cell_runner=slowly)

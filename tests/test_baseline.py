@@ -244,7 +244,6 @@ def pytest_configure(config):
     builder that keeps the sections it is handed (REPORT.md itself: bench.report.build's tests)."""
     gs = config.stash[SESSION_KEY]
     levels = json.loads(Path("levels.json").read_text())
-    gs.workspace_factory = lambda session: types.SimpleNamespace(progress=False)
     transforms = set()
 
     def fake_runner(cell, ws, context):
@@ -261,8 +260,8 @@ def pytest_configure(config):
         Path("out.json").write_text(json.dumps({
             "sections": list(extra_sections), "transforms": sorted(transforms)}))
 
-    gs.cell_runner = fake_runner
-    gs.report_builder = keep_sections
+    gs.use_seams(workspace_factory=lambda session: types.SimpleNamespace(progress=False),
+                 cell_runner=fake_runner, report_builder=keep_sections)
 '''
 
 GRID = '''

@@ -22,7 +22,7 @@ from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.results.store import ResultStore
 from bench.run.evaluate import score
-from bench.run.runner import run_cell
+from bench.run.service import run_cell
 from bench.sim.env import libero_available
 from external.paths import REPO_ROOT, cache_dir
 from tests.factories import make_failed, make_record, save_record

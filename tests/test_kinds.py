@@ -80,7 +80,7 @@ def test_a_new_control_kind_runs_records_and_reports(twin_kind, tmp_path):
     """Round trip: the runner writes the records, load_results reads them, the report shows
     the new kind; nothing but the table entry was added."""
     from bench.report.build import build_report
-    from bench.run.runner import run_cell
+    from bench.run.service import run_cell
     from bench.results.store import ResultStore
     from tests.worlds import lent_workspace
 

@@ -20,7 +20,7 @@ from scipy.stats import wilcoxon
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.results.record import Record, Scores
-from bench.run.runner import run_cell
+from bench.run.service import run_cell
 from bench.run.train import NonFiniteLoss
 
 BACKBONES = ("smolvla", "pi05", "pi0")

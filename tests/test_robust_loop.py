@@ -21,7 +21,7 @@ from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.run.perturbations import parse_robustness
 from bench.run.robust import measure_robust
-from bench.run.runner import run_cell
+from bench.run.service import run_cell
 from tests.test_closed_loop import fake_scenes
 
 FEW_STEPS = with_overrides(TINY, steps=12)

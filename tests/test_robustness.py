@@ -21,7 +21,7 @@ from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.run.perturbations import PERTURBATIONS, Applied, parse_robustness
 from bench.run.robust import RobustUnavailable, measure_robust
-from bench.run.runner import run_cell
+from bench.run.service import run_cell
 
 FEW_STEPS = with_overrides(TINY, steps=12)
 BACKBONE = "smolvla"

@@ -16,6 +16,7 @@ from bench.results.screen import ScreenFailure, ScreenRecord
 from bench.results.store import ResultStore, load_results
 from bench.run.screen import ScreenOptions
 from bench.run.screen_run import ScreenRun
+from bench.run.outcome import MEASURED, RESUMED
 
 SCREENED = ("dinov2_s", "fastvit", "repvit")  # ranked by the screen; pixels, blind: references
 # Steps kept small: no margin between encoders is read here, only which cells ran.
@@ -131,8 +132,8 @@ def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, 
     later = ScreenRun(ScreenOptions(1), profile, store, lambda: tiny_ws, feature_dtype="fp16")
     assert isinstance(later.screen("smolvla", "spatial", "dinov2_s"), ScreenRecord)  # re-screened
     later.screen("smolvla", "spatial", "blind")
-    assert later.outcomes == {"smolvla-spatial-dinov2_s": "measured",
-                              "smolvla-spatial-blind": "resumed"}
+    assert later.outcomes == {"smolvla-spatial-dinov2_s": MEASURED,
+                              "smolvla-spatial-blind": RESUMED}
     other_dtype = dataclasses.replace(later.conditions("smolvla", "spatial"), feature_dtype="bf16")
     assert store.current_screen("smolvla-spatial-blind", other_dtype) is None
 
@@ -158,7 +159,7 @@ def test_a_screen_another_worker_is_measuring_is_waited_for_and_resumed(tiny_ws,
         assert waiter.is_alive(), run.outcomes  # it waits rather than measuring
         store.write_screen(theirs)
     waiter.join(timeout=60)
-    assert run.outcomes == {theirs.screen_id: "resumed"}
+    assert run.outcomes == {theirs.screen_id: RESUMED}
     assert got[0].to_json() == theirs.to_json()
 
 

@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import contextlib
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterator
 
 from bench.grid.cells import CellSpec
 from external.paths import REPO_ROOT
 from bench.grid.protocol import Profile
-from bench.results.record import Failure, Record
+from bench.results.record import Record
+from bench.run.service import RunSettings
 
 EXECUTORS = ("local", "slurm", "submitit-local")
 
@@ -46,33 +47,31 @@ class CellJob:
     profile: Profile
     results_dir: str
     cache_dir: str
-    features_mode: str = "cache"
-    rollouts: int = 0  # closed-loop episodes per task (--rollouts)
-    feature_dtype: str = "fp16"  # --feature-dtype
+    # How the run measures (bench.run.service.RunSettings); a task always measures (rerun):
+    # the session submits only cells without a current record.
+    settings: RunSettings = RunSettings()
     rollout_batch: int = 1  # --rollout-batch
     rollout_envs: str = "sync"  # --rollout-envs
 
 
 def run_cell_job(job: CellJob) -> Record:
-    """Array-task entry point, in a fresh process: rebuild the workspace, run the cell, record."""
+    """Array-task entry point, in a fresh process: rebuild the workspace, then the cell through
+    the cell service (bench.run.service: claim, plan, measure, record or failure record)."""
     os.environ["GRAFTBENCH_CACHE"] = job.cache_dir
     os.environ.setdefault("GRAFTBENCH_QUIET", "1")
     if job.profile.offline:  # before anything imports huggingface_hub
         for var in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
             os.environ[var] = "1"
-    from bench.run.runner import run_cell
     from bench.results.store import ResultStore
+    from bench.run.service import CellService
     from bench.run.workspace import Workspace
 
     store = ResultStore(Path(job.results_dir))
+    s = replace(job.settings, rerun=True)
     ws = Workspace(job.profile, store, progress=False, cache=Path(job.cache_dir),
-                   rollouts=job.rollouts, feature_dtype=job.feature_dtype,
+                   rollouts=s.rollouts, feature_dtype=s.feature_dtype,
                    rollout_batch=job.rollout_batch, rollout_envs=job.rollout_envs)
-    try:
-        return run_cell(job.cell, ws, features_mode=job.features_mode)
-    except Exception as e:
-        store.write_failure(Failure.of(job.cell, job.profile.protocol.hash, e))
-        raise
+    return CellService(job.profile, store, lambda: ws, s).run(job.cell)
 
 
 def make_executor(kind: str, folder: Path, slurm: SlurmOptions):

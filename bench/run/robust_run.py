@@ -83,11 +83,12 @@ class RobustRun:
 
     def __init__(self, profile, workspace, rerun: bool = False) -> None:
         self.profile, self.workspace, self.rerun = profile, workspace, rerun
-        self.outcomes: dict[str, str] = {}  # cell id -> "measured" | "resumed" | failure line
+        self.outcomes: dict = {}  # cell id -> bench.run.outcome.Outcome
 
     def run(self, cell: CellSpec):
         """The robustness record of `cell`; the case fails in one line (naming the command that
         measures what is missing) when the cell has no stored record or projector."""
+        from bench.run.outcome import MEASURED, RESUMED, failed
         from bench.run.robust import RobustUnavailable, measure_robust
         from bench.run.robust_loop import rolls_out
 
@@ -98,7 +99,7 @@ class RobustRun:
             record, measured = measure_robust(cell, ws, applied(self.profile), rerun=self.rerun,
                                               rollouts=episodes)
         except RobustUnavailable as e:
-            self.outcomes[cell.id] = str(e)
+            self.outcomes[cell.id] = failed(str(e))
             pytest.fail(str(e), pytrace=False)
-        self.outcomes[cell.id] = "measured" if measured else "resumed"
+        self.outcomes[cell.id] = MEASURED if measured else RESUMED
         return record

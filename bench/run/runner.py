@@ -18,15 +18,13 @@ from bench.run.graft import assert_only_trainable, trainable_parameters
 from bench.run.projectors import save_projector
 from external.graft import GraftFeed, Projector
 from bench.run.inputs import CellInputs
-from bench.run.plan import (  # noqa: F401  (shared_projector_key: read here by tests)
-    CellContext, CellResult, TrainedProjector, cell_context, shared_projector_key,
-)
+from bench.run.plan import CellContext, CellResult, TrainedProjector
 from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
 from bench.run.closed_loop import cell_rollouts, policy_fingerprint
 from bench.results.record import (
-    MeasuredUnder, Record, RunInfo, Training as TrainingPart, checkpoint_of, new_record,
+    MeasuredUnder, RunInfo, Training as TrainingPart, checkpoint_of, new_record,
 )
 from bench.suites.windows import raw_batch
 from bench.run.train import FitConfig, fit, frozen_autocast
@@ -87,25 +85,13 @@ class Graft:
 
 
 @dataclass
-class Training:
+class Fitted:
+    """What training the projector gave (the record's Training part is built from it)."""
+
     curve: list
     probe_losses: dict | None = None
     projector_from: str | None = None  # the graft cell whose trained projector this cell took
     steps: int | None = None  # optimiser steps the projector took (its graft's, when taken)
-
-
-def run_cell(cell: CellSpec, ws: Workspace, features_mode: str = "cache", *,
-             feature_transform=None, projectors: dict | None = None) -> Record:
-    """Measure one cell and write its record, outside a session. features_mode: "cache" (pooled
-    features computed once per frame) or "loop" (the encoder runs inside every step: the naive
-    reference). `projectors`: a dict the caller keeps across calls, so a control takes its
-    graft's trained projector (bench.run.plan); `feature_transform`: CellContext's."""
-    context = cell_context(cell, features_mode, projectors=projectors,
-                           feature_transform=feature_transform)
-    result = measure(cell, ws, context)
-    if projectors is not None and result.trained is not None:
-        projectors[context.keep_as] = result.trained
-    return result.record
 
 
 def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
@@ -122,7 +108,7 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
     inputs = cell_inputs(cell, p, suite, split, backbone, device)
     timings["build"] = time.perf_counter() - t_start
 
-    graft, training, trained = None, Training(curve=[]), None
+    graft, training, trained = None, Fitted(curve=[]), None
     if cell.trains_projector:
         t0 = time.perf_counter()
         graft = build_graft(cell, ws, backbone, inputs, context)
@@ -208,7 +194,7 @@ def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
 
 
 def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
-                context: CellContext) -> tuple[Training, TrainedProjector | None]:
+                context: CellContext) -> tuple[Fitted, TrainedProjector | None]:
     """Fit the projector, or take the identical one its graft trained this session (the plan's
     `context.reuse`); the trained projector is handed back when `context.keep_as` asks."""
     p, split = ws.profile.protocol, ws.split(cell.suite)
@@ -218,7 +204,7 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
     if reused is not None:
         graft.projector.load_state_dict(load_file(reused.path, device=str(device)))
         graft.projector.eval()
-        return Training(reused.curve, reused.probe_losses, reused.cell_id, p.steps), None
+        return Fitted(reused.curve, reused.probe_losses, reused.cell_id, p.steps), None
     probe = probe_frames(split.train_frames)
     before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
     params = list(graft.projector.parameters()) + [
@@ -238,7 +224,7 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
                    for k, v in graft.projector.state_dict().items()}, path)
         kept = TrainedProjector(path, curve, probe_losses, cell.id)
     graft.projector.eval()
-    return Training(curve, probe_losses, steps=fit_cfg.steps), kept
+    return Fitted(curve, probe_losses, steps=fit_cfg.steps), kept
 
 
 def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
@@ -278,7 +264,7 @@ def user_world_fields(cell: CellSpec, ws: Workspace, backbone) -> tuple[dict | N
     return camera_map, dataset
 
 
-def training_fields(backbone, graft: Graft | None, training: Training, encoder,
+def training_fields(backbone, graft: Graft | None, training: Fitted, encoder,
                     projector_kept: tuple[str | None, str | None]) -> TrainingPart:
     """projector_kept: (file relative to the results dir, sha256) of the trained projector."""
     projector = graft.projector if graft else None

@@ -27,9 +27,9 @@ from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord,
                                   new_screen_record, screen_id)
 from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions, ShortScores, screen_features,
                               select_for_graft)
+from bench.run.outcome import MEASURED, RESUMED, Outcome, failed
 from bench.stats import Undefined
 
-MEASURED, RESUMED = "measured", "resumed"
 DROPPED = "dropped by the screen: "  # the skip line of a cell the screen dropped
 
 
@@ -61,7 +61,7 @@ class ScreenRun:
         self.options, self.profile, self.store = options, profile, store
         self.workspace, self.feature_dtype, self.rerun = workspace, feature_dtype, rerun
         self.run_cell = run_cell  # CellSpec -> Record (the session's run), for --screen-by short
-        self.outcomes: dict[str, str] = {}  # screen id -> measured | resumed | failed: line
+        self.outcomes: dict[str, Outcome] = {}  # screen id -> what became of it
         self.dropped: dict[str, str] = {}  # cell id -> why the screen dropped it
         self._screens: dict[str, ScreenRecord | ScreenFailure] = {}
         self._selections: dict[tuple[str, str], ScreenSelection] = {}
@@ -87,7 +87,7 @@ class ScreenRun:
                 self.store.write_screen(item)
             self._screens[sid] = item
             self.outcomes[sid] = (MEASURED if isinstance(item, ScreenRecord)
-                                  else f"failed: {item.error}")
+                                  else failed(item.error))
             self._say(sid, item)
         return self._screens[sid]
 
@@ -164,9 +164,10 @@ class ScreenRun:
             if DROPPED in line:
                 self.dropped[case_id] = line.split(DROPPED, 1)[1]
         elif report.passed:
-            self.outcomes[case_id] = dict(report.user_properties).get(OUTCOME_PROPERTY, MEASURED)
+            told = dict(report.user_properties).get(OUTCOME_PROPERTY)
+            self.outcomes[case_id] = Outcome.of_text(told) if told else MEASURED
         elif report.failed:
-            self.outcomes[case_id] = "failed: " + report.longreprtext.strip().splitlines()[-1]
+            self.outcomes[case_id] = failed(report.longreprtext.strip().splitlines()[-1])
 
     def dropped_reason(self, cell) -> str | None:
         """Why the screen drops `cell` (a cell of a listed, non-reference encoder that was not

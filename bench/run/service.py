@@ -1,0 +1,152 @@
+"""One way to measure a cell: `CellService` takes a cell from its id to its record file.
+
+For every cell kind (graft, control, short graft) and every executor: the pytest session (serial
+or an xdist worker), a submitit / Slurm array task (bench.run.executors.run_cell_job) and a
+script outside pytest (`run_cell`) all call `CellService.run`. It claims the cell on the results
+store (another process measuring it makes this one wait, then resume), sets an unreadable
+record aside, plans (bench.run.plan: resume the stored record or measure, with what), measures
+through its `measure_with` (here, or in an array task), writes a failure record when that
+raises, keeps the projector a later cell takes, and returns the record with a typed outcome
+(bench.run.outcome). The screen's measurements go through `screen` alike.
+
+It imports nothing of pytest: the session turns what it raises into a case's failure.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, replace
+from typing import Callable, Sequence
+
+from bench.grid.cells import CellSpec
+from bench.progress import say
+from bench.run.outcome import MEASURED, RESUMED, Outcome, failed
+from bench.run.plan import CellPlan, CellResult, plan
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """How this run measures (its options, not the protocol): measure again whatever is stored
+    (`rerun`), the features mode, the stored features' dtype, closed-loop episodes per task."""
+
+    rerun: bool = False
+    features_mode: str = "cache"
+    feature_dtype: str = "fp16"
+    rollouts: int = 0
+
+
+def measure_here(cell: CellSpec, ws, context) -> CellResult:
+    """The default runner: the cell measured in this process (bench.run.runner.measure)."""
+    from bench.run.runner import measure
+
+    return measure(cell, ws, context)
+
+
+class CellService:
+    """Plans, measures and writes one cell at a time for one results store. `workspace()` gives
+    the (lazy) workspace; `runner(cell, ws, context) -> CellResult` measures in this process;
+    `measure_with(plan) -> CellResult`, when given, measures elsewhere (a job array);
+    `feature_transform(cell)`: a planted degradation for the cell (the baseline's), or None;
+    `order()`: the run's selected cell ids, for "cell i/n" in the start line."""
+
+    def __init__(self, profile, store, workspace: Callable, settings: RunSettings, *,
+                 runner: Callable = measure_here, measure_with: Callable | None = None,
+                 feature_transform: Callable = lambda cell: None,
+                 order: Callable[[], Sequence[str]] = tuple, claim: bool = True,
+                 projectors: dict | None = None) -> None:
+        self.profile, self.store, self.workspace, self.settings = profile, store, workspace, settings
+        self.runner, self.measure_with = runner, measure_with
+        self.feature_transform, self.order, self.claim = feature_transform, order, claim
+        # Projectors measured cells handed back (CellContext.keep_as): later plans take them.
+        self.projectors: dict = {} if projectors is None else projectors
+        self.records: dict = {}  # cell id -> the Record this service measured or resumed
+        self.outcomes: dict[str, Outcome] = {}  # cell id -> what became of it
+        self.set_aside_lines: list[str] = []  # unreadable records moved aside (store.set_aside)
+
+    # --- one cell ---------------------------------------------------------------------------
+    def run(self, cell: CellSpec):
+        """The cell's record: resumed when the stored one stands for this run, else measured
+        and written (a failure record when measuring raises, then the error)."""
+        if cell.id in self.records:  # a short graft the selection ran before its own case
+            return self.records[cell.id]
+        with self._claim(cell):  # another process on this results dir: wait, then resume
+            if (line := self.store.set_aside(cell.id)) is not None:
+                self.set_aside_lines.append(line)
+                say(self.progress(), line)
+            cell_plan = self.plan(cell)
+            if cell_plan.resume is not None:
+                record, outcome = cell_plan.resume, RESUMED
+            else:
+                record, outcome = self._measure(cell_plan), MEASURED
+        self.records[cell.id], self.outcomes[cell.id] = record, outcome
+        return record
+
+    def plan(self, cell: CellSpec) -> CellPlan:
+        """Resume or measure `cell` (bench.run.plan.plan: reads the store, writes nothing)."""
+        from bench.results.current import RunConditions
+
+        s = self.settings
+        run = RunConditions(protocol_hash=self.profile.protocol.hash,
+                            feature_dtype=s.feature_dtype, rollouts=s.rollouts)
+        return plan(cell, self.store, run, weights=lambda wanted: self._weights(cell, wanted),
+                    rerun=s.rerun, features_mode=s.features_mode, projectors=self.projectors,
+                    feature_transform=self.feature_transform(cell))
+
+    def progress(self):
+        return getattr(self.workspace(), "progress", False)
+
+    def _claim(self, cell: CellSpec):
+        if not self.claim:  # a job array measures in its own tasks: the array is the claimant
+            return contextlib.nullcontext()
+        return self.store.cell_lock(cell.id, on_wait=lambda: say(
+            self.progress(), f"{cell.id}: another process is measuring it (its claim "
+                             f"{self.store.claim_path(cell.id)}); waiting for its record"))
+
+    def _weights(self, cell: CellSpec, run):
+        """`run` with the weights and normaliser this cell is measured on (loads the policy)."""
+        from bench.results.record import checkpoint_revision
+
+        ws = self.workspace()
+        return replace(run, revision=checkpoint_revision(ws.checkpoint(cell.backbone, cell.suite)),
+                       normalizer_fingerprint=ws.normalizer(cell.backbone, cell.suite).fingerprint)
+
+    def _measure(self, cell_plan: CellPlan):
+        cell = cell_plan.cell
+        if cell_plan.discard:  # a degraded record never outlives its run
+            self.store.forget(cell.id)
+        self._say_start(cell_plan)
+        try:
+            result = (self.measure_with(cell_plan) if self.measure_with is not None
+                      else self.runner(cell, self.workspace(), cell_plan.context))
+        except Exception as e:
+            from bench.results.record import Failure
+
+            self.store.write_failure(Failure.of(cell, self.profile.protocol.hash, e))
+            self.outcomes[cell.id] = failed(f"{type(e).__name__}: {e}")
+            raise
+        if result.trained is not None:
+            self.projectors[cell_plan.context.keep_as] = result.trained
+        record = result.record
+        say(self.progress(), f"{cell.id}: MSE {record.mse_in():.4f} normalised "
+                             f"({record.run.total_s:.1f} s)")
+        return record
+
+    def _say_start(self, cell_plan: CellPlan) -> None:
+        cell, order = cell_plan.cell, list(self.order())
+        position = order.index(cell.id) + 1 if cell.id in order else "?"
+        say(self.progress(), f"cell {position}/{len(order)} {cell.id}: "
+                             f"{cell_plan.work(self.profile.protocol.steps)} "
+                             "offline MSE on the held-out windows")
+
+
+def run_cell(cell: CellSpec, ws, features_mode: str = "cache", *, feature_transform=None,
+             projectors: dict | None = None):
+    """Measure one cell and write its record, outside a session (scripts, tests): the service
+    with `rerun` (what is stored is measured again). `projectors`: a dict the caller keeps across
+    calls, so a control takes its graft's trained projector; `feature_transform`: CellContext's."""
+    settings = RunSettings(rerun=True, features_mode=features_mode,
+                           feature_dtype=ws.feature_dtype, rollouts=ws.rollouts)
+    service = CellService(ws.profile, ws.store, lambda: ws, settings,
+                          feature_transform=lambda cell: feature_transform,
+                          projectors=projectors)
+    return service.run(cell)
