@@ -17,6 +17,7 @@ from bench.grid.kinds import control_kinds
 from bench.grid.protocol import Profile, get_profile, with_overrides
 from bench.run.robust_run import add_robustness_option, with_robustness
 from bench.option_values import listed, positive, refuse_empty, report_file, seeds
+from bench.sim.batching import IN_PROCESS, Batching
 from bench.startup import (check_rollout_batch, check_rollouts_possible,
                            check_sim_suites_possible)
 
@@ -332,8 +333,8 @@ class RunOptions:
     features_mode: str = "cache"
     feature_dtype: str = "fp16"
     rollouts: int = 0
-    rollout_batch: int = 1  # --rollout-batch: envs per task at once (bench.sim.batched)
-    rollout_envs: str = "sync"  # --rollout-envs: gym SyncVectorEnv or AsyncVectorEnv
+    # --rollout-batch (envs per task at once), --rollout-envs (gym sync or async vector env)
+    rollout_batching: Batching = IN_PROCESS
     executor: str = "local"
     slurm: object = None  # bench.run.executors.SlurmOptions
     baseline: object = None  # bench.regression.run.BaselineOptions
@@ -372,6 +373,6 @@ def parse_options(config: pytest.Config) -> RunOptions:
         profile, labels, tuple(lines + screen_lines), results_dir,
         report_path(opt("--report"), results, profile.name, results_dir),
         rerun=bool(opt("--rerun")), features_mode=opt("--features"),
-        feature_dtype=opt("--feature-dtype"), rollouts=rollouts, rollout_batch=rollout_batch,
-        rollout_envs=opt("--rollout-envs"), executor=opt("--executor"),
+        feature_dtype=opt("--feature-dtype"), rollouts=rollouts,
+        rollout_batching=Batching(rollout_batch, opt("--rollout-envs")), executor=opt("--executor"),
         slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen)

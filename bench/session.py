@@ -125,7 +125,7 @@ class GraftSession:
     report_path = property(lambda self: self.options.report_path)
     rerun = property(lambda self: self.options.rerun)
     rollouts = property(lambda self: self.options.rollouts)
-    rollout_batch = property(lambda self: (self.options.rollout_batch, self.options.rollout_envs))
+    rollout_batching = property(lambda self: self.options.rollout_batching)
     features_mode = property(lambda self: self.options.features_mode)
     feature_dtype = property(lambda self: self.options.feature_dtype)
     screen_options = property(lambda self: self.options.screen)  # None without --screen
@@ -255,7 +255,7 @@ class GraftSession:
                     and not (self.screening and self.screening.dropped_reason(c))]
             paths = (str(self.results_dir), str(cache_dir()))
             self._cell_array.submit([CellJob(c, self.profile, *paths, self.cells.settings,
-                                             *self.rollout_batch) for c in todo])
+                                             self.rollout_batching) for c in todo])
         return CellResult(self._cell_array.result(cell_plan.cell.id))
 
     # --- the session's ends -----------------------------------------------------------------
@@ -319,9 +319,9 @@ def _default_workspace(session: GraftSession):
         threads, why = serial_threads()
         torch.set_num_threads(threads)
         say(sink, f"torch threads: {threads} ({why})")
-    batch, envs = session.rollout_batch
     return Workspace(session.profile, session.store, progress=sink, rollouts=session.rollouts,
-                     feature_dtype=session.feature_dtype, rollout_batch=batch, rollout_envs=envs)
+                     feature_dtype=session.feature_dtype,
+                     rollout_batching=session.rollout_batching)
 
 
 def serial_threads() -> tuple[int, str]:

@@ -28,6 +28,7 @@ def main() -> None:
     p.add_argument("--n-action-steps", type=int, default=10)
     a = p.parse_args()
     from bench.sim.env import RenderSettings
+    from bench.sim.batching import Batching
     from bench.sim.rollout import RolloutSpec, run_rollouts
 
     if a.release == "zero":
@@ -42,8 +43,8 @@ def main() -> None:
                        a.max_steps, a.n_action_steps)
     load_before = os.getloadavg()
     start = time.perf_counter()
-    out = run_rollouts(act, spec, progress=False, render=RenderSettings(), batch=a.batch,
-                       env_mode=a.envs)
+    out = run_rollouts(act, spec, progress=False, render=RenderSettings(),
+                       batching=Batching(a.batch, a.envs))
     wall = time.perf_counter() - start
     n = len(out["episodes"])
     print(json.dumps({"batch": a.batch, "envs": out["settings"]["env_mode"], "episodes": n,

@@ -13,7 +13,7 @@ import torch
 
 from bench.grid.cells import CellSpec
 from bench.run.closed_loop import (
-    NO_CLOSED_LOOP, cell_act, make_act, observation_noise,
+    NO_CLOSED_LOOP, LoopGraft, cell_act, make_act, observation_noise,
 )
 from bench.run.features import encode_pooled
 from bench.run.graft import GraftFeed, Projector
@@ -67,7 +67,7 @@ def test_graft_act_encodes_live_pixels_like_the_feature_cache(tiny_ws):
     feed = GraftFeed(projector, backbone.camera_keys, grid)
     obs = observations(tiny_ws)
     cell = CellSpec("graft", "pi05", "spatial", 0, "pixels")
-    out = cell_act(cell, backbone, noise_seed=1, feed=feed, encoder=encoder, grid=grid)(obs)
+    out = cell_act(cell, backbone, noise_seed=1, graft=LoopGraft(feed, encoder, grid))(obs)
     noise = observation_noise(obs, backbone.info.chunk_size, backbone.info.max_action_dim, 1)
     frames = tiny_ws.split("spatial").windows[:6]
     stored, tiny_ws.feature_dtype = tiny_ws.feature_dtype, "float32"  # the encoder's own numbers
@@ -80,7 +80,7 @@ def test_graft_act_encodes_live_pixels_like_the_feature_cache(tiny_ws):
     torch.testing.assert_close(out, expected, rtol=1e-4, atol=1e-5)
     # zero_image cells see black frames in closed loop too: not the same actions.
     zero = CellSpec("zero_image", "pi05", "spatial", 0, "pixels", "eval")
-    blank = cell_act(zero, backbone, noise_seed=1, feed=feed, encoder=encoder, grid=grid)(obs)
+    blank = cell_act(zero, backbone, noise_seed=1, graft=LoopGraft(feed, encoder, grid))(obs)
     zeros = encode_pooled(encoder, {k: torch.zeros_like(obs[k]) for k in backbone.camera_keys}, grid)
     torch.testing.assert_close(blank, offline_actions(backbone, obs, noise, feed, zeros),
                                rtol=1e-4, atol=1e-5)

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from bench.sim import env as sim_env
+from bench.sim.batching import Batching
 from bench.sim.rollout import RolloutSpec, Scenes, run_rollouts
 from tests.sim_marks import needs_libero
 
@@ -97,7 +98,7 @@ def test_batched_rollouts_give_the_single_env_episodes_with_fewer_policy_calls()
     single, vector, built = toy_scenes()
     one, many = Policy(), Policy()
     base = run_rollouts(one, spec, progress=False, scenes=single)
-    batched = run_rollouts(many, spec, progress=False, scenes=single, batch=3,
+    batched = run_rollouts(many, spec, progress=False, scenes=single, batching=Batching(3),
                            vector_scenes=vector)
     assert outcomes(batched) == outcomes(base)
     # Not a trivial answer: episodes of both kinds and several lengths, slips included.
@@ -111,7 +112,7 @@ def test_batched_rollouts_give_the_single_env_episodes_with_fewer_policy_calls()
 
     # Resumed per episode as at B = 1: finished rows kept, only the others rolled out.
     rerun = Policy()
-    resumed = run_rollouts(rerun, spec, progress=False, scenes=single, batch=3,
+    resumed = run_rollouts(rerun, spec, progress=False, scenes=single, batching=Batching(3),
                            vector_scenes=vector, finished=base["episodes"][:8])
     assert outcomes(resumed) == outcomes(base) and built[2:] == [2]  # 2 left: 2 slots
     assert resumed["settings"]["resumed_episodes"] == 8
@@ -124,7 +125,7 @@ def test_a_privileged_policy_is_refused_in_a_batch():
                        n_action_steps=1)
     single, vector, _ = toy_scenes()
     with pytest.raises(ValueError, match="batch 1"):
-        run_rollouts(ExpertPolicy("spatial"), spec, progress=False, scenes=single, batch=2,
+        run_rollouts(ExpertPolicy("spatial"), spec, progress=False, scenes=single, batching=Batching(2),
                      vector_scenes=vector)
 
 
@@ -151,7 +152,7 @@ def test_libero_vector_env_meets_the_single_env_observations():
 
     alone, together = [], []
     base = run_rollouts(recorder(alone), spec, progress=False, render=render)
-    batched = run_rollouts(recorder(together), spec, progress=False, render=render, batch=2)
+    batched = run_rollouts(recorder(together), spec, progress=False, render=render, batching=Batching(2))
     assert outcomes(batched) == outcomes(base)
     assert sorted(together) == sorted(alone) and len(alone) == 3 * 2
 
@@ -168,4 +169,4 @@ def test_a_policy_that_raises_in_a_batch_fails_the_cell_naming_the_episodes():
 
     with pytest.raises(RolloutCrashed, match=r"spatial task 0 episode 0 \(init state 49\), "
                        r"episode 1 \(init state 48\): the policy: RuntimeError: CUDA out of"):
-        run_rollouts(broken, spec, progress=False, scenes=single, batch=2, vector_scenes=vector)
+        run_rollouts(broken, spec, progress=False, scenes=single, batching=Batching(2), vector_scenes=vector)

@@ -226,9 +226,10 @@ def test_a_report_naming_a_folder_is_refused_at_start(bench_run):
 def test_a_report_that_could_not_be_written_is_said_not_left_as_it_was(tmp_path):
     """The summary after a report that failed to write (were --report's start-up check
     bypassed, or the disk full): it was "left as it was (this run finished no new cell)"."""
+    from bench.run.outcome import MEASURED
     from bench.summary import summary_lines
 
-    lines = summary_lines("tiny", "h", {"pi05-spatial-pixels-seed0": "measured"}, 1, tmp_path,
+    lines = summary_lines("tiny", "h", {"pi05-spatial-pixels-seed0": MEASURED}, 1, tmp_path,
                           tmp_path, False, "IsADirectoryError: [Errno 21] Is a directory")
     assert lines[3] == (f"report: NOT WRITTEN to {tmp_path} (IsADirectoryError: [Errno 21] Is a "
                         "directory)"), lines

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
@@ -26,6 +27,17 @@ from external.libero_format import LIBERO_SUITES
 
 # A function of one observation's images {camera: (B, 3, H, W)} (features, or other images).
 ObservationFn = Callable[[dict[str, Tensor]], dict[str, Tensor]]
+
+
+@dataclass(frozen=True)
+class LoopGraft:
+    """What a graft splices into the policy in closed loop: its feed (projector; for
+    native_wrapped the policy's own tower through the wrapper), and, for an encoder graft, the
+    encoder that turns each rendered frame into features pooled to `grid`."""
+
+    feed: object
+    encoder: object = None
+    grid: tuple | None = None
 
 
 def observation_noise(raw: dict, chunk: int, width: int, seed: int) -> Tensor:
@@ -76,7 +88,7 @@ def make_act(backbone, *, noise_seed: int, feed=None, features_from_images: Obse
 
 ROLLOUT_SEED = 0  # env seeds of rollout episodes (init states are fixed by the episode index)
 
-def cell_act(cell, backbone, *, noise_seed: int, feed=None, encoder=None, grid=None,
+def cell_act(cell, backbone, *, noise_seed: int, graft: LoopGraft | None = None,
              perturb: ObservationFn | None = None):
     """`make_act` for a cell: native cells sample as released; grafts encode live pixels.
     `perturb`: applied to every rendered frame before the policy or its encoder sees it (the
@@ -85,8 +97,9 @@ def cell_act(cell, backbone, *, noise_seed: int, feed=None, encoder=None, grid=N
     transform = (lambda images: {k: torch.zeros_like(v) for k, v in images.items()}) if zero else None
     if perturb is not None:
         transform = perturb if transform is None else (lambda images: transform(perturb(images)))
-    if feed is None:
+    if graft is None:
         return make_act(backbone, noise_seed=noise_seed, images_transform=transform)
+    feed, encoder, grid = graft.feed, graft.encoder, graft.grid
     if feed.tower is not None:  # native_wrapped: the feed runs the policy's own tower itself
         return make_act(backbone, noise_seed=noise_seed, feed=feed, images_transform=transform)
     from bench.run.features import encode_pooled
@@ -139,35 +152,34 @@ def rollout_log_key(spec, render, policy: str) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *, feed=None, encoder=None,
-                  grid=None, progress: bool = True, store=None, policy: str = "",
-                  scenes=None, batch: int = 1, env_mode: str = "sync", perturb=None,
+def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *,
+                  graft: LoopGraft | None = None, progress: bool = True, store=None,
+                  policy: str = "", scenes=None, batching=None, perturb=None,
                   log_id: str | None = None) -> dict:
     """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts".
 
     With a results `store`, every finished episode is kept in the cell's episode log (under
     the spec, render settings and `policy`, a policy_fingerprint) and a rerun after a kill
     resumes from it. `scenes`: bench.sim.rollout.Scenes (LIBERO's unless a test passes one);
-    `batch` > 1: that many envs of a task at once in a gym vector env (`env_mode` sync/async),
-    the same episodes, so the episode log's key leaves it out. `perturb` (cell_act) and
+    `batching`: bench.sim.rollout.Batching (None: in-process), the same episodes whatever it is,
+    so the episode log's key leaves it out. `perturb` (cell_act) and
     `log_id` (the episode log's name, default the cell id): the robustness tier's rollouts."""
     if cell.spec.eval_inputs in NO_CLOSED_LOOP:
         return {"skipped": NO_CLOSED_LOOP[cell.spec.eval_inputs]}
     from dataclasses import asdict
 
-    from bench.sim.rollout import LIBERO, run_rollouts
+    from bench.sim.rollout import IN_PROCESS, LIBERO, run_rollouts
 
     scenes = scenes or LIBERO
     spec = rollout_spec(suite, episodes_per_task, backbone.info.chunk_size, scenes.descriptions)
     render = suite_render(suite)
-    act = cell_act(cell, backbone, noise_seed=spec.seed, feed=feed, encoder=encoder, grid=grid,
-                   perturb=perturb)
+    act = cell_act(cell, backbone, noise_seed=spec.seed, graft=graft, perturb=perturb)
     log = (store.episode_log(log_id or cell.id, rollout_log_key(spec, render, policy))
            if store else None)
     out = run_rollouts(act, spec, progress=progress, render=render,
                        finished=log.finished() if log else [],
-                       on_episode=log.add if log else None, scenes=scenes, batch=batch,
-                       env_mode=env_mode)
+                       on_episode=log.add if log else None, scenes=scenes,
+                       batching=batching or IN_PROCESS)
     return {**out, "spec": asdict(spec)}
 
 

@@ -23,6 +23,7 @@ from external.paths import REPO_ROOT
 from bench.grid.protocol import Profile
 from bench.results.record import Record
 from bench.run.service import RunSettings
+from bench.sim.batching import IN_PROCESS, Batching
 
 EXECUTORS = ("local", "slurm", "submitit-local")
 
@@ -50,8 +51,7 @@ class CellJob:
     # How the run measures (bench.run.service.RunSettings); a task always measures (rerun):
     # the session submits only cells without a current record.
     settings: RunSettings = RunSettings()
-    rollout_batch: int = 1  # --rollout-batch
-    rollout_envs: str = "sync"  # --rollout-envs
+    rollout_batching: Batching = IN_PROCESS  # --rollout-batch, --rollout-envs
 
 
 def run_cell_job(job: CellJob) -> Record:
@@ -70,7 +70,7 @@ def run_cell_job(job: CellJob) -> Record:
     s = replace(job.settings, rerun=True)
     ws = Workspace(job.profile, store, progress=False, cache=Path(job.cache_dir),
                    rollouts=s.rollouts, feature_dtype=s.feature_dtype,
-                   rollout_batch=job.rollout_batch, rollout_envs=job.rollout_envs)
+                   rollout_batching=job.rollout_batching)
     return CellService(job.profile, store, lambda: ws, s).run(job.cell)
 
 

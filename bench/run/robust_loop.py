@@ -21,7 +21,7 @@ from torch import Tensor
 
 from bench.grid.cells import CellSpec, graft_cells
 from bench.grid.kinds import GRAFT, NATIVE
-from bench.run.closed_loop import cell_rollouts, policy_fingerprint
+from bench.run.closed_loop import LoopGraft, cell_rollouts, policy_fingerprint
 from bench.run.perturbations import Applied
 
 # The cells that roll out under perturbations (besides the best graft): the released policy.
@@ -86,10 +86,11 @@ def rollouts_under(applied: Applied, cell: CellSpec, ws, scorer, record, episode
     identity = json.dumps({"measured": asdict(record.measured),
                            "perturbation": applied.to_json()}, sort_keys=True, default=str)
     name = log_id(cell, applied)
-    out = cell_rollouts(cell, scorer.suite, scorer.backbone, episodes, feed=scorer.feed,
-                        encoder=scorer.inputs.encoder, grid=scorer.inputs.grid,
+    graft = (LoopGraft(scorer.feed, scorer.inputs.encoder, scorer.inputs.grid)
+             if scorer.feed is not None else None)
+    out = cell_rollouts(cell, scorer.suite, scorer.backbone, episodes, graft=graft,
                         progress=ws.progress, store=ws.store, scenes=scenes,
-                        batch=ws.rollout_batch, env_mode=ws.rollout_envs,
+                        batching=ws.rollout_batching,
                         perturb=perturb_frames(applied), log_id=name,
                         policy=policy_fingerprint(scorer.backbone, scorer.feed, identity))
     ws.store.episode_log(name, "").clear()  # the robustness record holds them now

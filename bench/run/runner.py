@@ -22,7 +22,7 @@ from bench.run.plan import CellContext, CellResult, TrainedProjector
 from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
-from bench.run.closed_loop import cell_rollouts, policy_fingerprint
+from bench.run.closed_loop import LoopGraft, cell_rollouts, policy_fingerprint
 from bench.results.record import (
     MeasuredUnder, RunInfo, Training as TrainingPart, checkpoint_of, new_record,
 )
@@ -131,9 +131,9 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
         t0 = time.perf_counter()
         feed = graft.feed if graft else None
         rollouts = cell_rollouts(
-            cell, suite, backbone, ws.rollouts, feed=feed, encoder=inputs.encoder,
-            grid=inputs.grid, progress=ws.progress, store=ws.store,
-            batch=ws.rollout_batch, env_mode=ws.rollout_envs,
+            cell, suite, backbone, ws.rollouts, store=ws.store, progress=ws.progress,
+            graft=LoopGraft(feed, inputs.encoder, inputs.grid) if graft else None,
+            batching=ws.rollout_batching,
             policy=policy_fingerprint(backbone, feed, json.dumps(asdict(measured),
                                                                  sort_keys=True, default=str)))
         timings.update(rollouts=time.perf_counter() - t0)  # the phase (a timings_s entry)

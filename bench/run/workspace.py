@@ -20,6 +20,7 @@ from external.paths import cache_dir
 from bench.progress import say
 from bench.grid.protocol import Profile
 from bench.results.store import ResultStore
+from bench.sim.batching import IN_PROCESS, Batching
 from bench.suites import load_suite
 from bench.suites.user import load_user_suite
 from bench.run.userworld import load_user_policy
@@ -44,10 +45,9 @@ class Workspace:
     progress: object = True  # a bench.progress sink, or a bool
     # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
     rollouts: int = 0
-    # How they are run (bench.sim.batched): envs per task at once, gym sync or async vector env.
-    # Not part of what a cell measures: the same episodes whatever the batch.
-    rollout_batch: int = 1
-    rollout_envs: str = "sync"
+    # How they are run (bench.sim.rollout.Batching): envs per task at once, gym sync or async
+    # vector env. Not part of what a cell measures: the same episodes whatever the batch.
+    rollout_batching: Batching = IN_PROCESS
     cache: Path = field(default_factory=cache_dir)
     _suites: dict = field(default_factory=dict)
     _splits: dict = field(default_factory=dict)

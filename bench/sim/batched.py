@@ -200,15 +200,16 @@ class _TaskBatch:
 
 
 def run_task_batched(act, spec, task: int, planned: list[tuple[int, int, int]],
-                     description: str, render, batch: int, mode: str, scenes: VectorScenes,
+                     description: str, render, batching, scenes: VectorScenes,
                      done: Callable[[dict], None], crash: Callable[[Callable, str], object]):
-    """Roll out `planned` (episode, init state, env seed) of `task` over min(batch, episodes)
-    slots of a vector env, refilling a slot as its episode ends; `done(row)` for each."""
+    """Roll out `planned` (episode, init state, env seed) of `task` over min(batching.size, episodes)
+    slots of a vector env (`batching`: bench.sim.rollout.Batching), refilling a slot as its
+    episode ends; `done(row)` for each."""
     if getattr(act, "on_reset", None) is not None:
         raise ValueError("a privileged policy (on_reset: the scripted expert, a replay) reads "
                          "its env in-process; roll it out with batch 1")
     planned = list(planned)
-    width = min(batch, len(planned))
+    width, mode = min(batching.size, len(planned)), batching.mode
     venv = crash(lambda: scenes.make_vector_env(spec.suite, task, render, spec.max_steps, width,
                                                 mode),
                  f"{spec.suite} task {task}: building its {width} {mode} envs")

@@ -29,6 +29,7 @@ import torch
 
 from bench.progress import as_sink
 from bench.sim import env as sim_env
+from bench.sim.batching import IN_PROCESS, Batching
 from bench.stats import wilson_interval
 
 ActFn = Callable[[dict], torch.Tensor]  # raw obs (batch of B) -> (B, T, 7) raw actions
@@ -123,40 +124,40 @@ def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
             "seconds": round(time.perf_counter() - start, 2)}
 
 
+
+
 def run_rollouts(act: ActFn, spec: RolloutSpec, progress: bool = True,
                  render: sim_env.RenderSettings | None = None, *, finished: list[dict] = (),
                  on_episode: Callable[[dict], None] | None = None,
-                 scenes: Scenes = LIBERO, batch: int = 1, env_mode: str = "sync",
+                 scenes: Scenes = LIBERO, batching: Batching = IN_PROCESS,
                  vector_scenes=None) -> dict:
     """Run `spec` with policy `act`; per-episode successes, rates and Wilson 95% intervals.
 
     act(raw) -> (B, T, 7) raw actions, raw = {"observation.images.image": (B, 3, H, W) float32
     [0, 1], "observation.images.wrist_image": same, "observation.state": (B, 8) float32,
-    "task": list[str]}. batch = 1: one env in-process (`scenes`), stepped alone; batch > 1:
-    that many envs of a task in a gym vector env (bench.sim.batched; `env_mode` "sync" or
-    "async", `vector_scenes` LIBERO's unless a test passes its own), same episodes and rows.
+    "task": list[str]}. `batching` (Batching): one env in-process (`scenes`), or that many envs
+    of a task in a gym vector env (`vector_scenes` LIBERO's unless a test passes its own), same
+    episodes and rows.
     finished: episode rows of an interrupted run of the same policy and spec (kept, not rerun);
     on_episode: called with each new row as soon as its episode ends.
     """
     render = render or sim_env.RenderSettings()
-    if batch < 1:
-        raise ValueError(f"rollout batch {batch}: give envs per task >= 1")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # 2 shared cores: one thread each for sim and policy is faster
     start = time.perf_counter()
     try:
         episodes = _run_all(act, spec, progress, render, finished, on_episode, scenes,
-                            batch, env_mode, vector_scenes)
+                            batching, vector_scenes)
     finally:
         torch.set_num_threads(threads)
     out = summarise(episodes, spec, render, time.perf_counter() - start,
                     resumed=len({(e["task"], e["episode"]) for e in finished}))
-    out["settings"].update(batch=batch, env_mode=env_mode if batch > 1 else "in-process")
+    out["settings"].update(batch=batching.size, env_mode=batching.label)
     return out
 
 
 def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.RenderSettings,
-             finished, on_episode, scenes: Scenes, batch: int = 1, env_mode: str = "sync",
+             finished, on_episode, scenes: Scenes, batching: Batching = IN_PROCESS,
              vector_scenes=None) -> list[dict]:
     done = {(int(e["task"]), int(e["episode"])): e for e in finished}
     descriptions = scenes.descriptions(spec.suite)
@@ -166,8 +167,8 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
         return (f"{len(episodes)} episode(s) finished before it are kept; rerun to resume"
                 if on_episode is not None else "no episode log: a rerun starts over")
 
-    if batch > 1:
-        return _run_batched(act, spec, progress, render, done, on_episode, batch, env_mode,
+    if batching.size > 1:
+        return _run_batched(act, spec, progress, render, done, on_episode, batching,
                             vector_scenes, descriptions, episodes, kept)
 
     for task in spec.tasks:
@@ -200,7 +201,7 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
 
 
 def _run_batched(act: ActFn, spec: RolloutSpec, progress: bool, render, done: dict, on_episode,
-                 batch: int, env_mode: str, vector_scenes, descriptions, episodes: list,
+                 batching: Batching, vector_scenes, descriptions, episodes: list,
                  kept: Callable[[], str]) -> list[dict]:
     """_run_all's batch > 1 way (bench.sim.batched): the same planned episodes, B at a time."""
     from bench.sim import batched
@@ -218,8 +219,8 @@ def _run_batched(act: ActFn, spec: RolloutSpec, progress: bool, render, done: di
                    for e in range(spec.episodes_per_task) if (task, e) not in done]
         episodes += [done[(task, e)] for e in range(spec.episodes_per_task) if (task, e) in done]
         if planned:
-            batched.run_task_batched(act, spec, task, planned, descriptions[task], render, batch,
-                                     env_mode, vector_scenes, ended,
+            batched.run_task_batched(act, spec, task, planned, descriptions[task], render,
+                                     batching, vector_scenes, ended,
                                      lambda step, where: _crash_named(step, where, kept()))
     # Rows in the B = 1 order (task, episode), whatever order the slots finished in.
     order = {t: i for i, t in enumerate(spec.tasks)}
