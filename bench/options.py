@@ -16,6 +16,9 @@ from external.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import Profile, get_profile, with_overrides
 from bench.run.robust_run import add_robustness_option, with_robustness
+from bench.screen.proxies import PROXIES, proxy_names
+from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
+                                    parse_screen_by, parse_screen_keep)
 from bench.option_values import listed, positive, refuse_empty, report_file, seeds
 from bench.sim.batching import IN_PROCESS, Batching
 from bench.startup import (check_rollout_batch, check_rollouts_possible,
@@ -94,18 +97,20 @@ def _add_sim_options(g) -> None:
 
 
 def _add_screen_options(g) -> None:
-    """The screen tier (bench.run.screen): screen every encoder, graft the best few."""
+    """The screen tier (bench.screen): screen every encoder, graft the best few. The proxies
+    named are the table's (bench.screen.proxies) when the plugin loads."""
     g.addoption("--screen", action="store_true",
-                help="screen every --encoders name first (no training: LogME, ridge, k-NN, "
-                     "entropy on stored features; cases test_screen[BACKBONE-SUITE-ENCODER]), "
-                     "then graft only the best --screen-keep plus the pixels/blind references")
+                help="screen every --encoders name first (no training: "
+                     f"{', '.join(p.label for p in PROXIES.values())} on stored features; cases "
+                     "test_screen[BACKBONE-SUITE-ENCODER]), then graft only the best "
+                     "--screen-keep plus the pixels/blind references")
     g.addoption("--screen-keep", metavar="K|all",
                 help=f"with --screen: encoders grafted per backbone x suite (default "
                      f"{DEFAULT_SCREEN_KEEP}); all: every screened one (the calibration study)")
     g.addoption("--screen-by", metavar="PROXY",
-                help="with --screen: the proxy that ranks them, logme (default), ridge, knn, "
-                     "entropy, or short (the 1/4-steps short graft's MSE, lower is better: the "
-                     "selection then waits for every short graft)")
+                help=f"with --screen: the proxy that ranks them, {_proxy_choices()}, or short "
+                     "(the 1/4-steps short graft's MSE, lower is better: the selection then waits "
+                     "for every short graft)")
     g.addoption("--screen-calibration", metavar="RESULTS_DIR",
                 help="with --screen: the results dir of a calibration study (a --screen "
                      "--screen-keep all run) whose agreement with the graft the report quotes "
@@ -113,6 +118,11 @@ def _add_screen_options(g) -> None:
 
 
 DEFAULT_SCREEN_KEEP = 3
+
+
+def _proxy_choices() -> str:
+    """'logme (default), ridge, knn, entropy': the table's proxies, the default marked."""
+    return ", ".join(p + (" (default)" if p == DEFAULT_SCREEN_BY else "") for p in proxy_names())
 
 
 def screen_options(config: pytest.Config, profile):
@@ -130,9 +140,6 @@ def screen_options(config: pytest.Config, profile):
         return profile, None, []
     import dataclasses
 
-    from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
-                                  parse_screen_by, parse_screen_keep)
-
     try:
         options = ScreenOptions(parse_screen_keep(keep) if keep is not None else DEFAULT_SCREEN_KEEP,
                                 parse_screen_by(by) if by is not None else DEFAULT_SCREEN_BY,
@@ -145,7 +152,7 @@ def screen_options(config: pytest.Config, profile):
         # are themselves in the array: not supported yet.
         raise pytest.UsageError(f"--screen-by short with --executor {executor}: the selection "
                                 "waits for short grafts run in this process; fix: --executor "
-                                "local, or rank by a proxy (logme, ridge, knn, entropy)")
+                                f"local, or rank by a proxy ({', '.join(proxy_names())})")
     added = tuple(r for r in REFERENCES if r not in profile.encoders)
     screened = [e for e in profile.encoders if e not in REFERENCES]
     # The references are screened too (every listed encoder is): count what will run.
@@ -338,7 +345,7 @@ class RunOptions:
     executor: str = "local"
     slurm: object = None  # bench.run.executors.SlurmOptions
     baseline: object = None  # bench.regression.run.BaselineOptions
-    screen: object = None  # bench.run.screen.ScreenOptions; None without --screen
+    screen: object = None  # bench.screen.selection.ScreenOptions; None without --screen
 
 
 def parse_options(config: pytest.Config) -> RunOptions:

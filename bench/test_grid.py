@@ -39,7 +39,7 @@ def _check_record(record: Record, cell) -> None:
 def test_screen(screen_case, graft_session, record_property):
     """--screen only, before the grafts: the encoder's proxies stored (or resumed); an encoder
     that cannot be built or extracted fails here in one line, and the screen goes on."""
-    from bench.results.screen import ScreenFailure
+    from bench.screen.records import ScreenFailure
 
     item = graft_session.screening.screen(screen_case.backbone, screen_case.suite,
                                           screen_case.encoder)

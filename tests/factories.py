@@ -127,7 +127,7 @@ def make_calibration_study(results_dir: str | Path, levels: dict[str, float],
     """A `--screen --screen-keep all` results dir, fabricated: per encoder a graft record at
     `levels[encoder]` per seed (noise 0.001) and a screen whose every supervised proxy's gain is
     -level (a perfect screen: tau-b 1), entropy 0.9 (all tie)."""
-    from bench.results.screen import ScreenConditions, ScreenScores, new_screen_record
+    from bench.screen.records import ScreenConditions, ScreenScores, new_screen_record
 
     store = ResultStore(results_dir)
     for encoder, level in levels.items():

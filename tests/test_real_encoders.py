@@ -19,7 +19,7 @@ from PIL import Image
 
 # Imported before pytester's sys.modules snapshot (the in-process run reuses them).
 import backbones  # noqa: F401
-import bench.run.screen  # noqa: F401
+import bench.screen.measure  # noqa: F401
 import encoders
 from encoders import real
 from external.hubcache import file_sha256

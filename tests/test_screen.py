@@ -1,4 +1,4 @@
-"""bench.run.screen on the tiny world: a screen cell from the feature store, and the known-answer
+"""bench.screen on the tiny world: a screen from the feature store, and the known-answer
 ladder (falling resolution, then rising noise, down to blind) whose planted order every
 supervised proxy must recover exactly (Kendall tau = 1); the label-free entropy is measured."""
 
@@ -12,13 +12,23 @@ import torch
 import torch.nn.functional as F
 
 from bench.analysis.agreement import Undefined, is_defined, kendall_tau_b
-from bench.run.screen import (SUPERVISED, ScreenOptions, ScreenScores, parse_screen_keep,
-                              screen_cell, screen_features, select_for_graft)
+from bench.screen.measure import measure_screen, screen_features
+from bench.screen.proxies import supervised_proxies
+from bench.screen.records import ScreenConditions, ScreenScores
+from bench.screen.selection import (ScreenOptions, ShortScores, parse_screen_keep,
+                                    select_for_graft)
 
 SUITE = "spatial"
 # (resolution of the camera image, noise sigma on its pixels); then blind. Information falls by
 # construction: 4x4 is an average of 8x8, and the 0.03 noise is the 0.02 noise scaled by 1.5.
 LADDER = ((8, 0.0), (4, 0.0), (4, 0.02), (4, 0.03))
+SUPERVISED = tuple(p.name for p in supervised_proxies())
+# What the records say they were measured under: only the scores are read here.
+CONDITIONS = ScreenConditions("protocol", "normaliser", "fp16")
+
+
+def screen(ws, encoder: str, backbone: str = "smolvla") -> ScreenScores:
+    return measure_screen(ws, encoder, backbone, SUITE, CONDITIONS).scores
 
 
 def coarse_pixels(suite) -> dict[int, dict]:
@@ -68,8 +78,10 @@ def test_every_supervised_proxy_recovers_the_planted_order(tiny_ws, ladder, back
     assert all(is_defined(e) and 0 <= e <= 1 for e in entropy)
 
 
-def test_screen_cell_reads_the_store_and_scores_the_grafts_windows(tiny_ws):
-    out = screen_cell(tiny_ws, "pixels", "smolvla", SUITE)
+def test_a_screen_reads_the_store_and_scores_the_grafts_windows(tiny_ws):
+    record = measure_screen(tiny_ws, "pixels", "smolvla", SUITE, CONDITIONS)
+    assert record.conditions == CONDITIONS and record.screen_id == "smolvla-spatial-pixels"
+    out = record.scores
     split = tiny_ws.split(SUITE)
     assert out.n_heldout == len(split.windows) and out.n_train == len(split.train_frames)
     cameras = len(tiny_ws.suite(SUITE).camera_keys)
@@ -80,7 +92,7 @@ def test_screen_cell_reads_the_store_and_scores_the_grafts_windows(tiny_ws):
     assert out.proxies["ridge"]["state"] > 0 and out.chosen["state"]["knn_k"] >= 1
     again = ScreenScores.from_json(json.loads(json.dumps(out.to_json())))
     assert again.to_json() == out.to_json() and again.score("knn") == out.score("knn")
-    blind = screen_cell(tiny_ws, "blind", "smolvla", SUITE)
+    blind = screen(tiny_ws, "blind")
     assert blind.entropy == 1.0  # every token of the constant grid has the same norm
     assert blind.proxies["logme"]["gain"] == 0.0  # constant features are dropped: no gain
 
@@ -93,7 +105,7 @@ def test_screen_bits_follow_torch_threads_not_numpys_blas_default(tiny_ws, one_t
     proxies = []
     for blas_threads in (1, 2):
         with threadpool_limits(blas_threads, user_api="blas"):
-            proxies.append(screen_cell(tiny_ws, "pixels", "smolvla", SUITE).proxies)
+            proxies.append(screen(tiny_ws, "pixels").proxies)
     assert proxies[0] == proxies[1]
 
 
@@ -135,8 +147,6 @@ def test_select_for_graft_keeps_the_top_and_says_what_it_dropped():
 
 
 def test_select_by_short_keeps_the_lowest_short_graft_mse():
-    from bench.run.screen import ShortScores
-
     shorts = [ShortScores("a", 0.30), ShortScores("b", 0.10), ShortScores("c", 0.20),
               ShortScores("d", Undefined("its short graft failed: boom"))]
     chosen = select_for_graft("smolvla", SUITE, shorts, ScreenOptions(1, "short"))

@@ -12,10 +12,10 @@ import pytest
 from bench.grid.cells import CellSpec
 from bench.grid.kinds import GRAFT
 from bench.grid.protocol import TINY
-from bench.results.screen import ScreenFailure, ScreenRecord
 from bench.results.store import ResultStore, load_results
-from bench.run.screen import ScreenOptions
 from bench.run.screen_run import ScreenRun
+from bench.screen.records import ScreenFailure, ScreenRecord
+from bench.screen.selection import ScreenOptions
 from bench.run.outcome import MEASURED, RESUMED
 
 SCREENED = ("dinov2_s", "fastvit", "repvit")  # ranked by the screen; pixels, blind: references
@@ -143,7 +143,7 @@ def test_a_screen_another_worker_is_measuring_is_waited_for_and_resumed(tiny_ws,
     the screen's lock (ResultStore.screen_lock), then resumes what that worker stored."""
     import threading
 
-    from bench.results.screen import ScreenScores, new_screen_record
+    from bench.screen.records import ScreenScores, new_screen_record
 
     store = ResultStore(tmp_path)
     profile = dataclasses.replace(TINY, encoders=("pixels", "blind"))
@@ -167,7 +167,7 @@ def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path)
     """pixels_res8..1, blind (encoders.known.LADDER): information falls by construction,
     and every supervised proxy recovers that order exactly; the entropy is only measured."""
     from bench.analysis.agreement import kendall_tau_b
-    from bench.run.screen import SUPERVISED
+    from bench.screen.proxies import supervised_proxies
     from encoders.known import LADDER
 
     profile = dataclasses.replace(TINY, encoders=LADDER)
@@ -175,7 +175,7 @@ def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path)
                     feature_dtype="fp16")
     screens = [run.screen("smolvla", "spatial", e).scores for e in LADDER]
     planted = list(range(len(LADDER), 0, -1))  # higher is better: pixels first
-    for proxy in SUPERVISED:
+    for proxy in (p.name for p in supervised_proxies()):
         scores = [s.score(proxy) for s in screens]
         assert kendall_tau_b(scores, planted) == pytest.approx(1.0), (proxy, scores)
 
@@ -193,7 +193,7 @@ def test_more_kept_than_listed_is_allowed_and_said(bench_cli, tmp_path):
 
 
 def test_screen_files_are_validated_round_trip_and_a_bad_one_is_skipped(tmp_path):
-    from bench.results.screen import (ScreenConditions, ScreenScores, ScreenSelection,
+    from bench.screen.records import (ScreenConditions, ScreenScores, ScreenSelection,
                                       new_screen_record)
     from bench.stats import Undefined
 

@@ -1,4 +1,4 @@
-"""bench.analysis.screening: LogME against an explicit N x N evidence, ridge against its closed
+"""bench.screen.estimators: LogME against an explicit N x N evidence, ridge against its closed
 form, k-NN and the entropy by hand, and undefined proxies with their reasons."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from bench.analysis.agreement import Undefined
-from bench.analysis.screening import (Moments, knn_heldout, logme, logme_fit, logme_moments,
-                                      moments, norm_entropy, ridge_fit, ridge_heldout,
-                                      squared_error, token_norms)
+from bench.screen.estimators import (Moments, knn_heldout, logme, logme_fit, logme_moments,
+                                     moments, norm_entropy, ridge_fit, ridge_heldout,
+                                     squared_error, token_norms)
 
 
 def explicit_evidence(f: np.ndarray, y: np.ndarray, alpha: float, beta: float) -> float:

@@ -142,7 +142,7 @@ def test_a_short_graft_another_worker_is_running_is_waited_for(tmp_path):
     the later one waits, then its run resumes what the first stored."""
     import threading
 
-    from bench.run.screen import ScreenOptions
+    from bench.screen.selection import ScreenOptions
     from bench.run.screen_run import ScreenRun
 
     store = ResultStore(tmp_path)

@@ -20,7 +20,7 @@ import pytest
 # Imported before pytester's sys.modules snapshot: the in-process runs reuse them (re-importing
 # torchvision ops would fail) and pay no import time.
 import backbones  # noqa: F401
-import bench.run.screen  # noqa: F401  (--screen options parse there)
+import bench.screen.measure  # noqa: F401  (--screen: the screen's modules, torch's too)
 import bench.run.userworld  # noqa: F401
 import bench.sim.env  # noqa: F401  (its libero_available is replaced by tests below)
 import bench.suites.user  # noqa: F401
@@ -137,7 +137,7 @@ def test_a_calibration_study_without_screens_or_grafts_is_refused(bench_run):
     """--screen-calibration names a folder that holds no calibration study: no screen at all, or
     screens without a graft of a screened encoder (the screens of a `-k test_screen` run).
     --collect-only: were the check gone, these runs would stop after collecting, not run cells."""
-    from bench.results.screen import ScreenConditions, ScreenScores, new_screen_record
+    from bench.screen.records import ScreenConditions, ScreenScores, new_screen_record
     from bench.results.store import ResultStore
 
     store = ResultStore(bench_run.path / "calib")

@@ -56,7 +56,7 @@ def test_unpaired_windows_are_refused():
 
 def test_report_tables_print_numbers_intervals_and_reasons():
     from bench.report.screen import agreement_table, screen_table
-    from bench.run.screen import ScreenScores
+    from bench.screen.records import ScreenScores
 
     ok = tier_agreement({e: -level for e, level in LEVELS.items()}, grafts(), "smolvla",
                         "spatial", "ridge", n_resamples=50)
@@ -76,7 +76,7 @@ def test_the_report_section_from_a_store_of_screens(tmp_path):
     """Seven stored screens whose ridge gain orders them as their grafts do, a selection: the
     report's screen section measures the agreement with intervals, and lists what was dropped."""
     from bench.report.build import build_report
-    from bench.results.screen import ScreenFailure, ScreenSelection
+    from bench.screen.records import ScreenFailure, ScreenSelection
     from tests.factories import make_calibration_study
 
     store = make_calibration_study(tmp_path / "results", LEVELS)
@@ -100,7 +100,7 @@ def test_a_top_k_run_quotes_the_calibration_study_it_names_or_why_not(tmp_path):
     agreement per backbone x suite with its path; a study without that backbone x suite, or gone
     since the run, is said in words, never as numbers."""
     from bench.report.screen import calibration_parts, calibrations
-    from bench.results.screen import ScreenSelection
+    from bench.screen.records import ScreenSelection
     from tests.factories import make_calibration_study
 
     study = str(make_calibration_study(tmp_path / "calib", LEVELS).root)
@@ -146,7 +146,7 @@ def test_the_cost_table_counts_the_extraction_a_screen_found_stored():
     """A screen that opened the graft's stored features spent 0.017 s; the file took 300 s to
     extract. The table showed 0.017: the screen looked free."""
     from bench.report.screen import cost_table
-    from bench.results.screen import ScreenConditions, ScreenScores, new_screen_record
+    from bench.screen.records import ScreenConditions, ScreenScores, new_screen_record
 
     conditions = ScreenConditions("h", "f", "fp16")
     stored = [new_screen_record(ScreenScores("dinov2_s", "smolvla", "spatial", seconds=0.5),

@@ -15,13 +15,11 @@ from bench.analysis.tiers import (MIN_ENCODERS, graft_per_window, short_graft_ag
                                   short_tier, tier_agreement)
 from bench.grid.kinds import GRAFT, SHORT_GRAFT, get_kind
 from bench.report.format import num, table
+from bench.screen.proxies import INPUT_SETS, label_free_proxies, proxy_names, supervised_proxies
+from bench.screen.records import GAIN, HELDOUT
 
-# bench.run.screen.SCREEN_BY, spelled here so the report does not import torch.
-SCREEN_BY = ("logme", "ridge", "knn", "entropy")
 SECTION_TITLE = "Screening many encoders"  # a report has it when its store holds screens
 SCATTER_TITLE = "Screen proxies against the graft's MSE"
-
-PROXIES = ("logme", "ridge", "knn")
 
 
 def measure(value, digits: int = 4) -> str:
@@ -30,16 +28,20 @@ def measure(value, digits: int = 4) -> str:
 
 
 def screen_table(screens: Sequence) -> str:
-    """One row per screened (backbone, suite, encoder): each supervised proxy's gain of the
-    features over the state, ridge and k-NN held-out MSE with features, the entropy, seconds."""
+    """One row per screened (backbone, suite, encoder), columns from the proxy table: each
+    supervised proxy's gain of the features over the state, then the [state, features] value of
+    those that show it (ridge and k-NN MSE), each label-free proxy's value, the seconds."""
+    gains, label_free = supervised_proxies(), label_free_proxies()
+    valued = [p for p in gains if p.value_column]
+    with_features = INPUT_SETS[-1]
+    # Label-free values live in [0, 1] (entropy): 3 digits tell them apart.
     rows = [[s.backbone, s.suite, s.encoder]
-            + [measure(s.proxies[p]["gain"]) for p in PROXIES]
-            + [measure(s.proxies["ridge"]["state+features"]),
-               measure(s.proxies["knn"]["state+features"]), measure(s.entropy, 3),
-               num(s.seconds, 2)]
+            + [measure(s.value(p.name, GAIN)) for p in gains]
+            + [measure(s.value(p.name, with_features)) for p in valued]
+            + [measure(s.value(p.name, HELDOUT), 3) for p in label_free] + [num(s.seconds, 2)]
             for s in sorted(screens, key=lambda s: (s.backbone, s.suite, s.encoder))]
-    return table(rows, ["backbone", "suite", "encoder", "LogME gain", "ridge gain", "k-NN gain",
-                        "ridge MSE", "k-NN MSE", "entropy", "s"])
+    return table(rows, ["backbone", "suite", "encoder"] + [f"{p.label} gain" for p in gains]
+                 + [p.value_column for p in valued] + [p.label for p in label_free] + ["s"])
 
 
 def _with_interval(point, interval) -> str:
@@ -76,7 +78,7 @@ def screen_agreements(screens: Sequence, records: Sequence, n_resamples: int,
     out = []
     for backbone, suite in _panels(screens):
         mine = [s for s in screens if (s.backbone, s.suite) == (backbone, suite)]
-        for proxy in SCREEN_BY:
+        for proxy in proxy_names():
             scores = {s.encoder: s.score(proxy) for s in mine}
             out.append(tier_agreement(scores, records, backbone, suite, proxy, n_resamples, seed))
         out += [short_graft_agreement(records, backbone, suite, v, n_resamples, seed)
@@ -93,7 +95,7 @@ def scatter_points(screens: Sequence, records: Sequence) -> list[tuple[str, list
         per_window, _ = graft_per_window(records, backbone, suite)
         mine = [s for s in screens if (s.backbone, s.suite) == (backbone, suite)
                 and s.encoder in per_window]
-        for proxy in SCREEN_BY:
+        for proxy in proxy_names():
             both = [s for s in mine if not isinstance(s.score(proxy), Undefined)]
             if both:
                 panels.append((f"{backbone} x {suite}: {proxy}",

@@ -4,7 +4,7 @@
     RESULTS_DIR/cells/<cell_id>.json    finished cells  (status "ok", schema 1)
     RESULTS_DIR/failed/<cell_id>.json   failed cells    (status "failed", with "error")
     RESULTS_DIR/grid.json               optional: {"expected": [cell_id, ...], "profile": "tiny"}
-    RESULTS_DIR/screens/...             the screen tier (--screen): bench.results.screen
+    RESULTS_DIR/screens/...             the screen tier (--screen): bench.screen.records
     RESULTS_DIR/rollouts/<cell_id>.json closed-loop episodes of a cell still rolling out (EpisodeLog)
     RESULTS_DIR/unreadable/<cell_id>.<time>.json  a record that could not be read, moved aside
                                         before its cell was measured again (set_aside)
@@ -26,7 +26,7 @@ from bench.grid.kinds import GRAFT
 from external.filelock import exclusive
 from bench.results.current import RunConditions, is_current
 from bench.results.record import Failure, Record
-from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
+from bench.screen.records import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
                                   read_screen)
 
 CELLS, FAILED, GRID = "cells", "failed", "grid.json"  # the folder and file names, only here
@@ -284,7 +284,7 @@ class ResultStore:
         return load_failure(self.root, cell_id)
 
     def load_screen(self, sid: str) -> ScreenRecord | ScreenFailure | None:
-        """The stored screen `sid` (bench.results.screen.screen_id); None when absent or invalid."""
+        """The stored screen `sid` (bench.screen.records.screen_id); None when absent or invalid."""
         path = _screen_file(self.root, sid)
         try:
             return read_screen(_read_json(path)) if path.is_file() else None

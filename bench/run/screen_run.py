@@ -15,7 +15,6 @@ its `test_short_graft` case); one that fails drops its encoder with the failure'
 
 from __future__ import annotations
 
-import time
 from typing import Callable
 
 import pytest
@@ -23,33 +22,16 @@ import pytest
 from bench.grid.cells import CellSpec
 from bench.grid.kinds import SHORT_BY_VARIANT, SHORT_GRAFT
 from bench.progress import say
-from bench.results.screen import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
-                                  new_screen_record, screen_id)
-from bench.run.screen import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions, ShortScores, screen_features,
-                              select_for_graft)
 from bench.run.outcome import MEASURED, RESUMED, Outcome, failed
+from bench.screen.measure import measure_screen
+from bench.screen.proxies import proxy_names
+from bench.screen.records import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
+                                  screen_id)
+from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
+                                    ShortScores, select_for_graft)
 from bench.stats import Undefined
 
 DROPPED = "dropped by the screen: "  # the skip line of a cell the screen dropped
-
-
-def measure_screen(ws, encoder: str, backbone: str, suite: str,
-                   conditions: ScreenConditions) -> ScreenRecord | ScreenFailure:
-    """Screen `encoder` on `backbone` x `suite` from the workspace's feature store (built on first
-    use: its time is the record's feature_seconds). A build or extraction error is a failure."""
-    bb = ws.backbone(backbone, suite)
-    start = time.perf_counter()
-    try:
-        views = ws.features(encoder, suite, tuple(bb.info.native_grid))
-    except Exception as e:  # noqa: BLE001 - any encoder may fail; the screen goes on
-        return ScreenFailure(backbone, suite, encoder, " ".join(f"{type(e).__name__}: {e}".split()))
-    feature_seconds = time.perf_counter() - start
-    # The stored file's own extraction time, whoever built it (the graft, an earlier screen).
-    built = [v.stored.manifest.get("build_s") for v in views.values()]
-    extraction = max((float(b) for b in built if b is not None), default=None)
-    scores = screen_features(views, ws.suite(suite), ws.split(suite), bb.normalize_actions,
-                             bb.info.chunk_size, (encoder, backbone, suite))
-    return new_screen_record(scores, conditions, feature_seconds, extraction)
 
 
 class ScreenRun:
@@ -71,8 +53,9 @@ class ScreenRun:
         return ScreenConditions(self.profile.protocol.hash, norm.fingerprint, self.feature_dtype)
 
     def screen(self, backbone: str, suite: str, encoder: str) -> ScreenRecord | ScreenFailure:
-        """The stored screen when it stands for this run (not under --rerun), else measured and
-        stored; once per run."""
+        """The stored screen when it stands for this run (not under --rerun; it holds every proxy
+        of the table: one registered since is measured), else measured and stored; once per
+        run."""
         sid = screen_id(backbone, suite, encoder)
         if sid not in self._screens:
             conditions = self.conditions(backbone, suite)
@@ -80,7 +63,7 @@ class ScreenRun:
             # (its case, or its own selection): the lock makes it wait and resume that one.
             with self.store.screen_lock(sid):
                 stored = None if self.rerun else self.store.current_screen(sid, conditions)
-                if stored is not None:
+                if stored is not None and all(map(stored.scores.holds, proxy_names())):
                     self._screens[sid], self.outcomes[sid] = stored, RESUMED
                     return stored
                 item = measure_screen(self.workspace(), encoder, backbone, suite, conditions)

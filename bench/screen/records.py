@@ -9,7 +9,13 @@
 A screen id reads as the pytest case: `smolvla-spatial-timm:convnext_atto` (backbone-suite-encoder;
 no seed: a screen trains nothing). bench.results.store reads and writes the files; a screen record
 stands for a later run when `screen_conditions` match (protocol, normaliser, feature dtype,
-screen version). Undefined proxies travel as {"undefined": reason}, never as NaN.
+screen version) and it holds every proxy of the table (bench.run.screen_run). Undefined proxies
+travel as {"undefined": reason}, never as NaN.
+
+Where a proxy's values live (bench.screen.proxies says which kind each is): a supervised one's
+under proxies[name] as {input set: value, "gain": score}; the label-free entropy in the field of
+its own (the layout from before the table); any later label-free one under proxies[name] as
+{"heldout": value, "gain": score}.
 """
 
 from __future__ import annotations
@@ -18,12 +24,14 @@ import datetime as dt
 from dataclasses import asdict, dataclass, field, fields
 
 from bench.grid.cells import screen_id
+from bench.screen.proxies import ENTROPY
 from bench.stats import Measure, Undefined
 
 # Bump when a proxy's definition changes: older screen records are then measured again.
 SCREEN_VERSION = 2  # 2: LogME in the n - 1 centred dims, finite where D > N
 OK, FAILED = "ok", "failed"
 _STATUS = "status"  # the envelope key; every other key is a field name
+GAIN, HELDOUT = "gain", "heldout"  # a proxy's score; a label-free proxy's value (not entropy's)
 
 
 def _out(value: Measure):
@@ -55,17 +63,39 @@ class ScreenScores:
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["proxies"] = {p: {k: _out(v) for k, v in vals.items()}
                           for p, vals in self.proxies.items()}
-        out["entropy"] = _out(self.entropy)
+        out[ENTROPY] = _out(self.entropy)
         return out
 
     @classmethod
     def from_json(cls, data: dict) -> "ScreenScores":
         proxies = {p: {k: _in(v) for k, v in vals.items()} for p, vals in data["proxies"].items()}
-        return cls(**{**data, "proxies": proxies, "entropy": _in(data["entropy"])})
+        return cls(**{**data, "proxies": proxies, ENTROPY: _in(data[ENTROPY])})
+
+    def value(self, proxy: str, key: str) -> Measure:
+        """`proxy`'s value under `key`: an input set, GAIN or HELDOUT (entropy: its own field);
+        Undefined, saying so, when this screen was measured before the proxy was registered."""
+        if proxy == ENTROPY:
+            return self.entropy
+        if key not in self.proxies.get(proxy, {}):
+            return Undefined(f"{proxy} {key}: not in this screen (measured before {proxy} was "
+                             "added; a --screen run measures it again)")
+        return self.proxies[proxy][key]
+
+    def keep_label_free(self, proxy: str, value: Measure, score: Measure) -> None:
+        """A label-free proxy's held-out value and its score, where this layout keeps them."""
+        if proxy == ENTROPY:
+            self.entropy = value
+        else:
+            self.proxies[proxy] = {HELDOUT: value, GAIN: score}
+
+    def holds(self, proxy: str) -> bool:
+        """Has this screen measured `proxy` (a screen stored before a proxy was added has not)?"""
+        return proxy == ENTROPY or proxy in self.proxies
 
     def score(self, proxy: str) -> Measure:
-        """The ranking score of `proxy` (higher is better): a supervised proxy's gain, or entropy."""
-        return self.entropy if proxy == "entropy" else self.proxies[proxy]["gain"]
+        """The ranking score of `proxy`, higher is better (bench.screen.proxies: a supervised
+        proxy's gain of the features over the state, a label-free one's value, oriented)."""
+        return self.value(proxy, GAIN)
 
 
 @dataclass(frozen=True)
@@ -113,7 +143,7 @@ class ScreenRecord:
         except (KeyError, TypeError, AttributeError) as e:
             raise ValueError(f"{type(e).__name__}: {e}") from None
         for proxy, values in scores.proxies.items():
-            if "gain" not in values:
+            if GAIN not in values:
                 raise ValueError(f"proxy {proxy} has no gain")
         return cls(scores, conditions, **rest)
 

@@ -1,6 +1,6 @@
-"""Zero-training screen proxies on frozen features: LogME, ridge and k-NN probes, norm entropy.
+"""The screen proxies' numerics on frozen features: LogME, ridge and k-NN probes, norm entropy.
 
-Pure functions, numpy in, float (or agreement.Undefined, with the reason) out. Memory is flat in
+Pure functions, numpy in, float (or bench.stats.Undefined, with the reason) out. Memory is flat in
 the number of windows for LogME and ridge: both read only `Moments`, the sufficient statistics
 X^T X, X^T Y, Y^T Y of X = [features, 1], which a caller accumulates chunk by chunk (`add`) and
 per group of training episodes (the folds that choose a penalty or a k on training data only).
@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bench.analysis.agreement import Measure, Undefined
+from bench.stats import Measure, Undefined
 
 RIDGE_GRID = tuple(float(r) for r in np.logspace(-4, 2, 13))
 KNN_GRID = (1, 2, 3, 5, 8, 13, 21, 34, 55)

@@ -1,0 +1,13 @@
+"""The screen tier (`pytest bench --screen`): zero-training proxies of many encoders from their
+stored features, and which of them the graft runs.
+
+    proxies.py     the proxy table: one `register_proxy(Proxy(...))` per proxy (no torch)
+    estimators.py  the proxies' numerics: LogME, ridge and k-NN probes, norm entropy (numpy)
+    measure.py     one screen from the feature store: `measure_screen` (torch)
+    selection.py   --screen-by / --screen-keep, and what is grafted (no torch)
+    records.py     the stored screen, failure and selection, typed (no torch)
+
+Outside it, by layer: bench.run.screen_run runs the screens of one pytest run (locks, the
+store, the short grafts); bench.report.screen writes REPORT.md's section. This package sits
+below bench.results (which stores its records) and imports nothing of the analysis or report.
+"""

@@ -1,0 +1,160 @@
+"""Screen proxies: one table entry per proxy declares everything the screen, its records, the
+selection, `--screen-by` and the report know about it. A new proxy is one `register_proxy(...)`.
+
+A proxy reads one of two kinds of inputs (bench.screen.measure builds both from stored features):
+
+- WINDOWS (supervised): per input set ([state], then [state, features]) a `FitInputs`, the
+  training episodes' windows (by episode fold) and the grafts' held-out windows with their
+  targets. Its function returns (value on the held-out windows, what it chose on the training
+  folds or None); its score is the gain of the features over the state alone, by `direction`.
+- TOKEN_NORMS (label-free): the held-out windows' token norms (M, T); its function returns the
+  value, and its score is that value (negated when lower is better).
+
+This module imports numpy and nothing heavy: the records, the selection, the options and the
+report read the table without torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from bench.screen.estimators import (Moments, knn_heldout, logme_moments, norm_entropy,
+                                     ridge_heldout)
+from bench.stats import Measure, Undefined, is_defined
+
+WINDOWS, TOKEN_NORMS = "windows", "token_norms"
+HIGHER, LOWER = "higher", "lower"
+INPUT_SETS = ("state", "state+features")  # a supervised proxy's two fits; the gain compares them
+
+
+@dataclass
+class FitInputs:
+    """One input set's windows, as a supervised proxy reads them: `folds` the training windows'
+    Moments per episode fold (>= 1), `heldout` the held-out windows' Moments; the same windows
+    as arrays, train (N, D) float32 with targets (N, C) and fold (N,) int, heldout (M, D)
+    float32 with targets (M, C); `weights` (D,) the k-NN distance factor of each column."""
+
+    folds: list[Moments]
+    heldout: Moments
+    train: np.ndarray
+    train_targets: np.ndarray
+    train_fold: np.ndarray
+    heldout_features: np.ndarray
+    heldout_targets: np.ndarray
+    weights: np.ndarray
+
+    @property
+    def train_total(self) -> Moments:
+        """Moments of every training window: the folds summed, in fold order."""
+        total = self.folds[0]
+        for m in self.folds[1:]:
+            total = total.plus(m)
+        return total
+
+
+@dataclass(frozen=True)
+class Proxy:
+    """One screen proxy. `compute`: (FitInputs) -> (Measure, chosen or None) for WINDOWS,
+    (norms (M, T)) -> Measure for TOKEN_NORMS. `label`: its name in the report ("k-NN").
+    `chooses`: the key under which the record keeps what it chose on the training folds, per
+    input set (ScreenScores.chosen). `value_column`: the report's column of its [state,
+    features] value, if the report shows one ("ridge MSE")."""
+
+    name: str
+    label: str
+    direction: str
+    inputs: str
+    compute: Callable
+    chooses: str | None = None
+    value_column: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.direction not in (HIGHER, LOWER):
+            raise ValueError(f"proxy {self.name!r}: direction {self.direction!r} not in "
+                             f"{(HIGHER, LOWER)}")
+        if self.inputs not in (WINDOWS, TOKEN_NORMS):
+            raise ValueError(f"proxy {self.name!r}: inputs {self.inputs!r} not in "
+                             f"{(WINDOWS, TOKEN_NORMS)}")
+        if self.inputs == TOKEN_NORMS and (self.chooses or self.value_column):
+            raise ValueError(f"proxy {self.name!r}: a label-free proxy fits nothing, so it has "
+                             "no chooses= and no value_column=")
+
+    @property
+    def supervised(self) -> bool:
+        return self.inputs == WINDOWS
+
+    def gain(self, values: dict[str, Measure]) -> Measure:
+        """What the features add to the state, higher is better (undefined if either side is).
+        values: {input set: value} of INPUT_SETS."""
+        without, with_ = values["state"], values["state+features"]
+        for side, v in (("state", without), ("state+features", with_)):
+            if not is_defined(v):
+                return Undefined(f"{self.name} on [{side}] is {v}")
+        return with_ - without if self.direction == HIGHER else without - with_
+
+    def oriented(self, value: Measure) -> Measure:
+        """A label-free value as a score, higher is better."""
+        return value if self.direction == HIGHER or not is_defined(value) else -value
+
+
+PROXIES: dict[str, Proxy] = {}
+
+
+def register_proxy(proxy: Proxy) -> Proxy:
+    if proxy.name in PROXIES:
+        raise ValueError(f"screen proxy {proxy.name!r} registered twice")
+    PROXIES[proxy.name] = proxy
+    return proxy
+
+
+def unregister_proxy(name: str) -> None:
+    """Tests that register a proxy of their own take it out again."""
+    PROXIES.pop(name)
+
+
+def get_proxy(name: str) -> Proxy:
+    try:
+        return PROXIES[name]
+    except KeyError:
+        raise ValueError(f"unknown screen proxy {name!r}; valid proxies: "
+                         f"{', '.join(PROXIES)}") from None
+
+
+def proxy_names() -> tuple[str, ...]:
+    """Every proxy, in table order (the order of records, --screen-by's help and the report)."""
+    return tuple(PROXIES)
+
+
+def supervised_proxies() -> tuple[Proxy, ...]:
+    return tuple(p for p in PROXIES.values() if p.supervised)
+
+
+def label_free_proxies() -> tuple[Proxy, ...]:
+    return tuple(p for p in PROXIES.values() if not p.supervised)
+
+
+def _logme(fit: FitInputs) -> tuple[Measure, None]:
+    return logme_moments(fit.train_total), None
+
+
+def _ridge(fit: FitInputs) -> tuple[Measure, float | None]:
+    return ridge_heldout(fit.folds, fit.heldout)
+
+
+def _knn(fit: FitInputs) -> tuple[Measure, int | None]:
+    return knn_heldout(fit.train, fit.train_targets, fit.train_fold, fit.heldout_features,
+                       fit.heldout_targets, weights=fit.weights)
+
+
+# Table order is the order of the records' proxies, --screen-by's choices and the report's columns.
+# --screen-by's default, and the gain the screen's progress lines show.
+DEFAULT_PROXY = register_proxy(Proxy("logme", "LogME", HIGHER, WINDOWS, _logme)).name
+register_proxy(Proxy("ridge", "ridge", LOWER, WINDOWS, _ridge, chooses="ridge_penalty_ratio",
+                     value_column="ridge MSE"))
+register_proxy(Proxy("knn", "k-NN", LOWER, WINDOWS, _knn, chooses="knn_k",
+                     value_column="k-NN MSE"))
+# The record keeps this one in a field of its own (ScreenScores.entropy, from before the table).
+ENTROPY = register_proxy(Proxy("entropy", "entropy", HIGHER, TOKEN_NORMS, norm_entropy)).name
