@@ -34,7 +34,7 @@ def screen_table(screens: Sequence) -> str:
     gains, label_free = supervised_proxies(), label_free_proxies()
     valued = [p for p in gains if p.value_column]
     with_features = INPUT_SETS[-1]
-    # Label-free values live in [0, 1] (entropy): 3 digits tell them apart.
+    # Entropy lies in [0, 1] and is not a difference: 3 digits tell encoders apart there.
     rows = [[s.backbone, s.suite, s.encoder]
             + [measure(s.value(p.name, GAIN)) for p in gains]
             + [measure(s.value(p.name, with_features)) for p in valued]

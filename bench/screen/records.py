@@ -44,14 +44,15 @@ def _in(value) -> Measure:
 
 @dataclass
 class ScreenScores:
-    """One screen's proxies: per supervised proxy {input set: value} plus "gain"; entropy; sizes.
-    Values are floats or bench.stats.Undefined (with the reason)."""
+    """One screen's proxies (where each lives: the module doc): per supervised proxy {input set:
+    value} plus "gain"; entropy; sizes. Values are floats or bench.stats.Undefined (with the
+    reason)."""
 
     encoder: str
     backbone: str
     suite: str
     proxies: dict = field(default_factory=dict)
-    chosen: dict = field(default_factory=dict)  # ridge penalty, k, per input set
+    chosen: dict = field(default_factory=dict)  # per input set: ridge penalty, k (chooses=)
     entropy: Measure = Undefined("not computed")
     n_train: int = 0
     n_heldout: int = 0
