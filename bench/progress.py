@@ -2,8 +2,8 @@
 capture suspended (what pytest-benchmark does), one line per long phase every `every_s` seconds
 with an estimate of time left. Silent under -q, GRAFTBENCH_QUIET=1 and in xdist workers.
 
-`progress` arguments across bench/ take a sink, or a bool: True writes to stderr when it is a
-terminal (outside pytest), False is silent.
+`progress` arguments across bench/ take a sink (`ProgressSink`): `STDERR` (outside pytest: stderr,
+when it is a terminal), a `TerminalSink` (inside pytest), or `QUIET` (the null sink).
 """
 
 from __future__ import annotations
@@ -16,6 +16,13 @@ from typing import Protocol
 
 class ProgressSink(Protocol):
     def line(self, text: str) -> None: ...
+
+
+class NullSink:
+    """Says nothing: the sink of quiet work (-q, xdist workers, array tasks, tests)."""
+
+    def line(self, text: str) -> None:
+        pass
 
 
 class StderrSink:
@@ -44,11 +51,18 @@ class TerminalSink:
             self.reporter.write_line(text)
 
 
+QUIET = NullSink()
+STDERR = StderrSink()
+
+
 def as_sink(progress) -> ProgressSink | None:
-    """A sink from a `progress` argument (sink, True, False/None); None when quiet."""
-    if os.environ.get("GRAFTBENCH_QUIET") == "1" or not progress:
+    """The sink of a `progress` argument; None when quiet (the null sink, None,
+    GRAFTBENCH_QUIET=1). A bool is the older form (True: STDERR, False: QUIET)."""
+    if progress is True:
+        progress = STDERR
+    if os.environ.get("GRAFTBENCH_QUIET") == "1" or not progress or isinstance(progress, NullSink):
         return None
-    return StderrSink() if progress is True else progress
+    return progress
 
 
 def say(progress, text: str) -> None:

@@ -147,12 +147,12 @@ class GraftSession:
         return self._workspace
 
     def progress_sink(self):
-        """The terminal, or False: under -q, GRAFTBENCH_QUIET=1 and in xdist workers (their
-        output would interleave with the controller's)."""
-        from bench.progress import TerminalSink
+        """The terminal, or the null sink: under -q, GRAFTBENCH_QUIET=1 and in xdist workers
+        (their output would interleave with the controller's)."""
+        from bench.progress import QUIET, TerminalSink
 
         quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
-        return False if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
+        return QUIET if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
 
     @property
     def screening(self):

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from bench.progress import QUIET
 import pytest
 import torch
 
@@ -50,7 +51,7 @@ class World:
 @pytest.fixture(scope="module", params=BACKBONES)
 def world(request, tmp_path_factory) -> World:
     profile = with_overrides(TINY, backbones=(request.param,), suites=("spatial",))
-    ws = Workspace(profile, ResultStore(tmp_path_factory.mktemp("results")), progress=False)
+    ws = Workspace(profile, ResultStore(tmp_path_factory.mktemp("results")), progress=QUIET)
     split = ws.split("spatial")
     return World(request.param, ws, ws.backbone(request.param), ws.suite("spatial"),
                  split.train_frames, split.windows)
@@ -74,7 +75,7 @@ def _train_projector(world: World, channels: int, next_batch, steps: int = STEPS
     projector = Projector(channels, world.backbone.info.lm_width)
     feed = GraftFeed(projector, world.backbone.camera_keys, world.grid)
     fit(world.backbone, list(projector.parameters()), world.train_frames, next_batch,
-        _fit_config(steps), seed=0, feed=feed, progress=False)
+        _fit_config(steps), seed=0, feed=feed, progress=QUIET)
 
 
 def _time(benchmark, fn, rounds: int = ROUNDS) -> None:
@@ -140,7 +141,7 @@ def test_step_naive(world, encoder_name, benchmark, record_cost):
 def test_feature_extraction(encoder_name, benchmark, record_cost, tmp_path_factory):
     """Image load + encoder + pooling to pi0.5's tiny grid, 32 frames (all cameras) per call."""
     profile = with_overrides(TINY, suites=("spatial",))
-    ws = Workspace(profile, ResultStore(tmp_path_factory.mktemp("results")), progress=False)
+    ws = Workspace(profile, ResultStore(tmp_path_factory.mktemp("results")), progress=QUIET)
     suite, encoder = ws.suite("spatial"), ws.encoder(encoder_name)
     frames = torch.arange(32)
     _time(benchmark, lambda: encode_pooled(encoder, suite.images(frames), (4, 4)), rounds=7)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 
+from bench.progress import QUIET
 import pytest
 import torch
 
@@ -46,7 +47,7 @@ def real(tmp_path_factory):
     from backbones.tiny_smolvla import libero_smolvla_config, real_shape_vlm_folder
 
     profile = with_overrides(TINY, backbones=("smolvla",), suites=("spatial",))
-    ws = Workspace(profile, ResultStore(tmp_path_factory.mktemp("results")), progress=False)
+    ws = Workspace(profile, ResultStore(tmp_path_factory.mktemp("results")), progress=QUIET)
     suite, split = ws.suite("spatial"), ws.split("spatial")
     config = libero_smolvla_config(suite.camera_keys, suite.image_shape, 8, 7,
                                    vlm_model_name=str(real_shape_vlm_folder()),
@@ -92,7 +93,7 @@ def test_realsize_step_cached(real, benchmark, record_cost):
         projector = Projector(channels, backbone.info.lm_width).to(DEVICE)
         feed = GraftFeed(projector, backbone.camera_keys, backbone.info.native_grid)
         fit(backbone, list(projector.parameters()), split.train_frames, next_batch, _cfg(STEPS),
-            seed=0, feed=feed, progress=False)
+            seed=0, feed=feed, progress=QUIET)
         if CUDA:
             torch.cuda.synchronize()
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import tempfile
 
+from bench.progress import QUIET
 import pytest
 
 ENCODERS = ("dinov2_s", "pixels")
@@ -26,7 +27,7 @@ def workspace():
     from bench.results.store import ResultStore
     from bench.run.workspace import Workspace
 
-    ws = Workspace(TINY, ResultStore(tempfile.mkdtemp(prefix="bench-screen-")), progress=False)
+    ws = Workspace(TINY, ResultStore(tempfile.mkdtemp(prefix="bench-screen-")), progress=QUIET)
     for encoder in ENCODERS:  # build the stores and load the policy outside the timings
         bb = ws.backbone(BACKBONE, SUITE)
         ws.features(encoder, SUITE, tuple(bb.info.native_grid))

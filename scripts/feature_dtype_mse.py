@@ -19,6 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.progress import QUIET
 from bench.grid.cells import CellSpec  # noqa: E402
 from bench.run.features import FeatureStore  # noqa: E402
 from bench.grid.protocol import TINY  # noqa: E402
@@ -46,12 +47,12 @@ def main() -> None:
     args = parser.parse_args()
     dtypes, cells = args.dtypes.split(","), [cell_of(c) for c in args.cells.split(",")]
     tmp = Path(tempfile.mkdtemp(prefix="graftbench-dtype-mse-"))
-    ws = Workspace(TINY, ResultStore(tmp / "results-init"), progress=False)
+    ws = Workspace(TINY, ResultStore(tmp / "results-init"), progress=QUIET)
     mse: dict[str, dict[str, dict]] = {}
     for dtype in dtypes:
         ws.store = ResultStore(tmp / f"results-{dtype}")
         ws.feature_dtype = dtype
-        ws._features = FeatureStore(tmp / f"features-{dtype}", dtype=dtype, progress=False)
+        ws._features = FeatureStore(tmp / f"features-{dtype}", dtype=dtype, progress=QUIET)
         for cell in cells:
             mse.setdefault(cell.id, {})[dtype] = run_cell(cell, ws).scores.mse
             print(f"{dtype:8} {cell.id}: {mse[cell.id][dtype]}", flush=True)

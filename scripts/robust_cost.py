@@ -18,6 +18,7 @@ import torch
 
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY
+from bench.progress import QUIET
 from bench.results.store import ResultStore
 from bench.run import robust
 from bench.run.perturbations import parse_robustness
@@ -27,7 +28,7 @@ from bench.run.workspace import Workspace
 
 def main(backbone: str) -> None:
     torch.set_num_threads(1)
-    ws = Workspace(TINY, ResultStore(tempfile.mkdtemp()), progress=False)
+    ws = Workspace(TINY, ResultStore(tempfile.mkdtemp()), progress=QUIET)
     spec = CellSpec("graft", backbone, "spatial", 0, "pixels")
     ws.suite("spatial"), ws.backbone(backbone, "spatial")
     everything = parse_robustness(["all"], "robust_cost")

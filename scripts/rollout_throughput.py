@@ -16,6 +16,8 @@ import time
 
 import torch
 
+from bench.progress import QUIET
+
 
 def main() -> None:
     p = argparse.ArgumentParser()
@@ -43,7 +45,7 @@ def main() -> None:
                        a.max_steps, a.n_action_steps)
     load_before = os.getloadavg()
     start = time.perf_counter()
-    out = run_rollouts(act, spec, progress=False, render=RenderSettings(),
+    out = run_rollouts(act, spec, progress=QUIET, render=RenderSettings(),
                        batching=Batching(a.batch, a.envs))
     wall = time.perf_counter() - start
     n = len(out["episodes"])

@@ -231,6 +231,7 @@ from pathlib import Path
 import pytest
 
 from bench.plugin import SESSION_KEY
+from bench.progress import QUIET
 from bench.run.plan import CellResult
 from tests.factories import make_record
 
@@ -260,7 +261,7 @@ def pytest_configure(config):
         Path("out.json").write_text(json.dumps({
             "sections": list(extra_sections), "transforms": sorted(transforms)}))
 
-    gs.use_seams(workspace_factory=lambda session: types.SimpleNamespace(progress=False),
+    gs.use_seams(workspace_factory=lambda session: types.SimpleNamespace(progress=QUIET),
                  cell_runner=fake_runner, report_builder=keep_sections)
 '''
 

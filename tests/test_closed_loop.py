@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 
+from bench.progress import QUIET
 import pytest
 import torch
 
@@ -156,7 +157,7 @@ def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path, monkeypatch
 
     store = ResultStore(tmp_path / "res")
     cell, backbone = CellSpec("native", "pi05", "spatial", 0), tiny_ws.backbone("pi05")
-    run = lambda scenes, policy="p1", progress=False: cell_rollouts(  # noqa: E731
+    run = lambda scenes, policy="p1", progress=QUIET: cell_rollouts(  # noqa: E731
         cell, tiny_ws.suite("spatial"), backbone, 2, store=store, policy=policy,
         scenes=scenes, progress=progress)
     killed, _ = fake_scenes(tiny_ws, kill_at_reset=4)
@@ -202,12 +203,12 @@ def test_a_crashed_env_fails_its_cell_with_the_reason_and_the_next_cell_runs(tin
     broken = CellSpec("native", "pi05", "spatial", 0)
     crashing, _ = fake_scenes(tiny_ws, crash_at_reset=2)
     with pytest.raises(RolloutCrashed) as crash:
-        cell_rollouts(broken, suite, backbone, 2, store=store, scenes=crashing, progress=False)
+        cell_rollouts(broken, suite, backbone, 2, store=store, scenes=crashing, progress=QUIET)
     line = Failure.of(broken, "hash", crash.value).error
     assert line.startswith("RolloutCrashed: rollout crashed in spatial task 0 episode 1 (init "
                            "state 48): RuntimeError: mj_step: simulation unstable (QACC) (1 "
                            "episode(s) finished before it are kept; rerun to resume)"), line
     healthy, _ = fake_scenes(tiny_ws)
     other = CellSpec("native", "pi05", "spatial", 1)
-    out = cell_rollouts(other, suite, backbone, 2, store=store, scenes=healthy, progress=False)
+    out = cell_rollouts(other, suite, backbone, 2, store=store, scenes=healthy, progress=QUIET)
     assert len(out["episodes"]) == 8

@@ -18,6 +18,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+from bench.progress import QUIET
 import pytest
 
 from bench.analysis.rankings import paired_window_bootstrap
@@ -52,7 +53,7 @@ def build_world(folder: Path) -> None:
                                           chunk_size=10, seed=0)
     with torch.random.fork_rng():
         train_tiny_release("smolvla", untrained, profile, [suite], frames, folder / "policy", 10,
-                           progress=False)
+                           progress=QUIET)
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+from bench.progress import QUIET
 import pytest
 import torch
 
@@ -84,7 +85,7 @@ def test_tiny_image_size_builds_the_release_at_that_size_or_refuses(tmp_path, na
     own); SmolVLA's tiny tower reads 64 px whatever the size, so the knob is refused."""
     protocol = TINY.protocol.replace(native_steps=2, tiny_image_size=32)
     ws = Workspace(dataclasses.replace(TINY, protocol=protocol),
-                   ResultStore(tmp_path / "results"), progress=False, cache=tmp_path / "cache")
+                   ResultStore(tmp_path / "results"), progress=QUIET, cache=tmp_path / "cache")
     ws._suites["spatial"] = lent_workspace(TINY, ResultStore(tmp_path / "r2")).suite("spatial")
     if name == "smolvla":
         with pytest.raises(ValueError, match=r"tiny_image_size = 32: the tiny smolvla reads"):

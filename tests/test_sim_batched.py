@@ -8,6 +8,7 @@ slot that got another episode's init state, seed or actions changes a row.
 from __future__ import annotations
 
 import numpy as np
+from bench.progress import QUIET
 import pytest
 import torch
 
@@ -97,8 +98,8 @@ def test_batched_rollouts_give_the_single_env_episodes_with_fewer_policy_calls()
                        n_action_steps=2)
     single, vector, built = toy_scenes()
     one, many = Policy(), Policy()
-    base = run_rollouts(one, spec, progress=False, scenes=single)
-    batched = run_rollouts(many, spec, progress=False, scenes=single, batching=Batching(3),
+    base = run_rollouts(one, spec, progress=QUIET, scenes=single)
+    batched = run_rollouts(many, spec, progress=QUIET, scenes=single, batching=Batching(3),
                            vector_scenes=vector)
     assert outcomes(batched) == outcomes(base)
     # Not a trivial answer: episodes of both kinds and several lengths, slips included.
@@ -112,7 +113,7 @@ def test_batched_rollouts_give_the_single_env_episodes_with_fewer_policy_calls()
 
     # Resumed per episode as at B = 1: finished rows kept, only the others rolled out.
     rerun = Policy()
-    resumed = run_rollouts(rerun, spec, progress=False, scenes=single, batching=Batching(3),
+    resumed = run_rollouts(rerun, spec, progress=QUIET, scenes=single, batching=Batching(3),
                            vector_scenes=vector, finished=base["episodes"][:8])
     assert outcomes(resumed) == outcomes(base) and built[2:] == [2]  # 2 left: 2 slots
     assert resumed["settings"]["resumed_episodes"] == 8
@@ -125,7 +126,7 @@ def test_a_privileged_policy_is_refused_in_a_batch():
                        n_action_steps=1)
     single, vector, _ = toy_scenes()
     with pytest.raises(ValueError, match="batch 1"):
-        run_rollouts(ExpertPolicy("spatial"), spec, progress=False, scenes=single, batching=Batching(2),
+        run_rollouts(ExpertPolicy("spatial"), spec, progress=QUIET, scenes=single, batching=Batching(2),
                      vector_scenes=vector)
 
 
@@ -151,8 +152,8 @@ def test_libero_vector_env_meets_the_single_env_observations():
         return act
 
     alone, together = [], []
-    base = run_rollouts(recorder(alone), spec, progress=False, render=render)
-    batched = run_rollouts(recorder(together), spec, progress=False, render=render, batching=Batching(2))
+    base = run_rollouts(recorder(alone), spec, progress=QUIET, render=render)
+    batched = run_rollouts(recorder(together), spec, progress=QUIET, render=render, batching=Batching(2))
     assert outcomes(batched) == outcomes(base)
     assert sorted(together) == sorted(alone) and len(alone) == 3 * 2
 
@@ -169,4 +170,4 @@ def test_a_policy_that_raises_in_a_batch_fails_the_cell_naming_the_episodes():
 
     with pytest.raises(RolloutCrashed, match=r"spatial task 0 episode 0 \(init state 49\), "
                        r"episode 1 \(init state 48\): the policy: RuntimeError: CUDA out of"):
-        run_rollouts(broken, spec, progress=False, scenes=single, batching=Batching(2), vector_scenes=vector)
+        run_rollouts(broken, spec, progress=QUIET, scenes=single, batching=Batching(2), vector_scenes=vector)

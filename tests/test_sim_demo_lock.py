@@ -8,6 +8,7 @@ import threading
 import time
 from types import SimpleNamespace
 
+from bench.progress import QUIET
 from bench.sim import demos
 
 
@@ -33,7 +34,7 @@ def test_two_runs_on_one_cache_run_the_attempts_once(tmp_path, monkeypatch):
     spec = SimpleNamespace(episodes_per_task=1, max_attempts=1)
     root = tmp_path / "spatial-suite"
     out = []
-    runs = [threading.Thread(target=lambda: out.append(demos.generate(spec, root, False)))
+    runs = [threading.Thread(target=lambda: out.append(demos.generate(spec, root, QUIET)))
             for _ in range(2)]
     for run in runs:
         run.start()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+from bench.progress import QUIET
 import pytest
 import torch
 
@@ -30,7 +31,7 @@ def demo_root():
     """The spec's suite where a run keeps it (the cache, keyed on the generator's version and
     the spec): generated on a cold cache, reused warm (~15 s). The generator itself runs in
     test_generation_is_deterministic, which builds it afresh and compares the two."""
-    return demos.generate(SPEC, progress=False)
+    return demos.generate(SPEC, progress=QUIET)
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +102,7 @@ def test_generation_is_deterministic(dataset, tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     again = LeRobotDataset(demos.repo_id("spatial"),
-                           root=demos.generate(SPEC, tmp_path / "again", progress=False))
+                           root=demos.generate(SPEC, tmp_path / "again", progress=QUIET))
     keys = [*IMAGE_KEYS, STATE_KEY, ACTION_KEY, "episode_index", "frame_index"]
     first, second = _columns(dataset, keys), _columns(again, keys)
     for key in keys:

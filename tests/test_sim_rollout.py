@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from bench.progress import QUIET
 import pytest
 import torch
 
@@ -99,7 +100,7 @@ def test_scripted_expert_as_policy_succeeds():
 
     spec = RolloutSpec("spatial", tasks=(0,), episodes_per_task=1, seed=0, max_steps=200,
                        n_action_steps=1)
-    result = run_rollouts(ExpertPolicy("spatial"), spec, progress=False, render=SMALL)
+    result = run_rollouts(ExpertPolicy("spatial"), spec, progress=QUIET, render=SMALL)
     assert result["success_rate"] == 1.0
     (episode,) = result["episodes"]
     assert episode["success"] and episode["init_state"] == 49 and episode["steps"] < 200
@@ -120,7 +121,7 @@ def test_zero_action_policy_never_succeeds_and_sees_dataset_conventions():
 
     spec = RolloutSpec("spatial", tasks=(0,), episodes_per_task=1, seed=0, max_steps=40,
                        n_action_steps=10)
-    result = run_rollouts(zero_act, spec, progress=False, render=SMALL)
+    result = run_rollouts(zero_act, spec, progress=QUIET, render=SMALL)
     assert result["success_rate"] == 0.0 and result["episodes"][0]["steps"] == 40
     assert len(seen) == 4  # 40 steps / 10 executed per chunk
     raw = seen[0]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from bench.progress import QUIET
 import pytest
 
 from bench.grid.protocol import PAPER_ENCODERS, Protocol
@@ -146,7 +147,7 @@ def _fitted_weight(optimiser_steps: int, weight_decay: float):
         preprocess=lambda raw: raw, sample_time=lambda n, g: torch.rand(n, generator=g),
         loss=lambda batch, noise, time: (weight * batch["x"]).expand(len(time)))
     fit(toy, [weight], torch.arange(8), lambda rows: ({"x": torch.tensor(1.0)}, None), cfg,
-        seed=0, progress=False)
+        seed=0, progress=QUIET)
     reference = torch.nn.Parameter(torch.ones(1))
     optimiser = torch.optim.AdamW([reference], lr=cfg.lr, weight_decay=weight_decay)
     for step in range(optimiser_steps):

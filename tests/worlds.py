@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from bench.progress import QUIET
 from bench.run.workspace import Workspace
 from external.paths import cache_dir
 
@@ -32,6 +33,6 @@ def lent_workspace(profile, store, **fields) -> Workspace:
     feature_dtype), lending the loaded parts of its world's first workspace."""
     key = world_key(profile)
     if key not in _WORLDS:
-        _WORLDS[key] = Workspace(profile, store, progress=False)
+        _WORLDS[key] = Workspace(profile, store, progress=QUIET)
     own = {"progress": False, **fields}
     return dataclasses.replace(_WORLDS[key], profile=profile, store=store, **own)

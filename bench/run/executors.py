@@ -64,11 +64,12 @@ def run_cell_job(job: CellJob) -> Record:
             os.environ[var] = "1"
     from bench.results.store import ResultStore
     from bench.run.service import CellService
+    from bench.progress import QUIET
     from bench.run.workspace import Workspace
 
     store = ResultStore(Path(job.results_dir))
     s = replace(job.settings, rerun=True)
-    ws = Workspace(job.profile, store, progress=False, cache=Path(job.cache_dir),
+    ws = Workspace(job.profile, store, progress=QUIET, cache=Path(job.cache_dir),
                    rollouts=s.rollouts, feature_dtype=s.feature_dtype,
                    rollout_batching=job.rollout_batching)
     return CellService(job.profile, store, lambda: ws, s).run(job.cell)

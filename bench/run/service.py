@@ -93,7 +93,7 @@ class CellService:
                     feature_transform=self.feature_transform(cell))
 
     def progress(self):
-        return getattr(self.workspace(), "progress", False)
+        return self.workspace().progress
 
     def _claim(self, cell: CellSpec):
         if not self.claim:  # a job array measures in its own tasks: the array is the claimant

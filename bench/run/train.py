@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from backbones.base import Backbone
-from bench.progress import Progress
+from bench.progress import STDERR, Progress, ProgressSink
 from bench.results.provenance import stable_seed
 
 # next_batch(step, frames) -> (raw batch, graft features or None)
@@ -76,7 +76,7 @@ def fit(
     seed: int,
     feed=None,
     label: str = "train",
-    progress=True,  # a bench.progress sink, or a bool
+    progress: ProgressSink = STDERR,
 ) -> list[list[float]]:
     """Train `params` with the backbone's own loss. Returns the loss curve [[step, loss], ...]
     (every `log_every` steps, plus the first and last). Raises NonFiniteLoss naming the step."""

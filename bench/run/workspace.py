@@ -17,7 +17,7 @@ from bench.run.releases import (
 )
 from bench.run.features import FeatureStore
 from external.paths import cache_dir
-from bench.progress import say
+from bench.progress import STDERR, ProgressSink, say
 from bench.grid.protocol import Profile
 from bench.results.store import ResultStore
 from bench.sim.batching import IN_PROCESS, Batching
@@ -42,7 +42,7 @@ class Split:
 class Workspace:
     profile: Profile
     store: ResultStore
-    progress: object = True  # a bench.progress sink, or a bool
+    progress: ProgressSink = STDERR
     # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
     rollouts: int = 0
     # How they are run (bench.sim.rollout.Batching): envs per task at once, gym sync or async

@@ -19,13 +19,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from bench.progress import STDERR, ProgressSink, say
 from bench.sim.expert import ExpertParams, ScriptedExpert, check_solvable, episode_seed
 from external.filelock import exclusive
 from external.paths import build_dataset_dir, cache_dir
@@ -191,7 +191,8 @@ class _Work:
             return {k: data[k] for k in data.files}
 
 
-def run_attempts(spec: DemoSpec, work: _Work, progress: bool = True) -> dict[tuple[int, int], dict]:
+def run_attempts(spec: DemoSpec, work: _Work, progress: ProgressSink = STDERR
+                 ) -> dict[tuple[int, int], dict]:
     """Run (or resume) the expert attempts of `spec`; returns the attempts log by (task, init)."""
     import torch
 
@@ -217,11 +218,9 @@ def run_attempts(spec: DemoSpec, work: _Work, progress: bool = True) -> dict[tup
             work.record(episode)
             done[(task, init_state)] = {"success": episode.success, "steps": episode.steps}
             kept += int(episode.success)
-            if progress:
-                print(f"[sim demos] {spec.suite} task {task} init {init_state}: "
-                      f"{'success' if episode.success else 'failure'} in {episode.steps} steps "
-                      f"({episode.seconds:.1f} s); kept {kept}/{spec.episodes_per_task}",
-                      file=sys.stderr, flush=True)
+            say(progress, f"sim demos: {spec.suite} task {task} init {init_state}: "
+                          f"{'success' if episode.success else 'failure'} in {episode.steps} "
+                          f"steps ({episode.seconds:.1f} s); kept {kept}/{spec.episodes_per_task}")
         if env is not None:
             env.close()
     return work.attempts()
@@ -274,7 +273,8 @@ def write_suite(spec: DemoSpec, work: _Work, attempts: dict, root: Path) -> Path
     return root
 
 
-def generate(spec: DemoSpec, root: str | Path | None = None, progress: bool = True) -> Path:
+def generate(spec: DemoSpec, root: str | Path | None = None,
+             progress: ProgressSink = STDERR) -> Path:
     """Generate (or resume, or reuse) the demonstration suite of `spec`; returns its folder."""
     final = Path(root) if root is not None else suite_path(spec)
     if (final / "meta" / "info.json").is_file():
@@ -288,9 +288,9 @@ def generate(spec: DemoSpec, root: str | Path | None = None, progress: bool = Tr
         attempts = run_attempts(spec, work, progress)
         short = {t: r["successes"] for t, r in expert_success(spec, attempts).items()
                  if r["successes"] < spec.episodes_per_task}
-        if short and progress:
-            print(f"[sim demos] fewer than {spec.episodes_per_task} successes for tasks {short} "
-                  f"within {spec.max_attempts} attempts", file=sys.stderr)
+        if short:
+            say(progress, f"sim demos: fewer than {spec.episodes_per_task} successes for tasks "
+                          f"{short} within {spec.max_attempts} attempts")
         return build_dataset_dir(final, lambda tmp: write_suite(spec, work, attempts, tmp))
 
 

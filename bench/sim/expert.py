@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.progress import STDERR, ProgressSink, say
+
 
 def episode_seed(seed: int, task: int, init_state: int) -> int:
     """The env seed of one attempt: a function of (seed, task, init state) only."""
@@ -337,12 +339,11 @@ class ReplayPolicy:
 
 
 def measure(suite: str, tasks: list[int], init_states: list[int], seed: int = 0,
-            max_steps: int = 280, progress: bool = True, speed: float = 1.0) -> dict:
+            max_steps: int = 280, progress: ProgressSink = STDERR, speed: float = 1.0) -> dict:
     """Expert success per task without rendering (cameras off while stepping): a measurement.
 
     Returns {task: {"successes", "attempts", "steps": [...], "seconds": [...]}}.
     """
-    import sys
     import time
 
     from bench.sim import env as sim_env
@@ -368,10 +369,9 @@ def measure(suite: str, tasks: list[int], init_states: list[int], seed: int = 0,
             rows["success"].append(success)
             rows["steps"].append(steps)
             rows["seconds"].append(round(time.perf_counter() - start, 2))
-            if progress:
-                print(f"[expert] {suite} task {task} init {init_state}: "
-                      f"{'success' if success else 'failure'} in {steps} steps "
-                      f"({rows['seconds'][-1]:.1f} s)", file=sys.stderr, flush=True)
+            say(progress, f"expert: {suite} task {task} init {init_state}: "
+                          f"{'success' if success else 'failure'} in {steps} steps "
+                          f"({rows['seconds'][-1]:.1f} s)")
         env.close()
         out[str(task)] = rows
     return out

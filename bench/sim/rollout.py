@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from bench.progress import as_sink
+from bench.progress import STDERR, ProgressSink, as_sink
 from bench.sim import env as sim_env
 from bench.sim.batching import IN_PROCESS, Batching
 from bench.stats import wilson_interval
@@ -126,7 +126,7 @@ def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
 
 
 
-def run_rollouts(act: ActFn, spec: RolloutSpec, progress: bool = True,
+def run_rollouts(act: ActFn, spec: RolloutSpec, progress: ProgressSink = STDERR,
                  render: sim_env.RenderSettings | None = None, *, finished: list[dict] = (),
                  on_episode: Callable[[dict], None] | None = None,
                  scenes: Scenes = LIBERO, batching: Batching = IN_PROCESS,
@@ -156,7 +156,7 @@ def run_rollouts(act: ActFn, spec: RolloutSpec, progress: bool = True,
     return out
 
 
-def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.RenderSettings,
+def _run_all(act: ActFn, spec: RolloutSpec, progress: ProgressSink, render: sim_env.RenderSettings,
              finished, on_episode, scenes: Scenes, batching: Batching = IN_PROCESS,
              vector_scenes=None) -> list[dict]:
     done = {(int(e["task"]), int(e["episode"])): e for e in finished}
@@ -200,7 +200,7 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: bool, render: sim_env.Rend
     return episodes
 
 
-def _run_batched(act: ActFn, spec: RolloutSpec, progress: bool, render, done: dict, on_episode,
+def _run_batched(act: ActFn, spec: RolloutSpec, progress: ProgressSink, render, done: dict, on_episode,
                  batching: Batching, vector_scenes, descriptions, episodes: list,
                  kept: Callable[[], str]) -> list[dict]:
     """_run_all's batch > 1 way (bench.sim.batched): the same planned episodes, B at a time."""
