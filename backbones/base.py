@@ -16,20 +16,20 @@ Batches:
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import ContextManager
 
 import numpy as np
 import torch
+from lerobot_policy_graft.families import GraftFamily, ImageEmbedder  # noqa: F401
 from torch import Tensor
 
 from external.libero_format import ACTION_KEY, STATE_KEY
 
-# fn(image) -> (B, N_tokens, lm_width): called once per camera, in `camera_keys` order, with the
-# image tensor the policy itself would feed its vision tower (already resized/scaled by it).
-ImageEmbedder = Callable[[Tensor], Tensor]
+# ImageEmbedder: fn(image) -> (B, N_tokens, lm_width), called once per camera, in `camera_keys`
+# order, with the image tensor the policy itself would feed its vision tower (already
+# resized/scaled by it).
 
 
 class BackboneUnavailable(RuntimeError):
@@ -55,6 +55,8 @@ class Backbone:
     info: BackboneInfo
     policy: torch.nn.Module
     camera_keys: tuple[str, ...]  # dataset camera keys, in the order embed_image is called
+    # Which LeRobot policy and where it embeds images: the class the exported plugin shares.
+    family: GraftFamily
 
     # -- processing -------------------------------------------------------------------------
     def preprocess(self, raw: dict) -> dict:
@@ -69,11 +71,10 @@ class Backbone:
         raise NotImplementedError
 
     # -- graft point ------------------------------------------------------------------------
-    @contextlib.contextmanager
-    def image_embedder(self, fn: ImageEmbedder) -> Iterator[None]:
-        """Within the block, pixels -> LM input embeddings is `fn` instead of tower+connector."""
-        raise NotImplementedError
-        yield
+    def image_embedder(self, fn: ImageEmbedder) -> ContextManager[None]:
+        """Within the block, pixels -> LM input embeddings is `fn` instead of tower+connector:
+        the family's graft point, where the exported plugin installs its graft too."""
+        return self.family.grafted(self.policy, fn)
 
     def native_tower_grid(self, image: Tensor) -> Tensor:
         """The native tower's features as a grid, (B, C, h, w) float32 (native_wrapped control)."""

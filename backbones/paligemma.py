@@ -4,7 +4,8 @@
 Both are one `PaliGemmaWithExpertModel` (modeling_pi05.py / modeling_pi0.py): the same graft point
 `embed_image` (SigLIP -> multi_modal_projector, :284-293 / :287-296, no scaling of image
 embeddings afterwards), the same image preparation, time distribution, Euler sampler and hub
-tokenizer (google/paligemma-3b-pt-224). What differs is named by a `PaliGemmaFamily`:
+tokenizer (google/paligemma-3b-pt-224). What differs is named by a `PaliGemmaFamily`
+(lerobot_policy_graft.families: the class the exported plugin shares, with the graft point):
 - the state: pi0.5 discretises it into the prompt (processor_pi05.py ~63-75); pi0 projects it to
   ONE continuous token at the head of the action expert's suffix (`state_proj`, modeling_pi0.py
   :529-549), so its inner forward takes the state as an argument (:592);
@@ -20,20 +21,18 @@ saved folder or a hub release: backbones.paligemma_load.
 
 from __future__ import annotations
 
-import contextlib
-import importlib
 import json
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import torch
 from torch import Tensor
 
+from lerobot_policy_graft.families import PaliGemmaFamily
+
 from backbones import hub
-from backbones.base import Backbone, BackboneInfo, ImageEmbedder, only_step
+from backbones.base import Backbone, BackboneInfo, only_step
 from backbones.tiny_pi05 import (
     LEROBOT_PIN,
     TOKENIZER_DIRNAME,
@@ -53,25 +52,26 @@ TOKENS_KEY = "observation.language.tokens"  # lerobot.utils.constants.OBS_LANGUA
 TOKEN_MASK_KEY = "observation.language.attention_mask"
 
 
-@dataclass(frozen=True)
-class PaliGemmaFamily:
-    """What tells one LeRobot PaliGemma policy from the other (see the module docstring)."""
+def marker_file(family: PaliGemmaFamily) -> str:
+    """graftbench's marker in a saved folder: tiny arch, cameras, rename map."""
+    return f"graftbench_{family.policy_type}.json"
 
-    name: str  # BackboneInfo.name: "pi05", "pi0"
-    label: str  # how messages name it: "pi0.5", "pi0"
-    policy_type: str  # LeRobot's: lerobot.policies.<policy_type>.modeling_<policy_type>
-    class_prefix: str  # "PI05" -> PI05Config, PI05Policy, PI05Pytorch
-    marker_file: str  # written by save_pretrained: tiny arch, cameras, rename map
-    normalization: str  # of state and action, as in the config's normalization_mapping
-    stat_names: tuple[str, ...]  # the dataset stats that normalisation reads
-    state_token: bool  # the inner forward takes the (padded, normalised) state
-    native_feature_doc: str
 
-    def lerobot_class(self, kind: str, suffix: str):
-        """LeRobot's class, e.g. ("modeling", "Policy") -> PI05Policy."""
-        module = importlib.import_module(
-            f"lerobot.policies.{self.policy_type}.{kind}_{self.policy_type}")
-        return getattr(module, f"{self.class_prefix}{suffix}")
+def native_feature_doc(family: PaliGemmaFamily) -> str:
+    return ("SigLIP vision tower last_hidden_state (after its post-layernorm, BEFORE PaliGemma's "
+            "multi_modal_projector), computed from the image the policy feeds embed_image (resized "
+            "with padding to config.image_resolution, scaled to [-1, 1]); tokens reshaped row-major "
+            f"to (B, C, h, w): (B, 1152, 16, 16) for {family.policy_type}_base, (B, 32, 4, 4) for "
+            "the tiny build")
+
+
+def real_info(family: PaliGemmaFamily) -> BackboneInfo:
+    """The base release's geometry, the same for pi0.5 and pi0: 224 px / patch 14 (SigLIP
+    So400m; configuration_pi05.py:25, configuration_pi0.py:25), gemma_2b width
+    (modeling_pi05.py:169-177, modeling_pi0.py:172-180), chunk 50, 32 padded action dims."""
+    return BackboneInfo(name=family.policy_type, native_grid=(16, 16), lm_width=2048,
+                        chunk_size=50, max_action_dim=32, num_denoise_steps=10,
+                        native_feature_doc=native_feature_doc(family))
 
 
 # Cameras: the base releases name theirs base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb
@@ -118,22 +118,7 @@ class PaliGemmaBackbone(Backbone):
         # The step alone, not the whole post-processor: that one also moves actions to the CPU.
         return _on_action(only_step(self.postprocessor, "UnnormalizerProcessorStep"), actions)
 
-    # -- graft point ------------------------------------------------------------------------
-    @contextlib.contextmanager
-    def image_embedder(self, fn: ImageEmbedder) -> Iterator[None]:
-        # object.__setattr__: nn.Module.__setattr__ would register an nn.Module `fn` as a
-        # submodule of the frozen policy (its parameters and state dict).
-        owner = self.policy.model.paligemma_with_expert
-        previous = owner.__dict__.get("embed_image")
-        object.__setattr__(owner, "embed_image", fn)
-        try:
-            yield
-        finally:
-            if previous is None:
-                del owner.__dict__["embed_image"]
-            else:
-                object.__setattr__(owner, "embed_image", previous)
-
+    # -- graft point: image_embedder is the family's (backbones.base) ----------------------
     def native_tower_grid(self, image: Tensor) -> Tensor:
         tower = self.policy.model.paligemma_with_expert.paligemma.model.vision_tower
         tokens = tower(image.to(torch.float32)).last_hidden_state  # (B, h*w, C)
@@ -210,13 +195,13 @@ def _info_from_policy(policy, family: PaliGemmaFamily) -> BackboneInfo:
     vision = paligemma.config.vision_config
     side = vision.image_size // vision.patch_size
     return BackboneInfo(
-        name=family.name,
+        name=family.policy_type,
         native_grid=(side, side),
         lm_width=paligemma.config.text_config.hidden_size,
         chunk_size=policy.config.chunk_size,
         max_action_dim=policy.config.max_action_dim,
         num_denoise_steps=policy.config.num_inference_steps,
-        native_feature_doc=family.native_feature_doc,
+        native_feature_doc=native_feature_doc(family),
     )
 
 
@@ -278,7 +263,7 @@ def save_pretrained(backbone: PaliGemmaBackbone, folder: str | os.PathLike) -> P
     if backbone.tiny_arch is not None:  # the tokenizer in use travels with the checkpoint
         tokenizer_step = only_step(backbone.preprocessor, "TokenizerProcessorStep")
         tokenizer_step.input_tokenizer.save_pretrained(folder / TOKENIZER_SUBDIR)
-    (folder / backbone.family.marker_file).write_text(json.dumps(marker, indent=2, sort_keys=True))
+    (folder / marker_file(backbone.family)).write_text(json.dumps(marker, indent=2, sort_keys=True))
     return folder
 
 

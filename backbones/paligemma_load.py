@@ -13,22 +13,22 @@ import contextlib
 import io
 import json
 from pathlib import Path
+from typing import Callable, NamedTuple
 
+from lerobot_policy_graft.configuration_graft import config_from_pretrained
+from lerobot_policy_graft.families import PaliGemmaFamily
 
-from backbones import hub
-from backbones.base import only_step
-from backbones import paligemma
+from backbones import hub, hub_world, paligemma
+from backbones.base import BackboneInfo, only_step
 from backbones.paligemma import (
     ACTION_KEY,
     PALIGEMMA_TOKENIZER_REPO,
     STATE_KEY,
     TOKENIZER_SUBDIR,
     PaliGemmaBackbone,
-    PaliGemmaFamily,
 )
 from backbones.tiny_pi05 import TinyPI05Arch, require_pinned_lerobot, tiny_pi05_patches
 from external.hubcache import cached_file, hub_artifact
-from external.lerobot_config import config_from_pretrained
 
 
 def load_policy(backbone_cls: type[PaliGemmaBackbone], path_or_repo_id: str,
@@ -57,9 +57,9 @@ def _read_marker(family: PaliGemmaFamily, source: str, marker_dir: Path | None,
     """graftbench's marker: a saved folder's (tiny arch, cameras, rename map) or, for a hub repo,
     only its tiny arch (the offline hub-cache world; a real release has no marker)."""
     if marker_dir is not None:
-        path = marker_dir / family.marker_file
+        path = marker_dir / paligemma.marker_file(family)
         return json.loads(path.read_text()) if path.is_file() else {}
-    path = cached_file(source, family.marker_file, revision)
+    path = cached_file(source, paligemma.marker_file(family), revision)
     return {"tiny_arch": json.loads(path.read_text()).get("tiny_arch")} if path else {}
 
 
@@ -187,13 +187,34 @@ def _hub_errors_as_unavailable(repo_id: str, revision: str | None):
                                      what=" or its tokenizer")
 
 
-def adapter_functions(backbone_cls: type[PaliGemmaBackbone]) -> dict:
-    """The module functions the registry reads (backbones/__init__.py) for one PaliGemma
-    family, bound to its Backbone class: pi0.py and pi05.py export these, nothing more."""
-    family = backbone_cls.family
+class PaliGemmaAdapter(NamedTuple):
+    """What an adapter module offers the harness (backbones.seam.AdapterModule) for one PaliGemma
+    family: pi0.py and pi05.py are each one of these, by composition (`paligemma_adapter`)."""
 
-    def build_tiny_policy(stats: dict, camera_keys=("observation.images.image",
-                                                   "observation.images.wrist_image"),
+    FAMILY: PaliGemmaFamily
+    INFO_REAL: BackboneInfo
+    BACKBONE_CLASS: type[PaliGemmaBackbone]
+    RENAMES_CAMERAS: bool  # False: a checkpoint is loaded with its saved camera names
+    MARKER_FILE: str
+    build_tiny_policy: Callable[..., PaliGemmaBackbone]
+    save_pretrained: Callable[..., Path]
+    load_policy: Callable[..., PaliGemmaBackbone]
+    check_real_shapes: Callable[[], dict[str, int]]
+    artifacts: Callable[..., list]
+    write_hub_release: Callable[..., None]
+
+
+def paligemma_adapter(family: PaliGemmaFamily, module: str,
+                      hub_release_device: str) -> PaliGemmaAdapter:
+    """The adapter of `family`, its Backbone class named <Prefix>Backbone in `module` (the
+    adapter module's name); `hub_release_device`: the device the hub release saved its
+    pre-processor with (docs/HUB_FACTS.md), which the offline hub world copies."""
+    name = f"{family.class_prefix}Backbone"
+    backbone_cls = type(name, (PaliGemmaBackbone,), {
+        "__module__": module, "__qualname__": name, "family": family,
+        "__doc__": f"A real LeRobot {family.label} policy with its own pre/post processors."})
+
+    def build_tiny_policy(stats: dict, camera_keys=hub.LIBERO_CAMERAS,
                           image_hw: tuple[int, int] = (64, 64), state_dim: int = 8,
                           action_dim: int = 7, chunk_size: int = 10, seed: int = 0):
         """A real LeRobot policy of this family with tiny sizes (~0.2M parameters), offline,
@@ -210,5 +231,15 @@ def adapter_functions(backbone_cls: type[PaliGemmaBackbone]) -> dict:
         """The REAL model on the meta device (no weights), one 224 px image embedded."""
         return paligemma.check_real_shapes(family)
 
-    return {"build_tiny_policy": build_tiny_policy, "save_pretrained": paligemma.save_pretrained,
-            "load_policy": load, "artifacts": artifacts, "check_real_shapes": check_real_shapes}
+    def write_hub_release(hub_cache: Path, repo_id: str, revision: str | None) -> None:
+        """The base release shaped as the hub's (backbones.hub_world)."""
+        hub_world.write_paligemma_release(adapter, hub_cache, repo_id, revision,
+                                          device=hub_release_device)
+
+    adapter = PaliGemmaAdapter(
+        FAMILY=family, INFO_REAL=paligemma.real_info(family), BACKBONE_CLASS=backbone_cls,
+        RENAMES_CAMERAS=False, MARKER_FILE=paligemma.marker_file(family),
+        build_tiny_policy=build_tiny_policy, save_pretrained=paligemma.save_pretrained,
+        load_policy=load, check_real_shapes=check_real_shapes, artifacts=artifacts,
+        write_hub_release=write_hub_release)
+    return adapter

@@ -4,7 +4,8 @@ Places in lerobot/policies/smolvla this adapter relies on (line numbers for 0.6.
 - graft point: `SmolVLMWithExpertModel.embed_image` (smolvlm_with_expert.py ~202-215) = vision
   tower -> connector (pixel shuffle by scale_factor, Linear to the LM width). It is looked up on the
   instance by `VLAFlowMatching.embed_prefix` (modeling_smolvla.py ~580), which multiplies its output
-  by sqrt(width) afterwards (~585): a grafted embedder keeps that scaling.
+  by sqrt(width) afterwards (~585): a grafted embedder keeps that scaling. Written once, in
+  `lerobot_policy_graft.families.SMOLVLA`, which the exported plugin installs its graft with.
 - images reach `embed_image` resized with padding and mapped to [-1, 1] (`prepare_images` ~334-380),
   one call per camera in `config.image_features` order.
 - loss: `SmolVLAPolicy.forward(batch, noise, time, reduction="none")` (~277-332) cuts the padded
@@ -16,17 +17,16 @@ Places in lerobot/policies/smolvla this adapter relies on (line numbers for 0.6.
 
 from __future__ import annotations
 
-import contextlib
 import shutil
 import sys
 from pathlib import Path
-from typing import Iterator
 
 import torch
+from lerobot_policy_graft.families import SMOLVLA
 from torch import Tensor
 
 from backbones import hub_world, smolvla_load
-from backbones.base import Backbone, BackboneInfo, ImageEmbedder, only_step
+from backbones.base import Backbone, BackboneInfo, only_step
 from backbones.smolvla_load import VENDORED_VLM_DIR, VLM_REPO_ID, artifacts  # noqa: F401
 from backbones.tiny_smolvla import REAL_VLM, real_shape_forward, tiny_config, tokens_per_camera
 from external.libero_format import (
@@ -62,6 +62,8 @@ TIME_BETA_ALPHA, TIME_SCALE, TIME_OFFSET = 1.5, 0.999, 0.001
 
 class SmolVLABackbone(Backbone):
     """A real SmolVLAPolicy and its own processors (the rename map lives in the preprocessor)."""
+
+    family = SMOLVLA
 
     def __init__(self, policy, preprocessor, postprocessor, name: str = "smolvla"):
         from lerobot.processor import RenameObservationsProcessorStep
@@ -102,32 +104,7 @@ class SmolVLABackbone(Backbone):
 
         return step(create_transition(action=actions))[TransitionKey.ACTION]
 
-    # -- graft point ------------------------------------------------------------------------
-    @contextlib.contextmanager
-    def image_embedder(self, fn: ImageEmbedder) -> Iterator[None]:
-        target = self.policy.model.vlm_with_expert
-        previous = target.__dict__.get("embed_image")  # set when embedders are nested
-        width = self.info.lm_width
-        lm_dtype = target.get_vlm_model().text_model.get_input_embeddings().weight.dtype
-
-        def grafted_embed_image(image: Tensor) -> Tensor:
-            tokens = fn(image)
-            if tokens.ndim != 3 or tokens.shape[0] != image.shape[0] or tokens.shape[-1] != width:
-                raise ValueError(
-                    f"image embedder returned {tuple(tokens.shape)}; SmolVLA needs "
-                    f"({image.shape[0]}, N_tokens, {width})"
-                )
-            return tokens.to(lm_dtype)
-
-        target.embed_image = grafted_embed_image  # instance attribute shadows the method
-        try:
-            yield
-        finally:
-            if previous is None:
-                del target.embed_image
-            else:
-                target.embed_image = previous
-
+    # -- graft point: image_embedder is the family's (backbones.base) ----------------------
     def native_tower_grid(self, image: Tensor) -> Tensor:
         tower = self.policy.model.vlm_with_expert.get_vlm_model().vision_model
         pixels = image.to(dtype=tower.dtype)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
+from lerobot_policy_graft.encoder import resized_normalised  # noqa: F401  (the plugin's, one copy)
 from torch import Tensor
 
 
@@ -39,13 +39,3 @@ class Encoder(torch.nn.Module):
 
     def forward(self, images: Tensor) -> Tensor:  # pragma: no cover - interface
         raise NotImplementedError
-
-
-def resized_normalised(images: Tensor, input_size: int, mean: Tensor, std: Tensor) -> Tensor:
-    """(B, 3, H, W) in [0,1] -> (B, 3, S, S) in mean's dtype: bilinear antialiased resize to
-    S = input_size (skipped at that size), then (x - mean) / std; mean, std (1, 3, 1, 1)."""
-    x = images.to(mean.dtype)
-    if tuple(x.shape[-2:]) != (input_size, input_size):
-        x = F.interpolate(x, size=(input_size, input_size), mode="bilinear",
-                          antialias=True, align_corners=False)
-    return (x - mean) / std

@@ -1,4 +1,5 @@
-"""timm encoders: the paper's four entries, "timm:<model>" names, and the frozen wrapper module.
+"""timm encoders: the paper's four entries and "timm:<model>" names, built as the plugin's frozen
+wrapper module (lerobot_policy_graft.encoder.TimmEncoder, which an export rebuilds).
 
 Parameter counts below are of the REAL architectures, built with pretrained=False and
 num_classes=0 (timm 1.0.31), and are checked by tests/test_encoders.py.
@@ -7,19 +8,18 @@ num_classes=0 (timm 1.0.31), and are checked by tests/test_encoders.py.
 from __future__ import annotations
 
 import difflib
-import math
 from pathlib import Path
 
 import timm
 import torch
 from huggingface_hub import constants as hub_constants
 from huggingface_hub import try_to_load_from_cache
+from lerobot_policy_graft.encoder import TimmEncoder  # the plugin's: an export rebuilds it
 from timm.models._hub import HF_WEIGHTS_NAME, _get_safe_alternatives, check_cached_file
-from torch import Tensor
 
 from external.artifacts import Artifact
 from external.hubcache import file_sha256
-from encoders.base import Encoder, EncoderSpec, UnknownEncoder, resized_normalised
+from encoders.base import EncoderSpec, UnknownEncoder
 from encoders.registry import (EncoderUnavailable, get_spec, is_user_encoder, own_weights,
                                register, register_prefix)
 
@@ -32,51 +32,6 @@ TINY_SEED = 0
 # 24-encoder screen spent ~30 min extracting; a hub run uses the model's own size.
 TINY_TIMM_INPUT = 64
 REASON_CHARS = 300
-
-
-class TimmEncoder(Encoder):
-    """A frozen timm model. forward: (B, 3, H, W) float in [0,1] -> (B, C, h, w) float32."""
-
-    def __init__(self, spec: EncoderSpec, model: torch.nn.Module, input_size: int, weights_id: str):
-        super().__init__()
-        self.spec = spec
-        self.model = model
-        self.input_size = input_size
-        self.weights_id = weights_id
-        # What timm.create_model received besides num_classes=0 (set by build_timm_encoder): with
-        # spec.timm_name it rebuilds this architecture (the LeRobot export, lerobot_policy_graft).
-        self.timm_kwargs: dict = {}
-        self.channels = int(model.num_features)
-        self.output_fmt = str(getattr(model, "output_fmt", "NCHW"))
-        self.register_buffer("mean", torch.tensor(spec.mean).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(spec.std).view(1, 3, 1, 1), persistent=False)
-        self.requires_grad_(False)
-        self.eval()
-
-    def train(self, mode: bool = True) -> "TimmEncoder":
-        # Frozen means frozen: a parent's .train() must not switch BatchNorm/dropout back on.
-        return super().train(False)
-
-    @torch.no_grad()
-    def forward(self, images: Tensor) -> Tensor:
-        x = resized_normalised(images, self.input_size, self.mean, self.std)
-        feats = self.model.forward_features(x)
-        if self.spec.layout == "tokens":
-            return _tokens_to_grid(feats, self.spec.num_prefix_tokens).float()
-        if self.output_fmt == "NHWC":
-            feats = feats.permute(0, 3, 1, 2)
-        return feats.float().contiguous()
-
-
-def _tokens_to_grid(tokens: Tensor, num_prefix_tokens: int) -> Tensor:
-    """(B, P + h*w, C) tokens -> (B, C, h, w), dropping the P prefix (cls/register) tokens."""
-    patches = tokens[:, num_prefix_tokens:]
-    b, n, c = patches.shape
-    side = math.isqrt(n)
-    if side * side != n:
-        raise ValueError(f"{n} patch tokens (after dropping {num_prefix_tokens} prefix tokens) do "
-                         f"not form a square grid; check num_prefix_tokens of the encoder spec")
-    return patches.transpose(1, 2).reshape(b, c, side, side)
 
 
 def _one_line(text: str, limit: int = REASON_CHARS) -> str:

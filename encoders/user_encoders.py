@@ -41,9 +41,10 @@ import re
 from typing import Callable
 
 import torch
+from lerobot_policy_graft.encoder import FrozenEncoder  # what a timm encoder is, frozen
 from torch import Tensor
 
-from encoders.base import Encoder, EncoderSpec, UnknownEncoder, resized_normalised
+from encoders.base import Encoder, EncoderSpec, UnknownEncoder
 
 FACTORY_SEED = 0
 CONTRACT = ("input_size: int, mean and std: 3 floats each, channels: int, weights_id: str; "
@@ -151,30 +152,19 @@ def declared(obj, name: str) -> dict:
     return found
 
 
-class ModuleEncoder(Encoder):
+class ModuleEncoder(FrozenEncoder, Encoder):
     """A user's module, frozen and fed like a timm encoder.
     forward: (B, 3, H, W) float in [0,1] -> (B, channels, h, w) float32."""
 
     def __init__(self, spec: EncoderSpec, module: torch.nn.Module, channels: int, weights_id: str):
-        super().__init__()
-        self.spec = spec
+        super().__init__(spec, spec.input_size, weights_id)
         self.module = module
-        self.input_size = spec.input_size
         self.channels = channels
-        self.weights_id = weights_id
-        self.register_buffer("mean", torch.tensor(spec.mean).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(spec.std).view(1, 3, 1, 1), persistent=False)
-        self.requires_grad_(False)
-        self.eval()
-
-    def train(self, mode: bool = True) -> "ModuleEncoder":
-        # Frozen means frozen: a parent's .train() must not switch BatchNorm/dropout back on.
-        return super().train(False)
+        self.freeze()
 
     @torch.no_grad()
     def forward(self, images: Tensor) -> Tensor:
-        x = resized_normalised(images, self.input_size, self.mean, self.std)
-        return self.module(x).float().contiguous()
+        return self.module(self.normalised(images)).float().contiguous()
 
 
 def _probe(encoder: ModuleEncoder, name: str) -> None:

@@ -33,8 +33,10 @@ py="$(find_python)"
 # The constraints pin every package (torch 2.11.0 CUDA build included: it runs on the CPU).
 # PIP_CONSTRAINT is cleared so a machine-wide pip constraint cannot pull in another torch.
 PIP_CONSTRAINT= .venv/bin/python -m pip install -q -c constraints.txt -e .
-# The plugin rides on the stack above: --no-deps, so it can never pull in another torch.
-# LeRobot imports it by its distribution name (lerobot_policy_*) in lerobot-train / lerobot-eval.
-PIP_CONSTRAINT= .venv/bin/python -m pip install -q --no-deps -e "$plugin"
+# The plugin declares its own dependencies (lerobot, timm, safetensors: it stands alone on a
+# machine without graftbench); under the same constraints they resolve to the stack above, so it
+# can never pull in another torch. graftbench imports the graft wrapper, encoder and families
+# from it. LeRobot imports it by its distribution name (lerobot_policy_*) in lerobot-train/-eval.
+PIP_CONSTRAINT= .venv/bin/python -m pip install -q -c constraints.txt -e "$plugin"
 echo "$want" > "$stamp"
 echo "[install] done: $(.venv/bin/python -c 'import torch, lerobot; print("torch", torch.__version__, "lerobot", lerobot.__version__)')"

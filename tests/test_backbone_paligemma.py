@@ -89,3 +89,14 @@ def test_real_release_geometry(module):
     # pi0_base and pi05_base: SigLIP So400m at 224 px / patch 14, gemma_2b (check_real_shapes
     # builds them and compares with INFO_REAL: tests/test_backbone_contract.py).
     assert (module.INFO_REAL.native_grid, module.INFO_REAL.lm_width) == ((16, 16), 2048)
+
+
+def test_the_module_is_its_familys_adapter_member_by_member(module):
+    # pi0.py and pi05.py unpack paligemma_adapter's fields by position: each name must hold
+    # the member of that name.
+    adapter = module._ADAPTER
+    assert all(getattr(module, name) is getattr(adapter, name) for name in adapter._fields)
+    assert module.BACKBONE_CLASS.family is module.FAMILY
+    assert module.INFO_REAL.name == module.FAMILY.policy_type
+    assert module.BACKBONE_CLASS.__name__ == f"{module.FAMILY.class_prefix}Backbone"
+    assert module.MARKER_FILE == f"graftbench_{module.FAMILY.policy_type}.json"

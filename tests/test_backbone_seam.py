@@ -66,33 +66,66 @@ def test_the_study_tables_per_backbone_keys_are_the_registry_study_entries():
     assert per_backbone and all(set(c.study) == study for c in per_backbone)
 
 
+PLUGIN = REPO_ROOT / "plugins" / "lerobot_policy_graft"
+PACKAGES = ("bench", "backbones", "encoders", "external")
+
+
+def _words(name: str) -> set[str]:
+    """The words of a code name, lower case: "GraftPI0Policy" -> graft, pi0, policy;
+    "lerobot.policies.pi0.configuration_pi0" -> lerobot, policies, pi0, configuration."""
+    parts = re.split(r"[^A-Za-z0-9]+", name)
+    return {w.lower() for part in parts
+            for w in re.findall(r"[A-Z]+[0-9]*(?![a-z])|[A-Z]?[a-z]+[0-9]*|[0-9]+", part)}
+
+
 def _names_family(path, family: str) -> bool:
-    """Does the code of `path` name backbone `family`: the string, its module or an attribute?"""
+    """Does the code of `path` name backbone `family`: as a name or a word of one (a variable,
+    attribute, class, function, argument or imported module), or in a string that is not prose
+    ("pi0", "graft_pi0"; docstrings and comments do not count)."""
     import ast
 
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Constant) and node.value == family:
-            return True
-        if isinstance(node, ast.Import) and any(a.name == f"backbones.{family}" for a in node.names):
-            return True
-        if isinstance(node, ast.ImportFrom) and (node.module == f"backbones.{family}" or (
-                node.module == "backbones" and any(a.name == family for a in node.names))):
-            return True
-        if isinstance(node, ast.Attribute) and node.attr == family:
+        names: list[str] = []
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            names = [] if any(c.isspace() for c in node.value) else [node.value]
+        elif isinstance(node, ast.Name):
+            names = [node.id]
+        elif isinstance(node, ast.Attribute):
+            names = [node.attr]
+        elif isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            names = [node.name]
+        elif isinstance(node, ast.alias):
+            names = [node.name, node.asname or ""]
+        elif isinstance(node, ast.ImportFrom):
+            names = [node.module or ""]
+        elif isinstance(node, (ast.keyword, ast.arg)):
+            names = [node.arg or ""]
+        if any(family in _words(name) for name in names):
             return True
     return False
 
 
+def test_names_family_finds_a_family_in_code_not_in_prose(tmp_path):
+    code = tmp_path / "code.py"
+    for text, names in (('x = "pi0"', True), ("class GraftPI0Policy: ...", True),
+                        ("from lerobot.policies.pi0 import x", True), ("make_graft_pi0 = 1", True),
+                        ("f(PI0)", True), ("import pi05", False), ('"""pi0 and pi0.5"""', False),
+                        ("# pi0\nx = 1", False), ('y = "graft_pi05"', False)):
+        code.write_text(text)
+        assert _names_family(code, "pi0") is names, text
+
+
 def test_extending_pi0_example_lists_every_file_that_names_pi0():
-    """docs/EXTENDING.md's worked example: its "Files touched" are exactly the package modules
-    whose code names pi0 (its registry name, its module); the tests it lists name pi0 too."""
+    """docs/EXTENDING.md's worked example: its "Files touched" are exactly the modules, of the
+    harness and of the LeRobot plugin alike, whose code names pi0 (its registry name, its
+    module, its family); the tests it lists name pi0 too."""
     text = (REPO_ROOT / "docs" / "EXTENDING.md").read_text()
     section = text.split("## Worked example: pi0", 1)[1].split("Files touched", 1)[1]
-    listed = set(re.findall(r"`((?:backbones|bench|encoders|external|tests)/[\w/]+\.py)`",
+    listed = set(re.findall(r"`((?:backbones|bench|encoders|external|tests|plugins)/[\w/]+\.py)`",
                             section.split("\n\n", 1)[0]))
-    modules = {p.relative_to(REPO_ROOT).as_posix()
-               for pkg in ("bench", "backbones", "encoders", "external")
-               for p in (REPO_ROOT / pkg).rglob("*.py") if _names_family(p, "pi0")}
+    sources = [p for pkg in PACKAGES for p in (REPO_ROOT / pkg).rglob("*.py")]
+    sources += list((PLUGIN / "lerobot_policy_graft").rglob("*.py"))
+    modules = {p.relative_to(REPO_ROOT).as_posix() for p in sources if _names_family(p, "pi0")}
     listed_modules = {f for f in listed if not f.startswith("tests/")}
     assert listed_modules == modules, (
         f"listed in EXTENDING.md, not naming pi0: {sorted(listed_modules - modules)}; naming "

@@ -7,6 +7,7 @@ Every field is plain data LeRobot's CLI can read and set (`--policy.train_scope=
 from __future__ import annotations
 
 import json
+import tempfile
 from dataclasses import dataclass, field
 
 from lerobot.configs import PreTrainedConfig
@@ -43,7 +44,7 @@ class GraftFields:
     graft_grid: list[int] = field(default_factory=lambda: [8, 8])
     train_scope: str = "projector"
     graft_cell: str = ""  # the graftbench cell this graft was measured as
-    tiny_arch: str = ""  # JSON of backbones.tiny_pi05.TinyPI05Arch for graftbench's tiny pi0/pi0.5
+    tiny_arch: str = ""  # JSON of tiny_paligemma.TinyPI05Arch: graftbench's tiny PaliGemma builds
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -80,3 +81,16 @@ class GraftPI05Config(GraftFields, PI05Config):
 @dataclass
 class GraftPI0Config(GraftFields, PI0Config):
     """pi0 with a graft for its SigLIP tower + projection."""
+
+
+def config_from_pretrained(source: str, revision: str | None = None) -> PreTrainedConfig:
+    """PreTrainedConfig.from_pretrained(source, revision=revision), less the file it leaves
+    behind: LeRobot 0.6.1 dumps the config into a NamedTemporaryFile(delete=False) for draccus
+    and never removes it (a test run left ~140 in /tmp). Its temp files go to a private folder,
+    removed on return. graftbench's adapters read checkpoints' configs through it too."""
+    with tempfile.TemporaryDirectory(prefix="graftbench-config-") as private:
+        before, tempfile.tempdir = tempfile.tempdir, private
+        try:
+            return PreTrainedConfig.from_pretrained(source, revision=revision)
+        finally:
+            tempfile.tempdir = before

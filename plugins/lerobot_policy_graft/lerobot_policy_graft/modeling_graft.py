@@ -1,7 +1,8 @@
 """Grafted policies: LeRobot's own SmolVLAPolicy / PI05Policy / PI0Policy, with ONLY the image
 embedding replaced: camera pixels in [0, 1] -> timm encoder (its own resize and mean/std) ->
-grid pooled to the native token grid -> LayerNorm (no affine) -> Linear, the fixed wrapper of
-external.graft that graftbench measured with.
+grid pooled to the native token grid -> LayerNorm (no affine) -> Linear, the fixed wrapper
+(`lerobot_policy_graft.graft`) that graftbench measures with, spliced in at the family's graft
+point (`lerobot_policy_graft.families`).
 
 Loading is strict (LeRobot's SmolVLA loads with strict=False and only logs; pi0 / pi0.5 print and
 keep random weights): a missing or unexpected key raises. Folders a config names relative to the
@@ -12,23 +13,20 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import json
 import shutil
 from pathlib import Path
 
 import torch
 from lerobot.configs import PreTrainedConfig
-from lerobot.policies.pi0.modeling_pi0 import PI0Policy
-from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from torch import Tensor, nn
 
-from external.graft import GraftFeed, Projector, pool_grid
-from external.lerobot_config import config_from_pretrained
 from lerobot_policy_graft.configuration_graft import (
-    TRAIN_SCOPES, GraftPI0Config, GraftPI05Config, GraftSmolVLAConfig,
+    TRAIN_SCOPES, GraftPI0Config, GraftPI05Config, GraftSmolVLAConfig, config_from_pretrained,
 )
+from lerobot_policy_graft.encoder import encoder_from_config
+from lerobot_policy_graft.families import PI0, PI05, SMOLVLA, GraftFamily
+from lerobot_policy_graft.graft import GraftFeed, Projector, pool_grid
 
 # The checkpoint folder being loaded: relative asset names in its config resolve against it.
 _ASSET_ROOT: contextvars.ContextVar[Path | None] = contextvars.ContextVar("graft_assets",
@@ -46,26 +44,12 @@ def assets_at(folder: str | Path):
         _ASSET_ROOT.reset(token)
 
 
-def build_encoder(config) -> nn.Module:
-    """The config's timm architecture, random init (the checkpoint holds its weights), wrapped
-    by graftbench's frozen TimmEncoder: (B, 3, H, W) in [0, 1] -> (B, C, h, w) float32."""
-    import timm
-
-    from encoders.base import EncoderSpec
-    from encoders.timm_encoders import TimmEncoder
-
-    spec = EncoderSpec(name=config.encoder_name or f"timm:{config.encoder_timm_name}",
-                       timm_name=config.encoder_timm_name, input_size=config.encoder_input_size,
-                       mean=tuple(config.encoder_mean), std=tuple(config.encoder_std),
-                       num_prefix_tokens=config.encoder_num_prefix_tokens,
-                       layout=config.encoder_layout)
-    model = timm.create_model(config.encoder_timm_name, pretrained=False, num_classes=0,
-                              **config.timm_kwargs)
-    encoder = TimmEncoder(spec, model, config.encoder_input_size, weights_id="checkpoint")
-    if encoder.channels != config.encoder_channels:
-        raise ValueError(f"{config.encoder_timm_name} with {config.encoder_timm_kwargs} has "
-                         f"{encoder.channels} channels, the config says {config.encoder_channels}")
-    return encoder
+def _resolved(name: str) -> str:
+    """A config's asset name, resolved against the checkpoint being loaded when it is there."""
+    root = _ASSET_ROOT.get()
+    if root is not None and not Path(name).is_absolute() and (root / name).is_dir():
+        return str(root / name)
+    return name
 
 
 class GraftHead(nn.Module):
@@ -74,7 +58,7 @@ class GraftHead(nn.Module):
 
     def __init__(self, config, lm_width: int) -> None:
         super().__init__()
-        self.encoder = build_encoder(config)
+        self.encoder = encoder_from_config(config)
         self.projector = Projector(config.encoder_channels, lm_width)
         self.grid = (int(config.graft_grid[0]), int(config.graft_grid[1]))
         self.camera_keys = tuple(config.image_features)
@@ -85,8 +69,8 @@ class GraftHead(nn.Module):
         """(B, 3, H, W) in [0, 1] -> (B, rows*cols, C) pooled, as graftbench's encode_pooled."""
         device = next(self.encoder.parameters()).device
         images = images.to(device, torch.float32)
-        if self.train_encoder and torch.is_grad_enabled():  # TimmEncoder.forward is no_grad
-            grid = type(self.encoder).forward.__wrapped__(self.encoder, images)
+        if self.train_encoder and torch.is_grad_enabled():  # the encoder's forward is no_grad
+            grid = self.encoder.grid(images)
         else:
             grid = self.encoder(images)
         return pool_grid(grid.float(), self.grid).contiguous()
@@ -105,22 +89,24 @@ class GraftHead(nn.Module):
 
 
 class _Grafted:
-    """What the three grafted policies share; `_embed_owner()` is the module whose embed_image
-    the base policy calls, `_lm_width()` the width the projector must produce."""
+    """What every grafted policy is, its family's differences read from `family`: built under
+    the family's construction context, the graft installed at its graft point, the batch's
+    cameras encoded where the family prepares its images (`images_method`)."""
 
-    policy_type = ""
+    family: GraftFamily
+    config_class: type
+    name: str
 
-    def _install_graft(self) -> None:
-        self.graft = GraftHead(self.config, self._lm_width())
-        object.__setattr__(self._embed_owner(), "embed_image", self._embed_image)
-        prefixes = TRAIN_SCOPES[self.config.train_scope]
+    def __init__(self, config, **kwargs):
+        with self.family.building(config, _resolved):
+            super().__init__(config, **kwargs)
+        self.graft = GraftHead(config, self.family.lm_width(self))
+        self.family.install(self, self.graft.feed)
+        prefixes = TRAIN_SCOPES[config.train_scope]
         if prefixes is not None:
             for name, param in self.named_parameters():
                 param.requires_grad_(name.startswith(prefixes))
         self._asset_root = _ASSET_ROOT.get()
-
-    def _embed_image(self, image: Tensor) -> Tensor:
-        return self.graft.feed(image)
 
     def get_optim_params(self):
         prefixes = TRAIN_SCOPES[self.config.train_scope]
@@ -143,14 +129,11 @@ class _Grafted:
 
     def _save_pretrained(self, save_directory: Path, state_dict=None) -> None:
         super()._save_pretrained(save_directory, state_dict=state_dict)
-        for name in self._bundled_assets():
+        for name in self.family.bundled_assets(self.config):
             source = self._asset_root / name if self._asset_root else None
             target = Path(save_directory) / name
             if source is not None and source.is_dir() and source.resolve() != target.resolve():
                 shutil.copytree(source, target, dirs_exist_ok=True)
-
-    def _bundled_assets(self) -> list[str]:
-        return []
 
 
 def _local_folder(name_or_path, revision: str | None) -> Path:
@@ -162,82 +145,23 @@ def _local_folder(name_or_path, revision: str | None) -> Path:
     return Path(snapshot_download(str(name_or_path), revision=revision))
 
 
-def _resolved(name: str) -> str:
-    """A config's asset name, resolved against the checkpoint being loaded when it is there."""
-    root = _ASSET_ROOT.get()
-    if root is not None and not Path(name).is_absolute() and (root / name).is_dir():
-        return str(root / name)
-    return name
+def grafted_policy(family: GraftFamily, config_class: type) -> type:
+    """The grafted policy class of `family`: `_Grafted` over LeRobot's own policy class, named
+    as LeRobot's convention looks it up (Graft<Prefix>Config -> Graft<Prefix>Policy here)."""
+    base = family.lerobot_class("modeling", "Policy")
+    prepare_images = getattr(base, family.images_method)
+
+    def encode_then_prepare(self, batch, *args, **kwargs):
+        self.graft.bind(batch)  # the batch's own pixels, for the embed_image calls that follow
+        return prepare_images(self, batch, *args, **kwargs)
+
+    name = config_class.__name__.removesuffix("Config") + "Policy"
+    return type(name, (_Grafted, base), {
+        "__module__": __name__, "__qualname__": name, "__doc__": f"{family.label}, grafted.",
+        "family": family, "config_class": config_class, "name": f"graft_{family.policy_type}",
+        family.images_method: encode_then_prepare})
 
 
-class GraftSmolVLAPolicy(_Grafted, SmolVLAPolicy):
-    config_class = GraftSmolVLAConfig
-    name = "graft_smolvla"
-
-    def __init__(self, config: GraftSmolVLAConfig, **kwargs):
-        saved = config.vlm_model_name
-        config.vlm_model_name = _resolved(saved)  # AutoConfig/AutoProcessor read it here only
-        try:
-            super().__init__(config, **kwargs)
-        finally:
-            config.vlm_model_name = saved
-        self._install_graft()
-
-    def _embed_owner(self) -> nn.Module:
-        return self.model.vlm_with_expert
-
-    def _lm_width(self) -> int:
-        return self.model.vlm_with_expert.config.text_config.hidden_size
-
-    def _embed_image(self, image: Tensor) -> Tensor:
-        text = self.model.vlm_with_expert.get_vlm_model().text_model
-        return self.graft.feed(image).to(text.get_input_embeddings().weight.dtype)
-
-    def _bundled_assets(self) -> list[str]:
-        name = self.config.vlm_model_name
-        return [] if Path(name).is_absolute() else [name]
-
-    def prepare_images(self, batch):
-        self.graft.bind(batch)
-        return super().prepare_images(batch)
-
-
-class _GraftedPaliGemma(_Grafted):
-    def _build(self, base_init, config, **kwargs) -> None:
-        patches = contextlib.nullcontext()
-        if config.tiny_arch:  # graftbench's tiny test world only: its construction patches
-            from backbones.tiny_pi05 import TinyPI05Arch, tiny_pi05_patches
-
-            arch = TinyPI05Arch.from_dict(json.loads(config.tiny_arch))
-            patches = tiny_pi05_patches(arch, None, self.policy_type)
-        with patches:
-            base_init(self, config, **kwargs)
-        self._install_graft()
-
-    def _embed_owner(self) -> nn.Module:
-        return self.model.paligemma_with_expert
-
-    def _lm_width(self) -> int:
-        return self.model.paligemma_with_expert.paligemma.config.text_config.hidden_size
-
-    def _preprocess_images(self, batch):
-        self.graft.bind(batch)
-        return super()._preprocess_images(batch)
-
-
-class GraftPI05Policy(_GraftedPaliGemma, PI05Policy):
-    config_class = GraftPI05Config
-    name = "graft_pi05"
-    policy_type = "pi05"
-
-    def __init__(self, config: GraftPI05Config, **kwargs):
-        self._build(PI05Policy.__init__, config, **kwargs)
-
-
-class GraftPI0Policy(_GraftedPaliGemma, PI0Policy):
-    config_class = GraftPI0Config
-    name = "graft_pi0"
-    policy_type = "pi0"
-
-    def __init__(self, config: GraftPI0Config, **kwargs):
-        self._build(PI0Policy.__init__, config, **kwargs)
+GraftSmolVLAPolicy = grafted_policy(SMOLVLA, GraftSmolVLAConfig)
+GraftPI05Policy = grafted_policy(PI05, GraftPI05Config)
+GraftPI0Policy = grafted_policy(PI0, GraftPI0Config)

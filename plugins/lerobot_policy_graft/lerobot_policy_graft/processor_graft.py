@@ -9,6 +9,7 @@ from a config alone; a saved checkpoint's processors load from its JSON and this
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import os
 import tempfile
@@ -19,6 +20,8 @@ from typing import Any
 import torch
 from lerobot.processor import ProcessorStepRegistry
 from lerobot.processor.tokenizer_processor import TokenizerProcessorStep
+
+from lerobot_policy_graft.families import PI0, PI05, SMOLVLA, GraftFamily
 
 TOKENIZER_STATE_KEY = "tokenizer_files"
 
@@ -95,27 +98,22 @@ def bundle_tokenizer(pipeline) -> None:
             pipeline.steps[i] = GraftTokenizerProcessorStep.from_step(step)
 
 
-def make_graft_smolvla_pre_post_processors(config, dataset_stats=None):
-    """SmolVLA's own processors (built from `config`), tokenizer bundled."""
-    from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
+def bundled_processors(family: GraftFamily):
+    """`make_graft_<type>_pre_post_processors` of `family`: its LeRobot processors (built from
+    the config), tokenizer bundled."""
+    def make(config, dataset_stats=None):
+        module = importlib.import_module(
+            f"lerobot.policies.{family.policy_type}.processor_{family.policy_type}")
+        make_base = getattr(module, f"make_{family.policy_type}_pre_post_processors")
+        pipelines = make_base(config, dataset_stats=dataset_stats)
+        bundle_tokenizer(pipelines[0])
+        return pipelines
 
-    return _bundled(make_smolvla_pre_post_processors(config, dataset_stats=dataset_stats))
-
-
-def make_graft_pi05_pre_post_processors(config, dataset_stats=None):
-    """pi0.5's own processors (built from `config`), tokenizer bundled."""
-    from lerobot.policies.pi05.processor_pi05 import make_pi05_pre_post_processors
-
-    return _bundled(make_pi05_pre_post_processors(config, dataset_stats=dataset_stats))
-
-
-def make_graft_pi0_pre_post_processors(config, dataset_stats=None):
-    """pi0's own processors (built from `config`), tokenizer bundled."""
-    from lerobot.policies.pi0.processor_pi0 import make_pi0_pre_post_processors
-
-    return _bundled(make_pi0_pre_post_processors(config, dataset_stats=dataset_stats))
+    make.__name__ = make.__qualname__ = f"make_graft_{family.policy_type}_pre_post_processors"
+    return make
 
 
-def _bundled(pipelines):
-    bundle_tokenizer(pipelines[0])
-    return pipelines
+# LeRobot looks these up by name (factory._make_processors_from_policy_config).
+make_graft_smolvla_pre_post_processors = bundled_processors(SMOLVLA)
+make_graft_pi05_pre_post_processors = bundled_processors(PI05)
+make_graft_pi0_pre_post_processors = bundled_processors(PI0)

@@ -1,9 +1,9 @@
-"""The fixed wrapper of a graft, shared by the harness (bench.run) and the LeRobot plugin
-(plugins/lerobot_policy_graft): encoder grid -> adaptive average pooling to the backbone's token
+"""The fixed wrapper of a graft: encoder grid -> adaptive average pooling to the backbone's token
 grid (`pool_grid`) -> LayerNorm without affine parameters -> ONE Linear (`Projector`).
 
-`GraftFeed` is what stands in for a policy's pixels -> LM-embedding step. Kept at the floor
-(external/) so the plugin builds a graft from the very code the harness measured with.
+`GraftFeed` is what stands in for a policy's pixels -> LM-embedding step. It lives in the plugin,
+which must load an export where graftbench is not installed; graftbench's harness (bench.run)
+imports it from here, so an export runs the very code the harness measured with.
 """
 
 from __future__ import annotations
