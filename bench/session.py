@@ -160,9 +160,7 @@ class GraftSession:
         if self._screening is None and self.screen_options is not None:
             from bench.run.screen_run import ScreenRun
 
-            self._screening = ScreenRun(self.screen_options, self.profile, self.store,
-                                        self.workspace, feature_dtype=self.feature_dtype,
-                                        rerun=self.rerun, run_cell=self.run)
+            self._screening = ScreenRun(self.screen_options, self.cells)
         return self._screening
 
     @property
@@ -216,7 +214,8 @@ class GraftSession:
     def pytest_runtest_logreport(self, report) -> None:
         """Each grid case's outcome, serial or from xdist workers (user_properties travel)."""
         from bench.run.outcome import MEASURED, Outcome, failed
-        from bench.summary import OUTCOME_PROPERTY, cell_id_of, failure_line
+        from bench.run.outcome import OUTCOME_PROPERTY
+        from bench.summary import cell_id_of, failure_line
 
         cell = cell_id_of(report.nodeid)
         if "::test_robust[" in report.nodeid:  # a robustness case, not its cell's outcome
@@ -289,7 +288,8 @@ class GraftSession:
 
     def finish(self, sections: list[tuple[str, str]] = ()) -> Path | None:
         """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
-        nothing new finished (an existing report is left as it is)."""
+        nothing new finished (an existing report is left as it is), or when writing it failed
+        (`report_error` says why)."""
         from bench.run.outcome import Status
 
         outcomes = list(self.outcomes.values())
@@ -303,8 +303,12 @@ class GraftSession:
         if not self.selection or not (Status.MEASURED in statuses or (
                 Status.RESUMED in statuses and not self.report_path.exists())):
             return None
-        self.report_written = self.seams.report_builder(self.results_dir, self.report_path,
-                                                        extra_sections=sections)
+        try:
+            self.report_written = self.seams.report_builder(self.results_dir, self.report_path,
+                                                            extra_sections=sections)
+        except Exception as e:  # a report bug must not hide the cell results: said, kept
+            self.report_error = f"{type(e).__name__}: {e}"
+            sys.stderr.write(f"\n[graftbench] REPORT.md not written: {self.report_error}\n")
         return self.report_written
 
 

@@ -8,7 +8,6 @@ from pathlib import Path
 from bench.results.store import CELLS
 from bench.run.outcome import Outcome, tally
 
-OUTCOME_PROPERTY = "graftbench"  # record_property name a grid case reports its outcome under
 
 
 def cell_id_of(nodeid: str) -> str | None:

@@ -12,7 +12,7 @@ recorded MSE); it never asserts a ranking: rankings are the report's business.
 import pytest
 
 from bench.results.record import Record, validate_record
-from bench.summary import OUTCOME_PROPERTY
+from bench.run.outcome import OUTCOME_PROPERTY
 
 
 def _tell(record_property, outcome) -> None:
@@ -52,7 +52,7 @@ def test_screen(screen_case, graft_session, record_property):
 def test_short_graft(tier_cell, graft_session, record_property):
     """--screen only, after the screens and before the grafts: the graft at a fraction of its
     steps (bench.grid.kinds short_graft), for every listed encoder whatever the selection."""
-    _check_record(graft_session.screening.run_tier(tier_cell), tier_cell)
+    _check_record(graft_session.run(tier_cell), tier_cell)
     _tell(record_property, graft_session.outcomes.get(tier_cell.id))
 
 

@@ -16,6 +16,7 @@ from bench.report.format import num
 from bench.results.store import ResultStore
 from bench.run.outcome import MEASURED
 from bench.run.screen_run import ScreenRun
+from bench.run.service import CellService, RunSettings
 from bench.screen.proxies import (HIGHER, LOWER, PROXIES, TOKEN_NORMS, WINDOWS, FitInputs, Proxy,
                                   get_proxy, proxy_names, register_proxy, unregister_proxy)
 from bench.screen.records import ScreenScores, new_screen_record
@@ -101,8 +102,8 @@ def test_a_toy_proxy_in_one_entry_is_screened_stored_selected_and_reported(
 
     store = ResultStore(tmp_path / "results")
     profile = dataclasses.replace(TINY, encoders=("pixels", "blind", "dinov2_s"))
-    run = ScreenRun(ScreenOptions(1, toy_proxy.name), profile, store, lambda: tiny_ws,
-                    feature_dtype="fp16")
+    cells = CellService(profile, store, lambda: tiny_ws, RunSettings())
+    run = ScreenRun(ScreenOptions(1, toy_proxy.name), cells)
     # A screen stored before the toy existed does not stand: it is measured again.
     before = ScreenScores("blind", BACKBONE, SUITE, seconds=1.0)
     before.proxies = {p: {"gain": 0.0} for p in proxy_names() if p != toy_proxy.name}

@@ -14,6 +14,7 @@ from bench.grid.kinds import GRAFT
 from bench.grid.protocol import TINY
 from bench.results.store import ResultStore, load_results
 from bench.run.screen_run import ScreenRun
+from bench.run.service import CellService, RunSettings
 from bench.screen.records import ScreenFailure, ScreenRecord
 from bench.screen.selection import ScreenOptions
 from bench.run.outcome import MEASURED, RESUMED
@@ -119,7 +120,7 @@ def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, 
 
     store, ws = ResultStore(tmp_path), OneEncoderBreaks()
     profile = dataclasses.replace(TINY, encoders=("pixels", "blind", "dinov2_s"))
-    run = ScreenRun(ScreenOptions(1), profile, store, lambda: ws, feature_dtype="fp16")
+    run = ScreenRun(ScreenOptions(1), CellService(profile, store, lambda: ws, RunSettings()))
     chosen = run.selection("smolvla", "spatial")
     failure = store.load_screen("smolvla-spatial-dinov2_s")
     assert isinstance(failure, ScreenFailure)
@@ -129,7 +130,7 @@ def test_a_failed_extraction_is_a_failed_screen_and_the_screen_goes_on(tiny_ws, 
     cell = CellSpec(GRAFT, "smolvla", "spatial", 0, "dinov2_s")
     assert run.dropped_reason(cell) == "its screen failed: " + failure.error
     assert run.dropped_reason(CellSpec(GRAFT, "smolvla", "spatial", 0, "pixels")) is None
-    later = ScreenRun(ScreenOptions(1), profile, store, lambda: tiny_ws, feature_dtype="fp16")
+    later = ScreenRun(ScreenOptions(1), CellService(profile, store, lambda: tiny_ws, RunSettings()))
     assert isinstance(later.screen("smolvla", "spatial", "dinov2_s"), ScreenRecord)  # re-screened
     later.screen("smolvla", "spatial", "blind")
     assert later.outcomes == {"smolvla-spatial-dinov2_s": MEASURED,
@@ -147,7 +148,8 @@ def test_a_screen_another_worker_is_measuring_is_waited_for_and_resumed(tiny_ws,
 
     store = ResultStore(tmp_path)
     profile = dataclasses.replace(TINY, encoders=("pixels", "blind"))
-    run = ScreenRun(ScreenOptions(None), profile, store, lambda: tiny_ws, feature_dtype="fp16")
+    cells = CellService(profile, store, lambda: tiny_ws, RunSettings())
+    run = ScreenRun(ScreenOptions(None), cells)
     theirs = ScreenScores("blind", "smolvla", "spatial", seconds=9.0)
     theirs.proxies = {p: {"gain": 0.0} for p in ("logme", "ridge", "knn")}
     theirs = new_screen_record(theirs, run.conditions("smolvla", "spatial"), 1.0)
@@ -171,8 +173,8 @@ def test_the_registered_ladder_is_ranked_in_its_planted_order(tiny_ws, tmp_path)
     from encoders.known import LADDER
 
     profile = dataclasses.replace(TINY, encoders=LADDER)
-    run = ScreenRun(ScreenOptions(None), profile, ResultStore(tmp_path), lambda: tiny_ws,
-                    feature_dtype="fp16")
+    cells = CellService(profile, ResultStore(tmp_path), lambda: tiny_ws, RunSettings())
+    run = ScreenRun(ScreenOptions(None), cells)
     screens = [run.screen("smolvla", "spatial", e).scores for e in LADDER]
     planted = list(range(len(LADDER), 0, -1))  # higher is better: pixels first
     for proxy in (p.name for p in supervised_proxies()):

@@ -138,17 +138,29 @@ def test_screen_by_short_is_accepted_at_start_up_and_collects_the_tier(bench_cli
 
 def test_a_short_graft_another_worker_is_running_is_waited_for(tmp_path):
     """-n N --screen-by short: the selection on one worker and the case on another both run a
-    short graft through ScreenRun.run_tier, which holds the cell's lock (ResultStore.cell_lock):
-    the later one waits, then its run resumes what the first stored."""
+    short graft through ScreenRun.run_tier, the cell service's run, which claims the cell
+    (ResultStore.cell_lock): the later one waits, then its run resumes what the first stored."""
     import threading
+    import types
 
+    from bench.progress import QUIET
     from bench.screen.selection import ScreenOptions
     from bench.run.screen_run import ScreenRun
 
+    from bench.run.plan import CellResult
+    from bench.run.service import CellService, RunSettings
+    from tests.factories import make_record
+
     store = ResultStore(tmp_path)
     ran = []
-    run = ScreenRun(ScreenOptions(1, "short"), TINY, store, lambda: None, feature_dtype="fp16",
-                    run_cell=lambda cell: ran.append(cell.id) or cell.id)
+
+    def runner(cell, ws, context):
+        ran.append(cell.id)
+        return CellResult(make_record(kind=cell.kind, encoder=cell.encoder, variant=cell.variant))
+
+    quiet = types.SimpleNamespace(progress=QUIET)
+    service = CellService(TINY, store, lambda: quiet, RunSettings(rerun=True), runner=runner)
+    run = ScreenRun(ScreenOptions(1, "short"), service)
     cell = CellSpec(SHORT_GRAFT, "smolvla", "spatial", 0, "pixels", SHORT_BY_VARIANT)
     waiter = threading.Thread(target=run.run_tier, args=(cell,))
     with store.cell_lock(cell.id):  # the other worker, training it

@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
+OUTCOME_PROPERTY = "graftbench"  # the pytest user property a case reports its outcome under
+
 
 class Status(Enum):
     MEASURED = "measured"

@@ -9,22 +9,19 @@ selection drops it with that reason.
 
 Under `--screen-by short` the selection waits for the short grafts (kind short_graft, variant
 SHORT_BY_VARIANT) of every listed encoder and seed instead: each is run or resumed through
-`run_tier` (the session's own `run` under the cell's lock: the same plan, store and records as
+`run_tier` (the cell service's `run`, which claims the cell: the same plan, store and records as
 its `test_short_graft` case); one that fails drops its encoder with the failure's line.
 """
 
 from __future__ import annotations
 
-from typing import Callable
 
 import pytest
 
 from bench.grid.cells import CellSpec
 from bench.grid.kinds import SHORT_BY_VARIANT, SHORT_GRAFT
 from bench.progress import say
-from bench.run.outcome import MEASURED, RESUMED, Outcome, failed
-from bench.screen.measure import measure_screen
-from bench.screen.proxies import proxy_names
+from bench.run.outcome import MEASURED, OUTCOME_PROPERTY, Outcome, Status, failed
 from bench.screen.records import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
                                   screen_id)
 from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
@@ -35,43 +32,28 @@ DROPPED = "dropped by the screen: "  # the skip line of a cell the screen droppe
 
 
 class ScreenRun:
-    """Screens and selections of one run. `workspace`: a callable giving the (lazy) workspace."""
+    """Screens and selections of one run, measured through the run's cell service `cells`
+    (bench.run.service: its `screen` for a screen, its `run` for a short graft)."""
 
-    def __init__(self, options: ScreenOptions, profile, store, workspace: Callable, *,
-                 feature_dtype: str, rerun: bool = False,
-                 run_cell: Callable | None = None) -> None:
-        self.options, self.profile, self.store = options, profile, store
-        self.workspace, self.feature_dtype, self.rerun = workspace, feature_dtype, rerun
-        self.run_cell = run_cell  # CellSpec -> Record (the session's run), for --screen-by short
+    def __init__(self, options: ScreenOptions, cells) -> None:
+        self.options, self.cells = options, cells
+        self.profile, self.store, self.workspace = cells.profile, cells.store, cells.workspace
         self.outcomes: dict[str, Outcome] = {}  # screen id -> what became of it
         self.dropped: dict[str, str] = {}  # cell id -> why the screen dropped it
         self._screens: dict[str, ScreenRecord | ScreenFailure] = {}
         self._selections: dict[tuple[str, str], ScreenSelection] = {}
 
     def conditions(self, backbone: str, suite: str) -> ScreenConditions:
-        norm = self.workspace().normalizer(backbone, suite)
-        return ScreenConditions(self.profile.protocol.hash, norm.fingerprint, self.feature_dtype)
+        return self.cells.screen_conditions(backbone, suite)
 
     def screen(self, backbone: str, suite: str, encoder: str) -> ScreenRecord | ScreenFailure:
-        """The stored screen when it stands for this run (not under --rerun; it holds every proxy
-        of the table: one registered since is measured), else measured and stored; once per
-        run."""
+        """The encoder's screen on backbone x suite through the cell service; once per run."""
         sid = screen_id(backbone, suite, encoder)
         if sid not in self._screens:
-            conditions = self.conditions(backbone, suite)
-            # Under -n N a worker's selection may need a screen another worker is measuring
-            # (its case, or its own selection): the lock makes it wait and resume that one.
-            with self.store.screen_lock(sid):
-                stored = None if self.rerun else self.store.current_screen(sid, conditions)
-                if stored is not None and all(map(stored.scores.holds, proxy_names())):
-                    self._screens[sid], self.outcomes[sid] = stored, RESUMED
-                    return stored
-                item = measure_screen(self.workspace(), encoder, backbone, suite, conditions)
-                self.store.write_screen(item)
-            self._screens[sid] = item
-            self.outcomes[sid] = (MEASURED if isinstance(item, ScreenRecord)
-                                  else failed(item.error))
-            self._say(sid, item)
+            item, outcome = self.cells.screen(backbone, suite, encoder)
+            self._screens[sid], self.outcomes[sid] = item, outcome
+            if outcome.status is not Status.RESUMED:
+                self._say(sid, item)
         return self._screens[sid]
 
     def _say(self, sid: str, item) -> None:
@@ -109,9 +91,7 @@ class ScreenRun:
 
     def short_scores(self, backbone: str, suite: str) -> list[ShortScores]:
         """Each listed non-reference encoder's short graft at SHORT_BY_VARIANT, normalised MSE
-        mean over the seeds: every one run or resumed here first (through `run_cell`)."""
-        if self.run_cell is None:
-            raise RuntimeError("--screen-by short needs the session's run_cell")
+        mean over the seeds: every one run or resumed here first (through `run_tier`)."""
         out = []
         for encoder in (e for e in self.profile.encoders if e not in REFERENCES):
             mses, error = [], None
@@ -127,18 +107,15 @@ class ScreenRun:
         return out
 
     def run_tier(self, cell: CellSpec):
-        """A tier cell (a short graft) run or resumed through `run_cell` under its cell lock:
-        its case and, under --screen-by short, the selection both run it, perhaps on two xdist
-        workers at once; the later one waits, then resumes the record the first stored."""
-        if self.run_cell is None:
-            raise RuntimeError("a tier cell needs the session's run_cell")
-        with self.store.cell_lock(cell.id):
-            return self.run_cell(cell)
+        """A tier cell (a short graft) run or resumed through the cell service, which claims
+        the cell: its case and, under --screen-by short, the selection both run it, perhaps on
+        two xdist workers at once; the later one waits, then resumes the record the first
+        stored."""
+        return self.cells.run(cell)
 
     def note_report(self, case_id: str, report) -> None:
         """What a pytest report says of a screen case (its outcome, a property) or of a cell the
         screen dropped (its skip line): how an xdist controller learns what its workers did."""
-        from bench.summary import OUTCOME_PROPERTY
 
         if case_id in self._screens or case_id in self.dropped:
             return  # done here: this process knows already

@@ -7,7 +7,8 @@ store (another process measuring it makes this one wait, then resume), sets an u
 record aside, plans (bench.run.plan: resume the stored record or measure, with what), measures
 through its `measure_with` (here, or in an array task), writes a failure record when that
 raises, keeps the projector a later cell takes, and returns the record with a typed outcome
-(bench.run.outcome). The screen's measurements go through `screen` alike.
+(bench.run.outcome). The screen's measurements go through `screen` alike (bench.run.screen_run
+keeps only the selection), and its short grafts through `run`.
 
 It imports nothing of pytest: the session turns what it raises into a case's failure.
 """
@@ -94,6 +95,35 @@ class CellService:
 
     def progress(self):
         return self.workspace().progress
+
+    # --- one screen ---------------------------------------------------------------------------
+    def screen_conditions(self, backbone: str, suite: str):
+        """What a screen of `backbone` x `suite` is measured under (stored with it)."""
+        from bench.screen.records import ScreenConditions
+
+        norm = self.workspace().normalizer(backbone, suite)
+        return ScreenConditions(self.profile.protocol.hash, norm.fingerprint,
+                                self.settings.feature_dtype)
+
+    def screen(self, backbone: str, suite: str, encoder: str):
+        """(the screen of `encoder` on `backbone` x `suite`, what became of it): the stored one
+        when it stands for this run (not under rerun; holding every proxy of the table: one
+        registered since is measured), else measured (bench.screen.measure) and written. A
+        screen that fails is a ScreenFailure, written too: the other screens go on."""
+        from bench.screen.measure import measure_screen
+        from bench.screen.proxies import proxy_names
+        from bench.screen.records import ScreenRecord, screen_id
+
+        sid, conditions = screen_id(backbone, suite, encoder), self.screen_conditions(backbone, suite)
+        # Under -n N a worker's selection may need a screen another worker is measuring (its
+        # case, or its own selection): the lock makes it wait and resume that one.
+        with self.store.screen_lock(sid):
+            stored = None if self.settings.rerun else self.store.current_screen(sid, conditions)
+            if stored is not None and all(map(stored.scores.holds, proxy_names())):
+                return stored, RESUMED
+            item = measure_screen(self.workspace(), encoder, backbone, suite, conditions)
+            self.store.write_screen(item)
+        return item, (MEASURED if isinstance(item, ScreenRecord) else failed(item.error))
 
     def _claim(self, cell: CellSpec):
         if not self.claim:  # a job array measures in its own tasks: the array is the claimant

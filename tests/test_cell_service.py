@@ -1,0 +1,113 @@
+"""One way to measure a cell (bench.run.service): the session, every executor and the screen go
+through `CellService`, and nothing outside the session writes into it. Read from the code (AST),
+then checked by a spy on the array task's entry point."""
+
+from __future__ import annotations
+
+import ast
+
+import pytest
+
+from external.paths import REPO_ROOT
+
+SERVICE = "bench/run/service.py"
+
+
+def _sources() -> dict[str, ast.Module]:
+    """The code that runs cells (benchmarks/ times the parts on their own, so is left out)."""
+    paths = [p for pkg in ("bench", "backbones", "encoders", "external", "scripts", "plugins")
+             for p in (REPO_ROOT / pkg).rglob("*.py")]
+    return {p.relative_to(REPO_ROOT).as_posix(): ast.parse(p.read_text()) for p in paths}
+
+
+def _importers(name: str, module: str) -> set[str]:
+    """Files that import `name` from `module` (at any depth of the file)."""
+    out = set()
+    for path, tree in _sources().items():
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.ImportFrom) and node.module == module
+                    and any(a.name == name for a in node.names)):
+                out.add(path)
+    return out
+
+
+@pytest.mark.parametrize("name, module", [
+    ("measure", "bench.run.runner"),  # a cell measured in this process
+    ("measure_screen", "bench.screen.measure"),  # a screen measured
+])
+def test_only_the_service_calls_the_measurements(name, module):
+    assert _importers(name, module) == {SERVICE}
+
+
+@pytest.mark.parametrize("path, calls", [
+    ("bench/session.py", {"CellService"}),  # serial runs and xdist workers
+    ("bench/run/executors.py", {"CellService"}),  # each submitit / Slurm array task
+    ("bench/run/screen_run.py", {"screen", "run"}),  # the screens and the short grafts
+])
+def test_every_executor_and_the_screen_go_through_the_service(path, calls):
+    tree = _sources()[path]
+    called = {node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id
+              for node in ast.walk(tree) if isinstance(node, ast.Call)
+              and isinstance(node.func, (ast.Attribute, ast.Name))}
+    assert calls <= called
+    if path == "bench/run/screen_run.py":  # through `self.cells`, the service it was given
+        through = {node.func.attr for node in ast.walk(tree) if isinstance(node, ast.Call)
+                   and isinstance(node.func, ast.Attribute)
+                   and isinstance(node.func.value, ast.Attribute)
+                   and node.func.value.attr == "cells"}
+        assert calls <= through
+
+
+def _session_names(tree: ast.Module) -> set[str]:
+    """Names a file gives a GraftSession: gs, graft_session, and any name bound from
+    `config.stash[SESSION_KEY]` (pytest's own `session` is another object)."""
+    names = {"gs", "graft_session"}
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Assign) and isinstance(node.value, ast.Subscript)
+                and isinstance(node.value.slice, ast.Name) and node.value.slice.id == "SESSION_KEY"):
+            names |= {t.id for t in node.targets if isinstance(t, ast.Name)}
+    return names
+
+
+def test_nothing_outside_the_session_assigns_to_it():
+    """The plugin and the tests hand the session values through its methods (`collected`,
+    `use_seams`), never by setting its attributes."""
+    files = {**_sources(), **{p.relative_to(REPO_ROOT).as_posix(): ast.parse(p.read_text())
+                              for p in (REPO_ROOT / "tests").glob("*.py")}}
+    found = []
+    for path, tree in files.items():
+        if path == "bench/session.py":
+            continue
+        names = _session_names(tree)
+        for node in ast.walk(tree):
+            targets = (node.targets if isinstance(node, ast.Assign)
+                       else [node.target] if isinstance(node, (ast.AugAssign, ast.AnnAssign))
+                       else [])
+            for t in targets:
+                for leaf in (t.elts if isinstance(t, ast.Tuple) else [t]):
+                    if (isinstance(leaf, ast.Attribute) and isinstance(leaf.value, ast.Name)
+                            and leaf.value.id in names):
+                        found.append(f"{path}:{node.lineno} {leaf.value.id}.{leaf.attr}")
+    assert not found
+
+
+def test_the_array_task_measures_through_the_service(tmp_path, monkeypatch):
+    """run_cell_job (a submitit / Slurm task's entry point) hands its cell to CellService.run,
+    measuring whatever is stored (the session submits only cells without a current record)."""
+    from bench.grid.cells import CellSpec
+    from bench.grid.kinds import GRAFT
+    from bench.grid.protocol import TINY
+    from bench.run import executors, service
+
+    seen = []
+
+    def spy(self, cell):
+        seen.append((cell.id, self.settings.rerun, self.settings.feature_dtype, self.claim))
+        return "record"
+
+    monkeypatch.setattr(service.CellService, "run", spy)
+    cell = CellSpec(GRAFT, "smolvla", "spatial", 0, "pixels")
+    job = executors.CellJob(cell, TINY, str(tmp_path / "results"), str(tmp_path / "cache"),
+                            service.RunSettings(feature_dtype="bf16"))
+    assert executors.run_cell_job(job) == "record"
+    assert seen == [(cell.id, True, "bf16", True)]
