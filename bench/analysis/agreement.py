@@ -29,7 +29,7 @@ import numpy as np
 import scipy.stats
 
 # A value or why there is none: defined below everything (bench.stats), so the stored screen
-# records (bench.results.screen) hold it without importing the analysis.
+# records (bench.screen.records) hold it without importing the analysis.
 from bench.stats import Measure, Undefined, as_float, is_defined  # noqa: F401  (re-exported)
 
 TIE_RULE = (
