@@ -43,6 +43,10 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parent.parent
 if str(REPO_ROOT) not in sys.path:  # run as a file; the GPU machine has no editable install
     sys.path.insert(0, str(REPO_ROOT))
+# Nor of the LeRobot plugin, whose graft wrapper, encoder and families graftbench imports.
+PLUGIN_ROOT = REPO_ROOT / "plugins" / "lerobot_policy_graft"
+if str(PLUGIN_ROOT) not in sys.path:
+    sys.path.insert(1, str(PLUGIN_ROOT))
 
 BACKBONES = ("smolvla", "pi05")
 CAMERAS = ("observation.images.image", "observation.images.wrist_image")  # LIBERO's

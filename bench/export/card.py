@@ -46,8 +46,9 @@ def _lines(record: Record, results_dir: Path, note: str | None, flags: tuple[str
         "released backbone with its vision tower "
         f"replaced by `{record.encoder}` -> pooling to the {m.grid[0]}x"
         f"{m.grid[1]} token grid -> LayerNorm (no affine) -> the trained Linear "
-        "projector. Load it with the `lerobot_policy_graft` plugin installed "
-        "(graftbench's scripts/install.sh).", "",
+        "projector. Load it with the `lerobot_policy_graft` plugin installed (`pip install "
+        "plugins/lerobot_policy_graft` from graftbench's checkout: it needs LeRobot, timm and "
+        "safetensors, not graftbench).", "",
         "## Its graftbench record", "",
         f"- cell: `{record.cell_id}` (seed {record.seed}), from `{results_dir}`",
         f"- offline action MSE, normalised: {mse[NORMALIZED][0]:.6g} "
