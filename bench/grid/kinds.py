@@ -18,6 +18,8 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
+from bench.table import Table
+
 SAME, ZERO, SHUFFLED = "same", "zero", "shuffled"
 INPUT_RULES = (SAME, ZERO, SHUFFLED)
 # Why a rule has no closed-loop counterpart: "another window's images" needs a recorded episode
@@ -146,26 +148,10 @@ class CellKind:
 GRAFT = "graft"
 NATIVE = "native"
 NATIVE_WRAPPED = "native_wrapped"
-CELL_KINDS: dict[str, CellKind] = {}
-
-
-def register_kind(kind: CellKind) -> CellKind:
-    if kind.name in CELL_KINDS:
-        raise ValueError(f"cell kind {kind.name!r} registered twice")
-    CELL_KINDS[kind.name] = kind
-    return kind
-
-
-def unregister_kind(name: str) -> None:
-    """Tests that register a kind of their own take it out again."""
-    CELL_KINDS.pop(name)
-
-
-def get_kind(name: str) -> CellKind:
-    try:
-        return CELL_KINDS[name]
-    except KeyError:
-        raise ValueError(f"unknown cell kind {name!r}; valid kinds: {', '.join(CELL_KINDS)}") from None
+CELL_KINDS: Table[CellKind] = Table("cell kind", "kinds")
+register_kind = CELL_KINDS.register
+unregister_kind = CELL_KINDS.unregister
+get_kind = CELL_KINDS.get_entry
 
 
 def control_kinds() -> tuple[str, ...]:

@@ -24,6 +24,7 @@ import numpy as np
 from bench.screen.estimators import (Moments, knn_heldout, logme_moments, norm_entropy,
                                      ridge_heldout)
 from bench.stats import Measure, Undefined, is_defined
+from bench.table import Table
 
 WINDOWS, TOKEN_NORMS = "windows", "token_norms"
 HIGHER, LOWER = "higher", "lower"
@@ -100,27 +101,10 @@ class Proxy:
         return value if self.direction == HIGHER or not is_defined(value) else -value
 
 
-PROXIES: dict[str, Proxy] = {}
-
-
-def register_proxy(proxy: Proxy) -> Proxy:
-    if proxy.name in PROXIES:
-        raise ValueError(f"screen proxy {proxy.name!r} registered twice")
-    PROXIES[proxy.name] = proxy
-    return proxy
-
-
-def unregister_proxy(name: str) -> None:
-    """Tests that register a proxy of their own take it out again."""
-    PROXIES.pop(name)
-
-
-def get_proxy(name: str) -> Proxy:
-    try:
-        return PROXIES[name]
-    except KeyError:
-        raise ValueError(f"unknown screen proxy {name!r}; valid proxies: "
-                         f"{', '.join(PROXIES)}") from None
+PROXIES: Table[Proxy] = Table("screen proxy", "proxies")
+register_proxy = PROXIES.register
+unregister_proxy = PROXIES.unregister
+get_proxy = PROXIES.get_entry
 
 
 def proxy_names() -> tuple[str, ...]:
