@@ -3,7 +3,7 @@ and grids (no encoder runs), stores of N, 4N and 16N frames, two subprocesses pe
 
     .venv/bin/pytest benchmarks/bench_feature_store.py --benchmark-only -p no:randomly
 
-The "build" subprocess builds one store through bench.run.feature_store.build (fp16, the chunking,
+The "build" subprocess builds one store through bench.run.feature_file.build (fp16, the chunking,
 crc32 and fsync of a real build; making the synthetic chunks is timed apart and left out of the
 write rate), then reads it back; its ru_maxrss is the peak RSS ("growth": minus its RSS after
 imports). The "read" subprocess opens the finished store and times random training batches of
@@ -53,7 +53,7 @@ def _rss_mb() -> float:
 
 
 def _layout(shape: str, frames: int):
-    from bench.run import feature_store as fs
+    from bench.run import feature_file as fs
 
     grid, channels, memory_format = SHAPES[shape]
     return fs.Layout(f"bench-{shape}-{frames}", CAMERAS, frames, grid, channels, "fp16",
@@ -97,7 +97,7 @@ def child(mode: str, shape: str, frames: int, folder: str) -> dict:
     and time the reads. Runs in its own process; the figures as a dict."""
     import torch
 
-    from bench.run import feature_store as fs
+    from bench.run import feature_file as fs
     from bench.run.features import CHUNK_FRAMES
 
     torch.set_num_threads(1)

@@ -1,4 +1,4 @@
-"""pool_grid known answers and the feature store (bench.run.features, bench.run.feature_store)."""
+"""pool_grid known answers and the feature store (bench.run.features, bench.run.feature_file: its file format)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from bench.run import feature_store as fs
+from bench.run import feature_file as fs
 from bench.run.features import FeatureStore, encode_pooled, feature_key, pool_grid
 from external.paths import REPO_ROOT
 from encoders import build_encoder

@@ -28,7 +28,7 @@ NOT_RECORDS = {
     "bench/run/releases.py": {"backbone", "loss_curve", "revision"},  # release metadata, checkpoint id
     "bench/run/userworld.py": {"revision"},  # a --policy's checkpoint id
     "bench/run/features.py": {"encoder", "grid", "suite"},  # the feature store's manifest
-    "bench/run/feature_store.py": {"grid"},  # the feature store's manifest
+    "bench/run/feature_file.py": {"grid"},  # the feature file's manifest
     "bench/sim/rollout.py": {"per_task"},  # the rollouts' own summary
     "bench/suites/synthetic.py": {"seed"},  # a suite's generation parameters
     "bench/analysis/transfer.py": {"suite"},  # a rank-transfer comparison row

@@ -32,7 +32,7 @@ from typing import Callable, Protocol
 import torch
 from torch import Tensor
 
-from bench.run import feature_store as fs
+from bench.run import feature_file as fs
 from bench.progress import Progress, say
 from encoders.base import Encoder
 from lerobot_policy_graft.graft import pool_grid  # noqa: F401  (the one pooling, shared with the plugin)
