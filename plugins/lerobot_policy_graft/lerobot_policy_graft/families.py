@@ -133,12 +133,12 @@ class SmolVLAFamily(GraftFamily):
 class PaliGemmaFamily(GraftFamily):
     """LeRobot's PaliGemma policies (pi0.5, pi0): `PaliGemmaWithExpertModel.embed_image`
     (modeling_pi05.py:284-293, modeling_pi0.py:287-296), SigLIP -> multi_modal_projector, with
-    no scaling of image embeddings afterwards; images reach it from `_preprocess_images`.
-    What tells the two apart (graftbench's adapters, backbones.paligemma, read it):"""
+    no scaling of image embeddings afterwards; images reach it from `_preprocess_images`. The
+    fields below tell the two apart for graftbench's adapters (backbones.paligemma)."""
 
-    normalization: str = ""  # of state and action, as in the config's normalization_mapping
-    stat_names: tuple[str, ...] = ()  # the dataset stats that normalisation reads
-    state_token: bool = False  # the inner forward takes the (padded, normalised) state
+    normalization: str  # of state and action, as in the config's normalization_mapping
+    stat_names: tuple[str, ...]  # the dataset stats that normalisation reads
+    state_token: bool  # the inner forward takes the (padded, normalised) state
 
     images_method: ClassVar[str] = "_preprocess_images"
 
