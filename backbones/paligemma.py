@@ -33,13 +33,13 @@ from lerobot_policy_graft.families import PaliGemmaFamily
 
 from backbones import hub
 from backbones.base import Backbone, BackboneInfo, only_step
-from backbones.tiny_pi05 import (
+from backbones.tiny_paligemma import (
     LEROBOT_PIN,
     TOKENIZER_DIRNAME,
-    TinyPI05Arch,
+    TinyPaliGemmaArch,
     ensure_tiny_tokenizer,
     require_pinned_lerobot,
-    tiny_pi05_patches,
+    tiny_paligemma_patches,
     tiny_vocabulary,
 )
 from external.paths import cache_dir
@@ -95,14 +95,14 @@ class PaliGemmaBackbone(Backbone):
         preprocessor,  # lerobot PolicyProcessorPipeline (raw batch -> prepared batch)
         postprocessor,  # lerobot PolicyProcessorPipeline (normalised actions -> raw)
         camera_keys: tuple[str, ...],
-        tiny_arch: TinyPI05Arch | None = None,
+        tiny_arch: TinyPaliGemmaArch | None = None,
         rename_map: dict[str, str] | None = None,
     ) -> None:
         self.policy = policy
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
         self.camera_keys = tuple(camera_keys)
-        self.tiny_arch: TinyPI05Arch | None = tiny_arch
+        self.tiny_arch: TinyPaliGemmaArch | None = tiny_arch
         self.rename_map: dict[str, str] = dict(rename_map or {})
         self.info = _info_from_policy(policy, self.family)
         self.action_dim = policy.config.output_features[ACTION_KEY].shape[0]
@@ -224,7 +224,7 @@ def build_tiny_policy(
 
     family = backbone_cls.family
     _check_stats(stats, state_dim, action_dim, family)
-    arch = TinyPI05Arch(vocab_size=_round_up(len(tiny_vocabulary()), 64))
+    arch = TinyPaliGemmaArch(vocab_size=_round_up(len(tiny_vocabulary()), 64))
     if image_hw[0] != image_hw[1] or image_hw[0] % arch.patch_size:
         raise ValueError(f"image_hw {image_hw} must be square and a multiple of patch {arch.patch_size}")
     tokenizer_dir = ensure_tiny_tokenizer(cache_dir() / TOKENIZER_DIRNAME)
@@ -240,7 +240,7 @@ def build_tiny_policy(
         tokenizer_max_length=48,
         device="cpu",
     )
-    with torch.random.fork_rng(devices=[]), tiny_pi05_patches(arch, tokenizer_dir, family.policy_type):
+    with torch.random.fork_rng(devices=[]), tiny_paligemma_patches(arch, tokenizer_dir, family.policy_type):
         torch.manual_seed(seed)
         policy = family.lerobot_class("modeling", "Policy")(config)
         preprocessor, postprocessor = make_pre_post_processors(config, dataset_stats=stats)

@@ -18,7 +18,7 @@ from typing import Callable, NamedTuple
 from lerobot_policy_graft.configuration_graft import config_from_pretrained
 from lerobot_policy_graft.families import PaliGemmaFamily
 
-from backbones import hub, hub_world, paligemma
+from backbones import hub, hub_release, paligemma
 from backbones.base import BackboneInfo, only_step
 from backbones.paligemma import (
     ACTION_KEY,
@@ -27,7 +27,7 @@ from backbones.paligemma import (
     TOKENIZER_SUBDIR,
     PaliGemmaBackbone,
 )
-from backbones.tiny_pi05 import TinyPI05Arch, require_pinned_lerobot, tiny_pi05_patches
+from backbones.tiny_paligemma import TinyPaliGemmaArch, require_pinned_lerobot, tiny_paligemma_patches
 from external.hubcache import cached_file, hub_artifact
 
 
@@ -69,7 +69,7 @@ def _load(backbone_cls: type[PaliGemmaBackbone], source: str, stats: dict | None
 
     family = backbone_cls.family
     marker = _read_marker(family, source, marker_dir, revision)
-    arch = TinyPI05Arch.from_dict(marker["tiny_arch"]) if marker.get("tiny_arch") else None
+    arch = TinyPaliGemmaArch.from_dict(marker["tiny_arch"]) if marker.get("tiny_arch") else None
     with _hub_errors_as_unavailable(source, revision):
         config = config_from_pretrained(source, revision)
     _check_config(config, family, source)
@@ -81,7 +81,7 @@ def _load(backbone_cls: type[PaliGemmaBackbone], source: str, stats: dict | None
         rename_map, camera_keys = adapt_real_config(config, stats, family)
     # A saved tiny folder carries its tokenizer; a hub repo reads google/paligemma-3b-pt-224's.
     tokenizer_dir = marker_dir / TOKENIZER_SUBDIR if arch and marker_dir else None
-    patches = (tiny_pi05_patches(arch, tokenizer_dir, family.policy_type) if arch
+    patches = (tiny_paligemma_patches(arch, tokenizer_dir, family.policy_type) if arch
                else contextlib.nullcontext())
     with patches, _hub_errors_as_unavailable(source, revision):
         policy = _policy_from_pretrained(family, source, config, revision)
@@ -232,8 +232,8 @@ def paligemma_adapter(family: PaliGemmaFamily, module: str,
         return paligemma.check_real_shapes(family)
 
     def write_hub_release(hub_cache: Path, repo_id: str, revision: str | None) -> None:
-        """The base release shaped as the hub's (backbones.hub_world)."""
-        hub_world.write_paligemma_release(adapter, hub_cache, repo_id, revision,
+        """The base release shaped as the hub's (backbones.hub_release)."""
+        hub_release.write_paligemma_release(adapter, hub_cache, repo_id, revision,
                                           device=hub_release_device)
 
     adapter = PaliGemmaAdapter(

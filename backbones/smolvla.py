@@ -25,7 +25,7 @@ import torch
 from lerobot_policy_graft.families import SMOLVLA
 from torch import Tensor
 
-from backbones import hub_world, smolvla_load
+from backbones import hub_release, smolvla_load
 from backbones.base import Backbone, BackboneInfo, only_step
 from backbones.smolvla_load import VENDORED_VLM_DIR, VLM_REPO_ID, artifacts  # noqa: F401
 from backbones.tiny_smolvla import REAL_VLM, real_shape_forward, tiny_config, tokens_per_camera
@@ -241,8 +241,8 @@ def check_real_shapes() -> dict:
 
 
 def write_hub_release(hub_cache: Path, repo_id: str, revision: str | None) -> None:
-    """lerobot/smolvla_base shaped: SO-100 cameras and dims, its hub quirks (backbones.hub_world)."""
-    hub_world.write_smolvla_release(sys.modules[__name__], hub_cache, repo_id, revision)
+    """lerobot/smolvla_base shaped: SO-100 cameras and dims, its hub quirks (backbones.hub_release)."""
+    hub_release.write_smolvla_release(sys.modules[__name__], hub_cache, repo_id, revision)
 
 
 BACKBONE_CLASS = SmolVLABackbone

@@ -14,7 +14,7 @@ v3.0 dataset layout and feature names. What is tiny, and the only construction p
 (nothing else is bypassed):
 1. SmolVLM2: its config.json is a tiny SmolVLM (no patch: SmolVLA reads the VLM's config).
 2. pi0.5 and pi0: `graftbench_pi05.json` / `graftbench_pi0.json` in the snapshot names the tiny
-   arch; the adapter then builds under backbones.tiny_pi05's three model patches (Gemma variants,
+   arch; the adapter then builds under backbones.tiny_paligemma's three model patches (Gemma variants,
    PaliGemma sizes, expert vocab). The tokenizer is read from google/paligemma-3b-pt-224 in the
    cache, unpatched.
 3. timm: each weight repo's config.json carries `model_args` (the tiny architecture) and its

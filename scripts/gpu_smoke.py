@@ -279,7 +279,7 @@ def build_real_pi05(stats: dict, device):
     from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 
     from backbones.pi05 import PI05Backbone
-    from backbones.tiny_pi05 import TOKENIZER_DIRNAME, ensure_tiny_tokenizer, local_tokenizer
+    from backbones.tiny_paligemma import TOKENIZER_DIRNAME, ensure_tiny_tokenizer, local_tokenizer
     from external.paths import cache_dir
 
     side = RAW_IMAGE_SIDE["real"]

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from backbones import pi05
-from backbones.tiny_pi05 import TinyPI05Arch, tiny_pi05_patches, tiny_vocabulary
+from backbones.tiny_paligemma import TinyPaliGemmaArch, tiny_paligemma_patches, tiny_vocabulary
 from tests.backbone_data import build_tiny, make_raw, make_stats
 
 
@@ -38,8 +38,8 @@ def test_patches_are_scoped_and_pinned(monkeypatch):
 
     original = modeling_pi05.get_gemma_config
     with pytest.raises(KeyError):
-        with tiny_pi05_patches(TinyPI05Arch()):
-            assert modeling_pi05.get_gemma_config("gemma_2b").width == TinyPI05Arch().vlm_width
+        with tiny_paligemma_patches(TinyPaliGemmaArch()):
+            assert modeling_pi05.get_gemma_config("gemma_2b").width == TinyPaliGemmaArch().vlm_width
             raise KeyError("inside")
     assert modeling_pi05.get_gemma_config is original
     assert modeling_pi05.get_gemma_config("gemma_2b").width == 2048

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from backbones import hub_world
+from backbones import hub_release
 from bench import hubworld
 from external.hubcache import snapshot_dir
 from external.paths import REPO_ROOT
@@ -139,8 +139,8 @@ def test_pi05_hub_processors_normalise_the_state_they_pass_through_untouched(in_
     # stats hot-swapped in), observation.state went into the prompt unnormalised.
     from backbones import pi05
 
-    stats = hub_world.release_stats((), 8)
-    stats["action"] = hub_world.fake_stats(7, 0.5)
+    stats = hub_release.release_stats((), 8)
+    stats["action"] = hub_release.fake_stats(7, 0.5)
     backbone = pi05.load_policy("lerobot/pi05_base", stats=stats,
                                 revision="b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba")
     state = torch.linspace(-1.5, 1.5, 16).reshape(2, 8)
@@ -169,8 +169,8 @@ def test_pi0_hub_release_loads_as_libero_with_mean_std_state_and_its_own_device(
     assert steps["device_processor"]["config"]["device"] == "cuda"
     assert steps["normalizer_processor"]["config"]["features"] == {}
     assert steps["relative_actions_processor"]["config"]["enabled"] is False
-    stats = hub_world.release_stats((), 8)
-    stats["action"] = hub_world.fake_stats(7, 0.5)
+    stats = hub_release.release_stats((), 8)
+    stats["action"] = hub_release.fake_stats(7, 0.5)
     backbone = pi0.load_policy(entry.repo_id, stats=stats, revision=entry.revision, device="cpu")
     assert backbone.rename_map == {"observation.images.image": "observation.images.base_0_rgb",
                                    "observation.images.wrist_image": "observation.images.left_wrist_0_rgb"}

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from backbones.tiny_pi05 import TinyPI05Arch
+from backbones.tiny_paligemma import TinyPaliGemmaArch
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import PROFILES, GridFileInfo, Profile, Protocol, with_overrides
 from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
@@ -131,7 +131,7 @@ def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
         if (low is not None and value < low) or (high is not None and value > high):
             raise _fail(where, f"[protocol] {name}", f"= {value!r} is out of range; give a value "
                         + (f">= {low}" if high is None else f"in [{low}, {high}]"))
-        patch = TinyPI05Arch.patch_size  # the tiny pi0 / pi0.5 build checks the same
+        patch = TinyPaliGemmaArch.patch_size  # the tiny pi0 / pi0.5 build checks the same
         if name == "tiny_image_size" and value % patch:
             low_side = value - value % patch
             raise _fail(where, f"[protocol] {name}", f"= {value} is not a multiple of the tiny "

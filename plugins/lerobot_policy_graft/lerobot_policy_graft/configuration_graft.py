@@ -44,7 +44,7 @@ class GraftFields:
     graft_grid: list[int] = field(default_factory=lambda: [8, 8])
     train_scope: str = "projector"
     graft_cell: str = ""  # the graftbench cell this graft was measured as
-    tiny_arch: str = ""  # JSON of tiny_paligemma.TinyPI05Arch: graftbench's tiny PaliGemma builds
+    tiny_arch: str = ""  # JSON of tiny_paligemma.TinyPaliGemmaArch: graftbench's tiny PaliGemma builds
 
     def __post_init__(self) -> None:
         super().__post_init__()

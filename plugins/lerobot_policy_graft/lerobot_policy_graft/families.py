@@ -152,9 +152,9 @@ class PaliGemmaFamily(GraftFamily):
         if not config.tiny_arch:
             return contextlib.nullcontext()
         # graftbench's tiny test world only: LeRobot builds the tiny sizes under these patches.
-        from lerobot_policy_graft.tiny_paligemma import TinyPI05Arch, tiny_pi05_patches
+        from lerobot_policy_graft.tiny_paligemma import TinyPaliGemmaArch, tiny_paligemma_patches
 
-        return tiny_pi05_patches(TinyPI05Arch.from_json(config.tiny_arch), None,
+        return tiny_paligemma_patches(TinyPaliGemmaArch.from_json(config.tiny_arch), None,
                                  self.policy_type)
 
 

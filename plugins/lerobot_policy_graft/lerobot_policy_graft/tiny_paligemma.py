@@ -1,6 +1,6 @@
 """Construction-time patches that let LeRobot 0.6.1 build a REAL but tiny PI05Policy offline.
 
-graftbench builds its tiny pi0 / pi0.5 under them (backbones.tiny_pi05, which adds the local
+graftbench builds its tiny pi0 / pi0.5 under them (backbones.tiny_paligemma, which adds the local
 tokenizer); they live in the plugin because a tiny graft exported from graftbench's offline test
 world is rebuilt under them too, where graftbench is not installed.
 
@@ -59,7 +59,7 @@ def require_pinned_lerobot() -> None:
 
 
 @dataclass(frozen=True)
-class TinyPI05Arch:
+class TinyPaliGemmaArch:
     """Sizes of the tiny pi0.5 (saved next to a checkpoint so loading rebuilds the same shapes)."""
 
     # Gemma: the VLM and the action expert, zipped pairwise layer by layer (modeling_pi05.py:346),
@@ -87,11 +87,11 @@ class TinyPI05Arch:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "TinyPI05Arch":
+    def from_dict(cls, values: dict[str, Any]) -> "TinyPaliGemmaArch":
         return cls(**values)
 
     @classmethod
-    def from_json(cls, text: str) -> "TinyPI05Arch":
+    def from_json(cls, text: str) -> "TinyPaliGemmaArch":
         """From a graft config's `tiny_arch` (JSON of `to_dict`)."""
         return cls(**json.loads(text))
 
@@ -119,7 +119,7 @@ def _swapped(module: Any, name: str, replacement: Any) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def tiny_gemma_variants(arch: TinyPI05Arch, policy_type: str = "pi05") -> Iterator[None]:
+def tiny_gemma_variants(arch: TinyPaliGemmaArch, policy_type: str = "pi05") -> Iterator[None]:
     """modeling_pi05.get_gemma_config: "gemma_2b" -> tiny VLM, "gemma_300m" -> tiny expert."""
     m = _lerobot_module(policy_type, "modeling")
 
@@ -160,7 +160,7 @@ def _shrunk(module: Any, name: str, shrink) -> Iterator[None]:
         yield
 
 
-def tiny_paligemma(arch: TinyPI05Arch, policy_type: str = "pi05"):
+def tiny_paligemma(arch: TinyPaliGemmaArch, policy_type: str = "pi05"):
     """Shrink SigLIP, its projection (-> the tiny text width) and the vocab before PaliGemma is built."""
     def shrink(config) -> None:
         vision = config.vision_config  # image_size was set from config.image_resolution (:217)
@@ -184,7 +184,7 @@ def tiny_paligemma(arch: TinyPI05Arch, policy_type: str = "pi05"):
                    "PaliGemmaForConditionalGenerationWithPiGemma", shrink)
 
 
-def tiny_expert_vocab(arch: TinyPI05Arch, policy_type: str = "pi05"):
+def tiny_expert_vocab(arch: TinyPaliGemmaArch, policy_type: str = "pi05"):
     """The action expert's (unused) output vocabulary: arch.expert_vocab_size rows, not 257152."""
     def shrink(config) -> None:
         config.vocab_size = arch.expert_vocab_size
@@ -209,7 +209,7 @@ def local_tokenizer(tokenizer_dir: str | os.PathLike, policy_type: str = "pi05")
 
 
 @contextlib.contextmanager
-def tiny_pi05_patches(arch: TinyPI05Arch, tokenizer_dir: str | os.PathLike | None = None,
+def tiny_paligemma_patches(arch: TinyPaliGemmaArch, tokenizer_dir: str | os.PathLike | None = None,
                       policy_type: str = "pi05"):
     """All construction patches at once (tokenizer only when `tokenizer_dir` is given), for
     LeRobot's `policy_type` ("pi05", or "pi0", built from the same lines)."""

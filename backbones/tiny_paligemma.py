@@ -18,13 +18,13 @@ from pathlib import Path
 from lerobot_policy_graft.tiny_paligemma import (  # noqa: F401  (the adapters' import point)
     LEROBOT_PIN,
     POLICY_TYPES,
-    TinyPI05Arch,
+    TinyPaliGemmaArch,
     local_tokenizer,
     require_pinned_lerobot,
     tiny_expert_vocab,
     tiny_gemma_variants,
     tiny_paligemma,
-    tiny_pi05_patches,
+    tiny_paligemma_patches,
 )
 
 TOKENIZER_DIRNAME = "tiny_paligemma_tokenizer"
