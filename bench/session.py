@@ -23,7 +23,8 @@ import pytest
 from bench.grid.cells import CellSpec
 from bench.options import parse_options
 from bench.startup import check_startup, check_writable, collects_grid, offline_env
-from bench.progress import say
+from bench.progress import QUIET, TerminalSink, say
+from bench.run.outcome import MEASURED, OUTCOME_PROPERTY, Outcome, Status, failed
 from bench.regression.run import BaselineRun
 
 
@@ -149,8 +150,6 @@ class GraftSession:
     def progress_sink(self):
         """The terminal, or the null sink: under -q, GRAFTBENCH_QUIET=1 and in xdist workers
         (their output would interleave with the controller's)."""
-        from bench.progress import QUIET, TerminalSink
-
         quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
         return QUIET if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
 
@@ -213,8 +212,6 @@ class GraftSession:
 
     def pytest_runtest_logreport(self, report) -> None:
         """Each grid case's outcome, serial or from xdist workers (user_properties travel)."""
-        from bench.run.outcome import MEASURED, Outcome, failed
-        from bench.run.outcome import OUTCOME_PROPERTY
         from bench.summary import cell_id_of, failure_line
 
         cell = cell_id_of(report.nodeid)
@@ -290,8 +287,6 @@ class GraftSession:
         """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
         nothing new finished (an existing report is left as it is), or when writing it failed
         (`report_error` says why)."""
-        from bench.run.outcome import Status
-
         outcomes = list(self.outcomes.values())
         if self._robustness is not None:
             outcomes += list(self._robustness.outcomes.values())

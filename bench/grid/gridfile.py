@@ -47,7 +47,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from backbones.tiny_paligemma import TinyPaliGemmaArch
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import PROFILES, GridFileInfo, Profile, Protocol, with_overrides
 from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
@@ -131,8 +130,7 @@ def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
         if (low is not None and value < low) or (high is not None and value > high):
             raise _fail(where, f"[protocol] {name}", f"= {value!r} is out of range; give a value "
                         + (f">= {low}" if high is None else f"in [{low}, {high}]"))
-        patch = TinyPaliGemmaArch.patch_size  # the tiny pi0 / pi0.5 build checks the same
-        if name == "tiny_image_size" and value % patch:
+        if name == "tiny_image_size" and value % (patch := _tiny_patch()):
             low_side = value - value % patch
             raise _fail(where, f"[protocol] {name}", f"= {value} is not a multiple of the tiny "
                         f"patch size {patch}; give {low_side or patch} or {low_side + patch}")
@@ -167,6 +165,14 @@ def _like(where: str, key: str, value, default):
         raise _fail(where, key, f"= {value!r}: expected {_KINDS[type(default)]}, as the "
                                 "Protocol field holds")
     return value
+
+
+def _tiny_patch() -> int:
+    """The tiny pi0 / pi0.5's patch size (its build checks the same); imported only here: the
+    build's module loads LeRobot, which a start-up check must not wait for."""
+    from backbones.tiny_paligemma import TinyPaliGemmaArch
+
+    return TinyPaliGemmaArch.patch_size
 
 
 def _unknown_key(where: str, key: str, name: str, known) -> GridFileError:
