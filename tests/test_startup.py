@@ -370,3 +370,14 @@ def test_download_command_takes_files_or_patterns_not_both():
         'hf download o/r --revision abc --include "*.json" --include "*.txt"')
     with pytest.raises(ValueError, match="not both"):
         download_command("o/r", include=("*.json",), files=("config.json",))
+
+
+def test_the_plugin_loads_without_torch_or_lerobot():
+    """A bad option is refused before the heavy imports: loading the pytest plugin (options,
+    grid files, the session) imports neither torch nor LeRobot (~3.5 s on these cores)."""
+    import subprocess
+    import sys
+
+    code = "import sys, bench.plugin; print(sorted({'torch', 'lerobot'} & set(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
