@@ -118,7 +118,8 @@ def make_grid(levels: dict[tuple[str, str, str], float], seeds: tuple[int, ...] 
 
 def save_record(results_dir: str | Path, record: Record | Failure) -> Path:
     """Write one record (cells/) or failure (failed/) through the store."""
-    return ResultStore(results_dir).save(record)
+    store = ResultStore(results_dir)
+    return store.write_failure(record) if isinstance(record, Failure) else store.write(record)
 
 
 def make_calibration_study(results_dir: str | Path, levels: dict[str, float],

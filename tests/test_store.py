@@ -3,7 +3,7 @@ import json
 import pytest
 
 from bench.results.current import RunConditions
-from bench.results.store import ResultStore, ResultsDirError, atomic_write_json
+from bench.results.store import ResultStore, ResultsDirError, atomic_write_json, load_failure
 from tests.factories import make_failed, make_record
 
 C1 = "smolvla-spatial-dinov2_s-seed0"
@@ -20,7 +20,7 @@ def test_write_load_and_resume_by_protocol_hash(tmp_path):
 def test_failure_never_counts_as_done_and_is_cleared_by_success(tmp_path):
     store = ResultStore(tmp_path)
     store.write_failure(make_failed(error="boom"))
-    assert store.load(C1) is None and store.load_failure(C1).error == "boom"
+    assert store.load(C1) is None and load_failure(tmp_path, C1).error == "boom"
     assert (tmp_path / "failed" / f"{C1}.json").exists()
     store.write(make_record())
     assert not (tmp_path / "failed" / f"{C1}.json").exists()

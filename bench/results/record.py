@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 
 from bench.grid.kinds import cell_id, get_kind  # noqa: F401  (cell_id: re-exported)
 from bench.results.parts import (  # noqa: F401  (the parts are re-exported: one import for users)
@@ -166,7 +166,8 @@ def validate_record(record: dict) -> None:
         raise ValueError(f"schema {record.get(_SCHEMA)!r}, this reader knows {SCHEMA_VERSION}")
     if record.get(_STATUS) != OK:
         raise ValueError(f"status {record.get(_STATUS)!r} in cells/, expected 'ok'")
-    required = [f.name for f in fields(Identity)][:6] + [f.name for f in fields(Scores)][:4]
+    required = [f.name for part in (Identity, Scores) for f in fields(part)
+                if f.default is MISSING and f.default_factory is MISSING]  # no default: required
     missing = [k for k in required if k not in record]
     if missing:
         raise ValueError(f"missing keys {missing}")

@@ -276,13 +276,6 @@ class ResultStore:
         atomic_write_json(path, failure.to_json())
         return path
 
-    def save(self, item: Record | Failure) -> Path:
-        """Write a record to cells/ or a failure to failed/."""
-        return self.write_failure(item) if isinstance(item, Failure) else self.write(item)
-
-    def load_failure(self, cell_id: str) -> Failure | None:
-        return load_failure(self.root, cell_id)
-
     def load_screen(self, sid: str) -> ScreenRecord | ScreenFailure | None:
         """The stored screen `sid` (bench.screen.records.screen_id); None when absent or invalid."""
         path = _screen_file(self.root, sid)
