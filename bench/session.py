@@ -127,7 +127,6 @@ class GraftSession:
     rerun = property(lambda self: self.options.rerun)
     rollouts = property(lambda self: self.options.rollouts)
     rollout_batching = property(lambda self: self.options.rollout_batching)
-    features_mode = property(lambda self: self.options.features_mode)
     feature_dtype = property(lambda self: self.options.feature_dtype)
     screen_options = property(lambda self: self.options.screen)  # None without --screen
 
