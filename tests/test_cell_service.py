@@ -5,6 +5,7 @@ then checked by a spy on the array task's entry point."""
 from __future__ import annotations
 
 import ast
+import os
 
 import pytest
 
@@ -106,8 +107,11 @@ def test_the_array_task_measures_through_the_service(tmp_path, monkeypatch):
         return "record"
 
     monkeypatch.setattr(service.CellService, "run", spy)
+    # The task points its own process at the job's cache; monkeypatch restores ours afterwards.
+    monkeypatch.setenv("GRAFTBENCH_CACHE", os.environ.get("GRAFTBENCH_CACHE", ""))
     cell = CellSpec(GRAFT, "smolvla", "spatial", 0, "pixels")
     job = executors.CellJob(cell, TINY, str(tmp_path / "results"), str(tmp_path / "cache"),
                             service.RunSettings(feature_dtype="bf16"))
     assert executors.run_cell_job(job) == "record"
     assert seen == [(cell.id, True, "bf16", True)]
+    assert os.environ["GRAFTBENCH_CACHE"] == str(tmp_path / "cache")
