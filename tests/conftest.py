@@ -32,6 +32,11 @@ def no_leaked_settings():
     after = settings()
     if after != before:
         changed = sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
+        for k in changed:  # put it back, so that only this test fails, not every later one
+            if k in before:
+                os.environ[k] = before[k]
+            else:
+                del os.environ[k]
         pytest.fail(f"the test left {', '.join(changed)} changed in os.environ: set it with "
                     "monkeypatch.setenv so that it is restored", pytrace=False)
 
