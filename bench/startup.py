@@ -68,9 +68,6 @@ def check_user_world(profile) -> list[str]:
     """Every --policy x --dataset pair (cameras, dims, saved stats, tasks), checked at start-up
     before any cell runs: a mismatch is a one-line UsageError (exit 4). Returns the camera
     pairing of each pair, one line each, for the terminal."""
-    from bench.run.userworld import check_world
-    from bench.suites.base import SuiteUnavailable
-
     if profile.camera_map and not profile.policies:
         given = ",".join(f"{p}={d}".replace("observation.images.", "")
                          for p, d in profile.camera_map)
@@ -78,6 +75,10 @@ def check_user_world(profile) -> list[str]:
                                 "none is given; fix: add --policy NAME=FOLDER or drop --camera-map")
     if not profile.policies and not profile.datasets:
         return []
+    # Only here: the user world's checks load LeRobot (~4 s), which a plain grid's start-up skips.
+    from bench.run.userworld import check_world
+    from bench.suites.base import SuiteUnavailable
+
     try:
         return check_world(profile)
     except (ValueError, SuiteUnavailable) as e:

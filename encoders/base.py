@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
-from lerobot_policy_graft.encoder import resized_normalised  # noqa: F401  (the plugin's, one copy)
+from graftcore.encoder import resized_normalised  # noqa: F401  (the plugin's, one copy)
 from torch import Tensor
 
 

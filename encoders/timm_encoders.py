@@ -1,5 +1,6 @@
 """timm encoders: the paper's four entries and "timm:<model>" names, built as the plugin's frozen
-wrapper module (lerobot_policy_graft.encoder.TimmEncoder, which an export rebuilds).
+wrapper module (graftcore.encoder.TimmEncoder, in the plugin's distribution: an export
+rebuilds it).
 
 Parameter counts below are of the REAL architectures, built with pretrained=False and
 num_classes=0 (timm 1.0.31), and are checked by tests/test_encoders.py.
@@ -14,7 +15,7 @@ import timm
 import torch
 from huggingface_hub import constants as hub_constants
 from huggingface_hub import try_to_load_from_cache
-from lerobot_policy_graft.encoder import TimmEncoder  # the plugin's: an export rebuilds it
+from graftcore.encoder import TimmEncoder  # the plugin's: an export rebuilds it
 from timm.models._hub import HF_WEIGHTS_NAME, _get_safe_alternatives, check_cached_file
 
 from external.artifacts import Artifact

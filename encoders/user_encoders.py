@@ -41,7 +41,7 @@ import re
 from typing import Callable
 
 import torch
-from lerobot_policy_graft.encoder import FrozenEncoder  # what a timm encoder is, frozen
+from graftcore.encoder import FrozenEncoder  # what a timm encoder is, frozen
 from torch import Tensor
 
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder

@@ -275,7 +275,7 @@ def test_pixels_p16_keeps_through_the_wrappers_pooling_what_pixels_folds_away():
     `pixels` (8 px patches, a 16 x 16 grid) averages the region's 16 patches into one mean patch,
     so both images give the same tokens; `pixels_p16` reads the image at 64 px in 16 px patches
     (4 x 4, pooled as is), so the tokens differ, and each is the 64 px image's patch exactly."""
-    from lerobot_policy_graft.graft import pool_grid
+    from graftcore.graft import pool_grid
 
     scene = torch.full((2, 3, 128, 128), 0.6)
     scene[0, :, 0:8, 0:8] = 0.1

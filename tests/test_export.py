@@ -253,13 +253,17 @@ def test_plugin_is_light_and_below_the_harness():
     tests/test_plugin_standalone.py runs it so); no timm / modeling at import time (every
     LeRobot CLI imports the plugin at start)."""
     heavy = ("timm", "lerobot_policy_graft.modeling_graft")
-    for path in sorted(PLUGIN.glob("*.py")):
+    core = sorted((PLUGIN.parent / "graftcore").glob("*.py"))  # torch alone: no LeRobot at all
+    assert core
+    for path in sorted(PLUGIN.glob("*.py")) + core:
         tree = ast.parse(path.read_text())
         every = {n.module if isinstance(n, ast.ImportFrom) else a.name
                  for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
                  for a in getattr(n, "names", [])}
         harness = ("bench", "encoders", "backbones", "external")
         assert not [m for m in every if m and m.split(".")[0] in harness], path
+        if path in core:
+            assert not [m for m in every if m and m.startswith("lerobot")], path
         if path.name != "modeling_graft.py":
             top = {n.module if isinstance(n, ast.ImportFrom) else a.name
                    for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))

@@ -35,7 +35,7 @@ from torch import Tensor
 from bench.run import feature_file as fs
 from bench.progress import Progress, say
 from encoders.base import Encoder
-from lerobot_policy_graft.graft import pool_grid  # noqa: F401  (the one pooling, shared with the plugin)
+from graftcore.graft import pool_grid  # noqa: F401  (the one pooling, shared with the plugin)
 
 # Bump when a change to pooling, encoding or storage moves stored numbers on purpose.
 # 2: the store keeps the encoder's own grid (pooled per batch), in Workspace.feature_dtype.

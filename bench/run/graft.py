@@ -1,5 +1,5 @@
 """The freeze checks of a cell. The fixed wrapper itself (pool_grid, Projector, GraftFeed) lives
-in the LeRobot plugin (lerobot_policy_graft.graft), so that an export stands alone; it is imported
+in the LeRobot plugin's distribution (graftcore.graft), so that an export stands alone; it is imported
 here for the harness's modules, not copied.
 """
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from torch import nn
 
-from lerobot_policy_graft.graft import GraftFeed, Projector  # noqa: F401  (the harness's import point)
+from graftcore.graft import GraftFeed, Projector  # noqa: F401  (the harness's import point)
 
 
 def trainable_parameters(*modules: nn.Module) -> int:

@@ -30,7 +30,7 @@ from bench.run.features import encode_pooled
 from bench.run.perturbations import Applied
 from bench.run.projectors import ProjectorFileError, load_projector
 from bench.run.runner import cell_inputs
-from lerobot_policy_graft.graft import GraftFeed, Projector
+from graftcore.graft import GraftFeed, Projector
 
 WINDOW_STRIDE = 4  # one held-out window in 4 (tiny: 37 of 148 per suite)
 # Windows per sampler call: this times the protocol's eval batch (tiny 32 -> 128, fastest of

@@ -16,7 +16,7 @@ from bench.grid.cells import CellSpec
 from bench.run.evaluate import derangement, score
 from bench.run.graft import assert_only_trainable, trainable_parameters
 from bench.run.projectors import save_projector
-from lerobot_policy_graft.graft import GraftFeed, Projector
+from graftcore.graft import GraftFeed, Projector
 from bench.run.inputs import CellInputs
 from bench.run.plan import CellContext, CellResult, TrainedProjector
 from bench.results.provenance import (

@@ -5,9 +5,10 @@ Importing this module registers the config types `graft_smolvla`, `graft_pi05`, 
 the processor step `graft_tokenizer_processor`; LeRobot finds the policy classes in
 `modeling_graft` and the processor factories in `processor_graft` by its naming convention.
 Light on purpose (every LeRobot CLI imports it at start): no timm, no model is built here.
-Stands alone: it imports nothing of graftbench's; graftbench imports from it the graft wrapper
-(`graft`), the encoder (`encoder`), the backbone families and their graft points (`families`) and
-the tiny PaliGemma build (`tiny_paligemma`), so an export runs the code the harness measured.
+Stands alone: it imports nothing of graftbench's; graftbench imports from it the backbone families
+and their graft points (`families`) and the tiny PaliGemma build (`tiny_paligemma`), and from
+its sibling package `graftcore` (same distribution, no LeRobot) the encoder and the graft
+wrapper, so an export runs the code the harness measured.
 """
 
 from lerobot_policy_graft import configuration_graft  # noqa: F401  (registers the config types)

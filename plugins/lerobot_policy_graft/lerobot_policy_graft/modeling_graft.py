@@ -1,7 +1,7 @@
 """Grafted policies: LeRobot's own SmolVLAPolicy / PI05Policy / PI0Policy, with ONLY the image
 embedding replaced: camera pixels in [0, 1] -> timm encoder (its own resize and mean/std) ->
 grid pooled to the native token grid -> LayerNorm (no affine) -> Linear, the fixed wrapper
-(`lerobot_policy_graft.graft`) that graftbench measures with, spliced in at the family's graft
+(`graftcore.graft`) that graftbench measures with, spliced in at the family's graft
 point (`lerobot_policy_graft.families`).
 
 Loading is strict (LeRobot's SmolVLA loads with strict=False and only logs; pi0 / pi0.5 print and
@@ -24,9 +24,9 @@ from torch import Tensor, nn
 from lerobot_policy_graft.configuration_graft import (
     TRAIN_SCOPES, GraftPI0Config, GraftPI05Config, GraftSmolVLAConfig, config_from_pretrained,
 )
-from lerobot_policy_graft.encoder import encoder_from_config
+from graftcore.encoder import encoder_from_config
 from lerobot_policy_graft.families import PI0, PI05, SMOLVLA, GraftFamily
-from lerobot_policy_graft.graft import GraftFeed, Projector, pool_grid
+from graftcore.graft import GraftFeed, Projector, pool_grid
 
 # The checkpoint folder being loaded: relative asset names in its config resolve against it.
 _ASSET_ROOT: contextvars.ContextVar[Path | None] = contextvars.ContextVar("graft_assets",
