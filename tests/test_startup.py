@@ -392,8 +392,6 @@ def test_names_are_checked_and_a_grid_collected_without_lerobot(tmp_path):
     import subprocess
     import sys
 
-    from external.paths import REPO_ROOT
-
     out = ["--results-dir", str(tmp_path / "results"), "--report", str(tmp_path / "REPORT.md")]
     code = (
         "import sys, pytest\n"
