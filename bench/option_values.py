@@ -4,9 +4,48 @@ unset types `--encoders ''`; were that the default grid, it would launch a whole
 
 from __future__ import annotations
 
+import argparse
+import sys
 from pathlib import Path
+from typing import NoReturn
 
 import pytest
+
+# Bad input exits with this code from every entry point: `pytest bench` (pytest's usage error),
+# `python -m bench.report`, `bench.export`, `bench.hubworld`, `bench.sim.demos`.
+USAGE_ERROR = int(pytest.ExitCode.USAGE_ERROR)  # 4
+
+
+def refuse(prog: str, message: str) -> NoReturn:
+    """A `python -m` entry point's bad input: one line on stderr (what, the value, the fix),
+    exit USAGE_ERROR, nothing written."""
+    print(f"{prog}: {message}", file=sys.stderr)
+    raise SystemExit(USAGE_ERROR)
+
+
+def whole_at_least(least: int, example: str):
+    """An argparse `type` for a `python -m` entry point: a whole number >= `least`, else one
+    line with the fix (`--resamples 0: give a whole number >= 2, e.g. 2000`)."""
+    def parse(value: str) -> int:
+        try:
+            n = int(value)
+        except ValueError:
+            n = None
+        if n is None or n < least:
+            raise argparse.ArgumentTypeError(f"{value}: give a whole number >= {least}, e.g. "
+                                             f"{example}")
+        return n
+
+    return parse
+
+
+class CommandParser(argparse.ArgumentParser):
+    """argparse for the `python -m` entry points: an argument error is one line naming the
+    argument and the fix (argparse's own usage block only under --help), exit USAGE_ERROR (argparse
+    exits 2, pytest bench 4: one code for bad input everywhere)."""
+
+    def error(self, message: str) -> NoReturn:
+        refuse(self.prog, f"{message}; see {self.prog} --help")
 
 # Options whose value is one word or path: given empty, the run would quietly use the default.
 # (--report is checked by report_file, the comma lists by listed.)
@@ -18,7 +57,7 @@ REPEATED = ("--policy", "--dataset", "--compare-fail")  # action="append": each 
 # An example of each comma list, for the fix the message gives.
 LIST_EXAMPLES = {"--backbones": "smolvla,pi05", "--encoders": "dinov2_s,siglip",
                  "--suites": "spatial,object", "--seeds": "0,1,2", "--controls": "native or none",
-                 "--sim-tasks": "0,1,2"}
+                 "--sim-tasks": "0,1,2", "--robustness": "brightness,blur:1,3 (or all)"}
 
 
 def refuse_empty(config: pytest.Config) -> None:
@@ -28,6 +67,10 @@ def refuse_empty(config: pytest.Config) -> None:
     for option in REPEATED:
         for value in config.getoption(option) or ():
             _check_not_blank(option, value)
+    try:  # the robustness list is read by bench.run.robust_run, where `,,,` meant "off"
+        listed("--robustness", config.getoption("--robustness"))
+    except ValueError as e:
+        raise pytest.UsageError(str(e)) from None
 
 
 def _check_not_blank(option: str, value) -> None:
@@ -64,6 +107,70 @@ def seeds(values: tuple[str, ...] | None) -> tuple[int, ...] | None:
 def positive(option: str, value: int | None, what: str) -> int | None:
     if value is not None and value < 1:
         raise ValueError(f"{option} {value}: give a positive number of {what} (at least 1)")
+    return value
+
+
+def number(option: str, value, kind: type = int, example: str = "10"):
+    """A number option's value (None: not given). Declared without argparse's `type=`, so a typo
+    is this one line with the fix, not argparse's usage block: `--steps 1e3` -> give 1000."""
+    if value is None or isinstance(value, kind) and not isinstance(value, bool):
+        return value
+    text = str(value).strip()
+    try:
+        return kind(text)
+    except ValueError:
+        pass
+    what = "a whole number" if kind is int else "a number"
+    try:
+        as_float = float(text)
+        if kind is int and as_float.is_integer():
+            example = str(int(as_float))  # 1e3 or 100.0: the number meant, written whole
+    except ValueError:
+        pass
+    raise pytest.UsageError(f"{option} {value}: not {what}; give e.g. {option} {example}")
+
+
+# Number options, declared without argparse's `type=` (a typo there is argparse's usage block):
+# (kind, an example for the fix). `typed_options` converts them once, at start-up.
+NUMBERS = {"--steps": (int, "1000"), "--rollouts": (int, "10"), "--rollout-batch": (int, "5"),
+           "--sim-demos": (int, "3"), "--sim-demo-noise": (float, "0.1"),
+           "--sim-demo-speed": (float, "0.5"), "--slurm-time": (int, "240"),
+           "--slurm-gpus-per-task": (int, "1"), "--slurm-array-parallelism": (int, "64")}
+# Options with a few values, declared without argparse's `choices=` for the same reason.
+CHOICES = {"--features": ("cache", "loop"), "--feature-dtype": ("fp16", "bf16", "float32"),
+           "--rollout-envs": ("sync", "async"), "--executor": ("local", "slurm", "submitit-local")}
+
+
+def typed_options(config: pytest.Config) -> None:
+    """Every NUMBERS option converted in place (config.option: what the rest reads) and every
+    CHOICES option checked: a bad value is one UsageError line with the fix."""
+    for option, (kind, example) in NUMBERS.items():
+        dest = option.lstrip("-").replace("-", "_")
+        setattr(config.option, dest, number(option, config.getoption(option), kind, example))
+    for option, choices in CHOICES.items():
+        choice(option, config.getoption(option), choices)
+
+
+def choice(option: str, value: str, choices: tuple[str, ...]) -> str:
+    """A value from `choices`, else one line naming them (not argparse's usage block)."""
+    if value in choices:
+        return value
+    import difflib
+
+    close = difflib.get_close_matches(str(value), choices, n=1, cutoff=0.5)
+    give = close[0] if close else choices[0]
+    raise pytest.UsageError(f"{option} {value}: not one of {', '.join(choices)}; give e.g. "
+                            f"{option} {give}")
+
+
+def protocol_value(option: str, field: str, value):
+    """A command-line value of a Protocol field, in the one range table (bench.grid.protocol:
+    a grid file's `steps` and `[protocol]` read the same table, with the same message)."""
+    from bench.grid.protocol import range_error
+
+    problem = None if value is None else range_error(field, value, option)
+    if problem:
+        raise ValueError(problem)
     return value
 
 

@@ -19,9 +19,10 @@ from bench.run.robust_run import add_robustness_option, with_robustness
 from bench.screen.proxies import PROXIES, proxy_names
 from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
                                     parse_screen_by, parse_screen_keep)
-from bench.option_values import listed, positive, refuse_empty, report_file, seeds
+from bench.option_values import (listed, positive, protocol_value, refuse_empty, report_file,
+                                 seeds, typed_options)
 from bench.sim.batching import IN_PROCESS, Batching
-from bench.startup import (check_rollout_batch, check_rollouts_possible,
+from bench.startup import (check_environment, check_rollout_batch, check_rollouts_possible,
                            check_sim_suites_possible)
 
 DEFAULT_PROFILE = "tiny"
@@ -51,13 +52,17 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      "observation.images.front); default: identical names, else in order")
     g.addoption("--seeds", help="comma list of ints, e.g. 0,1,2")
     g.addoption("--controls", help=f"comma list of control kinds ({','.join(control_kinds())}) or none")
-    g.addoption("--steps", type=int, help="projector steps (overrides the profile's protocol)")
+    # Numbers and choices are declared untyped: bench.option_values.typed_options checks them,
+    # one line with the fix instead of argparse's usage block.
+    g.addoption("--steps", metavar="N", help="projector steps (overrides the profile's protocol)")
     g.addoption("--results-dir", help="results store (default .graftbench/results/<profile>)")
-    g.addoption("--report", help="where REPORT.md goes (default: REPORT.md at the repo root)")
+    g.addoption("--report", help="where REPORT.md goes (default: REPORT.md in --results-dir when "
+                                 "given; else at the repo root for --profile tiny, else in the "
+                                 "profile's results dir)")
     g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
-    g.addoption("--features", default="cache", choices=("cache", "loop"),
+    g.addoption("--features", default="cache", metavar="cache|loop",
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
-    g.addoption("--feature-dtype", default="fp16", choices=("fp16", "bf16", "float32"),
+    g.addoption("--feature-dtype", default="fp16", metavar="fp16|bf16|float32",
                 help="how the feature store keeps features on disk: fp16 (default; moves a "
                      "cell's MSE < 2e-4 relative, docs/PERFORMANCE.md), bf16, or float32 (the "
                      "encoder's numbers bit for bit, twice the disk)")
@@ -72,26 +77,26 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 def _add_sim_options(g) -> None:
     """Closed-loop rollouts and the scripted demonstrations of the sim profile (bench.sim)."""
-    g.addoption("--rollouts", type=int, default=0, metavar="N",
+    g.addoption("--rollouts", default=0, metavar="N",
                 help="also roll every cell out in the LIBERO simulator, N episodes per task "
                      "(needs the libero extra and a LIBERO-backed suite: --profile sim)")
-    g.addoption("--rollout-batch", type=int, default=1, metavar="B",
+    g.addoption("--rollout-batch", default=1, metavar="B",
                 help="envs of a task rolled out at once, one batched policy call per step "
                      "(LeRobot's gym vector env; default 1: one env in-process, the faster on "
                      "2 CPU cores, docs/PERFORMANCE.md)")
-    g.addoption("--rollout-envs", default="sync", choices=("sync", "async"),
+    g.addoption("--rollout-envs", default="sync", metavar="sync|async",
                 help="with --rollout-batch > 1: the B envs in this process (sync) or one worker "
                      "process and render context each (async, as lerobot-eval)")
     g.addoption("--sim-tasks", metavar="IDS",
                 help="sim suites: the LIBERO task ids to demonstrate and roll out, e.g. 0,1,2 "
                      "(default: bench.sim.demos.DEFAULT_SPECS); a task the scripted expert "
                      "cannot solve is refused")
-    g.addoption("--sim-demos", type=int, metavar="N",
+    g.addoption("--sim-demos", metavar="N",
                 help="sim suites: successful scripted demonstrations per task (default 3)")
-    g.addoption("--sim-demo-noise", type=float, metavar="SIGMA",
+    g.addoption("--sim-demo-noise", metavar="SIGMA",
                 help="sim suites: std of Gaussian noise on the executed translation actions of "
                      "the scripted demonstrations, labels kept clean (DART; default 0)")
-    g.addoption("--sim-demo-speed", type=float, metavar="S",
+    g.addoption("--sim-demo-speed", metavar="S",
                 help="sim suites: the scripted expert's speed, 0 < S <= 1: its translation "
                      "actions within +-S, unsaturated (default 1: the original expert)")
 
@@ -184,13 +189,13 @@ def _calibration(value: str) -> str:
 
 def _add_executor_options(g) -> None:
     """Where cells run (bench.run.executors): here, or as one submitit job array."""
-    g.addoption("--executor", default="local", choices=("local", "slurm", "submitit-local"),
+    g.addoption("--executor", default="local", metavar="local|slurm|submitit-local",
                 help="local (default): in this process; slurm: the selected cells as ONE Slurm "
                      "job array via submitit; submitit-local: the same on this machine")
     g.addoption("--slurm-partition", help="sbatch --partition")
-    g.addoption("--slurm-time", type=int, default=240, help="minutes per cell task (sbatch --time)")
-    g.addoption("--slurm-gpus-per-task", type=int, default=1, help="sbatch --gpus-per-task")
-    g.addoption("--slurm-array-parallelism", type=int, default=64,
+    g.addoption("--slurm-time", default=240, help="minutes per cell task (sbatch --time)")
+    g.addoption("--slurm-gpus-per-task", default=1, help="sbatch --gpus-per-task")
+    g.addoption("--slurm-array-parallelism", default=64,
                 help="array tasks running at once (sbatch --array=0-N%%P)")
 
 
@@ -220,7 +225,7 @@ def build_profile(config: pytest.Config):
             suites=listed("--suites", opt("--suites")),
             seeds=seeds(listed("--seeds", opt("--seeds"))),
             controls=controls,
-            steps=positive("--steps", opt("--steps"), "projector steps"),
+            steps=protocol_value("--steps", "steps", opt("--steps")),
             **_sim_demos(profile, opt),
         )
     except ValueError as e:
@@ -356,6 +361,8 @@ def parse_options(config: pytest.Config) -> RunOptions:
 
     opt = config.getoption
     refuse_empty(config)
+    typed_options(config)  # numbers converted, choices checked: the rest reads them typed
+    check_environment(config)  # before any name is built or folder written
     profile = build_profile(config)
     profile = with_robustness(profile, opt("--robustness"))  # checked: exit 4 if bad
     labels = option_labels(profile, config)

@@ -19,6 +19,7 @@ from bench.startup import check_writable
 from bench.summary import cell_id_of
 
 SESSION_KEY = pytest.StashKey[GraftSession]()
+DESELECTED_KEY = pytest.StashKey[list]()  # ids of grid cases that -k/-m deselected
 GRID_MODULE = Path(__file__).with_name("test_grid.py")
 
 
@@ -194,6 +195,8 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
             screens.append(params["screen_case"].id)
         elif "robust_cell" in params:
             robust.append(params["robust_cell"].id)
+    if not items and not hasattr(config, "workerinput"):
+        _refuse_empty_selection(config)
     gs.collected(Selection(tuple(c.id for c in cells), tuple(screens), tuple(robust)))
     if (cells or screens) and not hasattr(config, "workerinput"):
         gs.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
@@ -201,6 +204,28 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
         gs.preflight(cells)  # the selected cells' artifacts (after -k)
     if cells and not hasattr(config, "workerinput"):
         gs.store.write_grid([c.id for c in cells], gs.profile.name)
+
+
+def pytest_deselected(items) -> None:
+    grid = [item.nodeid for item in items if Path(str(item.path)) == GRID_MODULE]
+    if grid:
+        items[0].config.stash.setdefault(DESELECTED_KEY, []).extend(grid)
+
+
+def _refuse_empty_selection(config: pytest.Config) -> None:
+    """-k/-m that selects no grid case is a usage error with ids to pick from, not pytest's bare
+    "no tests collected" (exit 5)."""
+    deselected = config.stash.get(DESELECTED_KEY, [])
+    if not deselected:
+        return
+    given = " ".join(f"{flag} {value!r}" for flag, value in
+                     (("-k", config.getoption("keyword")), ("-m", config.getoption("markexpr")))
+                     if value)
+    examples = ", ".join(sorted({nodeid.rsplit("::", 1)[-1] for nodeid in deselected})[:3])
+    raise pytest.UsageError(
+        f"{given} selects none of the {len(deselected)} cases of this grid; ids read as the cell "
+        f"(an encoder's ':' is written '_'), e.g. {examples}: pick words from them, or list "
+        "them all with --collect-only -q")
 
 
 @pytest.fixture(scope="session")

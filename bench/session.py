@@ -23,7 +23,7 @@ import pytest
 from bench.grid.cells import CellSpec
 from bench.options import parse_options
 from bench.startup import check_startup, check_writable, collects_grid, offline_env
-from bench.progress import QUIET, TerminalSink, say
+from bench.progress import QUIET, TerminalSink, WorkerSink, say
 from bench.run.outcome import MEASURED, OUTCOME_PROPERTY, Outcome, Status, failed
 from bench.regression.run import BaselineRun
 
@@ -147,10 +147,13 @@ class GraftSession:
         return self._workspace
 
     def progress_sink(self):
-        """The terminal, or the null sink: under -q, GRAFTBENCH_QUIET=1 and in xdist workers
-        (their output would interleave with the controller's)."""
-        quiet = self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1"
-        return QUIET if quiet or hasattr(self.config, "workerinput") else TerminalSink(self.config)
+        """The terminal; an xdist worker's lines go there too, whole lines named by the worker
+        (`-n 2` used to be silent for as long as a release trained); the null sink under -q
+        and GRAFTBENCH_QUIET=1."""
+        if self.config.get_verbosity() < 0 or os.environ.get("GRAFTBENCH_QUIET") == "1":
+            return QUIET
+        worker = getattr(self.config, "workerinput", {}).get("workerid")
+        return WorkerSink(self.config, worker) if worker else TerminalSink(self.config)
 
     @property
     def screening(self):
@@ -308,9 +311,11 @@ class GraftSession:
 
 def _default_workspace(session: GraftSession):
     """The real workspace, with this process's torch threads set first."""
+    sink = session.progress_sink()
+    # The first import of LeRobot: 33 s without a line on 2 busy cores (issue 53).
+    say(sink, "importing torch and LeRobot (once per process)")
     from bench.run.workspace import Workspace
 
-    sink = session.progress_sink()
     if not hasattr(session.config, "workerinput"):  # workers: bench.plugin split the CPUs
         import torch
 

@@ -32,7 +32,25 @@ def check_startup(profile, labels: dict[str, str] | None = None) -> list[str]:
     folders come after (the session opens --results-dir, then probes --report: the report
     defaults to a folder inside the results dir, whose own error names the right option)."""
     validate_names(profile, labels)
+    check_tuned_encoders(profile, labels)
     return check_user_world(profile)
+
+
+def check_tuned_encoders(profile, labels: dict[str, str] | None = None) -> None:
+    """A control kind that tunes its encoder runs for the grid encoders with weights to tune
+    (bench.grid.cells.tunable_encoders): selected with none of them, it would run no cell, so it
+    is refused, naming the kind and the encoders."""
+    from bench.grid.cells import tunable_encoders
+    from bench.grid.kinds import CELL_KINDS
+
+    tuned = [k.name for k in CELL_KINDS.values() if k.tune_encoder and k.name in profile.controls]
+    if tuned and not tunable_encoders(profile.encoders, profile.source):
+        labels = labels or {}
+        raise pytest.UsageError(
+            f"{labels.get('controls', '--controls')}: {', '.join(tuned)} tunes an encoder's "
+            f"weights, and no encoder of {labels.get('encoders', '--encoders')} "
+            f"({', '.join(profile.encoders)}) has any to tune; fix: add a timm-built encoder "
+            "(e.g. dinov2_s) or drop the control")
 
 
 def validate_names(profile, labels: dict[str, str] | None = None) -> None:
@@ -164,6 +182,9 @@ def check_writable(option: str, folder: Path) -> None:
     """A UsageError naming the option when `folder` cannot be created or written."""
     import tempfile
 
+    problem = _not_a_folder(folder)
+    if problem:  # said as it is: "not writable (File exists)" hid a file in the path
+        raise pytest.UsageError(f"{option}: {folder}: {problem}; pass a path in a writable folder")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
@@ -171,3 +192,51 @@ def check_writable(option: str, folder: Path) -> None:
     except OSError as e:
         raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
                                 "pass a writable folder") from None
+
+
+def check_environment(config: pytest.Config) -> None:
+    """What the run stands on, checked before any name is built or cell run: the cache folder
+    (GRAFTBENCH_CACHE), the executor's scheduler, the baseline folder. Each found bad only inside
+    the first cell used to fail every cell with a long traceback naming none of them."""
+    cache = os.environ.get("GRAFTBENCH_CACHE")
+    if cache is not None and not cache.strip():  # Path("") is ".": a cache in the current folder
+        raise pytest.UsageError("GRAFTBENCH_CACHE='': empty (an unset variable?); fix: point it "
+                                "at a folder, or unset it for .graftbench/cache")
+    if cache is not None:
+        problem = _not_a_folder(Path(cache))
+        if problem:
+            raise pytest.UsageError(f"GRAFTBENCH_CACHE={cache}: {problem}; fix: point it at a "
+                                    "writable folder, or unset it for .graftbench/cache")
+    executor = config.getoption("--executor")
+    if executor in ("slurm", "submitit-local"):
+        import importlib.util
+        import shutil
+
+        if importlib.util.find_spec("submitit") is None:
+            raise pytest.UsageError(f"--executor {executor}: submitit is not installed; fix: "
+                                    "pip install submitit, or --executor local")
+        if executor == "slurm" and shutil.which("sbatch") is None:
+            raise pytest.UsageError("--executor slurm: no Slurm here (sbatch is not on PATH); "
+                                    "fix: run from a Slurm login node, or use --executor local "
+                                    "(this process) or submitit-local (this machine)")
+    baseline_dir = config.getoption("--baseline-dir")
+    if baseline_dir is not None:
+        problem = _not_a_folder(Path(baseline_dir))
+        if problem:
+            raise pytest.UsageError(f"--baseline-dir {baseline_dir}: {problem}; fix: name a "
+                                    "folder (baselines are NAME.json files in it)")
+
+
+def _not_a_folder(path: Path) -> str | None:
+    """Why `path` cannot be (or become) a writable folder, or None. Creates nothing: the first
+    ancestor that exists must be a writable folder."""
+    if path.exists():
+        if not path.is_dir():
+            return "a file, not a folder"
+        return None if os.access(path, os.W_OK | os.X_OK) else "not writable"
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return f"{parent} is a file, so no folder can be made there"
+            return None if os.access(parent, os.W_OK | os.X_OK) else f"{parent} is not writable"
+    return None

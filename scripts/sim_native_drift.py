@@ -24,6 +24,7 @@ from bench.run.closed_loop import make_act
 from bench.sim import demos
 from bench.sim import env as sim_env
 from bench.sim.expert import episode_seed
+from bench.progress import STDERR
 from bench.suites import load_suite
 
 
@@ -43,7 +44,7 @@ def main() -> None:
     torch.set_num_threads(1)
     tasks = tuple(int(t) for t in a.tasks.split(","))
     spec = demos.demo_spec("spatial", tasks, a.demos, expert_speed=a.speed)
-    suite = load_suite("spatial", "sim", sim_spec=spec)
+    suite = load_suite("spatial", "sim", sim_spec=spec, progress=STDERR)
     info = demos.suite_info(suite.root)
     seed = episode_seed(0, a.task, a.init)
     if a.rollout:

@@ -175,8 +175,9 @@ def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path, monkeypatch
 
     out = run(scenes, progress=Sink())
     assert resets == [(1, 48), (2, 49), (2, 48), (3, 49), (3, 48)]  # only the 5 not finished
-    assert lines[0] == "[rollout] spatial task 1 episode 1 (init 48): success in 3 steps " \
-        f"({out['episodes'][3]['seconds']:.1f} s)" and len(lines) == 5
+    assert lines[0].startswith("[rollout] spatial task 1 episode 1 (init 48): success in 3 "
+                               f"steps ({out['episodes'][3]['seconds']:.1f} s); episodes 4/8")
+    assert len(lines) == 5 and lines[-1].endswith("; episodes 8/8")  # how far, resumed counted
     assert [(e["task"], e["episode"], e["init_state"]) for e in out["episodes"]] == [
         (t, e, 49 - e) for t in range(4) for e in range(2)]
     assert [e["success"] for e in out["episodes"]] == [True, False] + [True] * 6

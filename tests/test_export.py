@@ -282,7 +282,7 @@ def test_best_picks_the_report_winner_and_the_cli_lists_and_refuses(world, capsy
     assert main(["--list", "--results-dir", str(results)]) == 0
     assert record.cell_id in capsys.readouterr().out
     assert main(["--best", "pi05", "spatial", "--results-dir", str(results),
-                 "--out", str(folder)]) == 2
+                 "--out", str(folder)]) == 4
     assert capsys.readouterr().err.count("\n") == 1
 
 
@@ -318,7 +318,7 @@ def test_a_user_encoders_graft_is_refused_before_anything_is_written(tmp_path, c
     save_record(tmp_path / "results", make_record(encoder="mypkg.effl:pretrained"))
     cell = "smolvla-spatial-mypkg.effl_pretrained-seed0"
     assert main([cell, "--results-dir", str(tmp_path / "results"),
-                 "--out", str(tmp_path / "out")]) == 2
+                 "--out", str(tmp_path / "out")]) == 4
     err = capsys.readouterr().err
     assert err.startswith(f"bench.export: cell {cell} cannot be exported: its encoder "
                           "'mypkg.effl:pretrained' is your own module's") and err.count("\n") == 1
@@ -331,12 +331,12 @@ def test_best_with_an_unknown_backbone_names_what_is_there(tmp_path, capsys):
 
     save_record(tmp_path, make_record(backbone="pi05", encoder="dinov2_s"))
     assert main(["--best", "nope", "spatial", "--results-dir", str(tmp_path), "--out",
-                 str(tmp_path / "out")]) == 2
+                 str(tmp_path / "out")]) == 4
     assert capsys.readouterr().err == (
         f"bench.export: --best nope spatial: no backbone 'nope' in {tmp_path}; backbones there: "
         "pi05\n")
     assert main(["--best", "pi05", "spatail", "--results-dir", str(tmp_path), "--out",
-                 str(tmp_path / "out")]) == 2
+                 str(tmp_path / "out")]) == 4
     assert "no suite 'spatail' in" in capsys.readouterr().err
 
 

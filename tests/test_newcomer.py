@@ -66,8 +66,8 @@ def test_runs_that_finish_no_cell_write_no_report(run_bench, tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--steps", "-1"], "--steps -1: give a positive number of projector steps"),
-    (["--steps", "0"], "--steps 0: give a positive number of projector steps"),
+    (["--steps", "-1"], "--steps: steps = -1 is out of range; give steps >= 1"),
+    (["--steps", "0"], "--steps: steps = 0 is out of range; give steps >= 1"),
     (["--seeds", "0,abc"], "--seeds 0,abc: ['abc'] not a non-negative integer"),
 ])
 def test_bad_options_are_one_line_usage_errors(run_bench, args, message):

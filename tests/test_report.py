@@ -11,13 +11,17 @@ import pytest
 
 from tests.factories import make_failed, make_grid, make_record, save_record
 from bench.results.store import load_results
-from bench.report.build import SECTIONS, build_report, main
+from bench.report.build import SECTIONS, build_report
+from bench.report.cli import main
 from bench.report.screen import SECTION_TITLE
+from bench.report.tuning import TITLE as TUNING_TITLE
 
 ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 RESAMPLES = 200
-# Sections left out when their records are absent: screens (test_screen_run), robustness.
-HEADINGS = [title for title, _ in SECTIONS if title not in (SECTION_TITLE, "Robustness")]
+# Sections left out when their records are absent: screens (test_screen_run), robustness,
+# tuned encoders (tests/test_tuned_encoder.py).
+HEADINGS = [title for title, _ in SECTIONS
+            if title not in (SECTION_TITLE, "Robustness", TUNING_TITLE)]
 
 
 def full_grid() -> list[dict]:

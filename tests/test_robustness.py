@@ -124,8 +124,8 @@ def test_planted_invariance_holds_and_the_released_tower_degrades(world):
     assert table.cells[("pixels_ones", "brightness:3")].ci[0] > 0.003, table.cells
     low, high = table.cells[("pixels_ones_norm", "brightness:3")].ci
     assert -1e-5 < low <= 0 <= high < 1e-5, (low, high)
-    assert [(name, tie) for name, _, _, tie in table.ranking] == [
-        ("pixels_ones_norm", True), ("pixels_ones", False)], table.ranking
+    assert [(name, tie) for name, _, _, tie in table.degradation_ranking] == [
+        ("pixels_ones_norm", True), ("pixels_ones", False)], table.degradation_ranking
     spec, native = cell("native")
     robust, _ = measure_robust(spec, ws, lighting)
     from bench.results.robust import load_all_robust
@@ -134,6 +134,39 @@ def test_planted_invariance_holds_and_the_released_tower_degrades(world):
                              n_resamples=500)
     degradation = table.cells[("native", "brightness:3")]
     assert degradation.ci[0] > 0.05, degradation  # a dimmer scene: worse, by a paired interval
+
+
+def test_the_ranking_leads_with_perturbed_mse_so_blind_does_not_lead_when_it_predicts_worst():
+    """Known answer on stored-record stand-ins (tests/factories.py: per-window MSE = level x a
+    ramp averaging 1): blind 2.0 clean and perturbed (degrades by 0, predicts worst); dinov2_s
+    1.0 -> 1.2 (+20%); siglip 1.0 -> 1.5 (+50%). Perturbed MSE ranks dinov2_s, siglip, blind;
+    the degradation, kept beside it, ranks blind first."""
+    from bench.report.robustness import _ranking_text
+    from bench.results.robust import RobustEntry, RobustRecord, base_of
+    from tests.factories import make_record
+
+    levels = {"blind": (2.0, 2.0), "dinov2_s": (1.0, 1.2), "siglip": (1.0, 1.5)}
+    records, robust = [], []
+    for encoder, (clean, perturbed) in levels.items():
+        for seed in (0, 1):
+            record = make_record(encoder=encoder, seed=seed, level=clean)
+            ramp = np.asarray(record.scores.per_window["normalized"]) / clean
+            entries = [RobustEntry({"kind": kind, "severity": 2, "params": {}},
+                                   {"normalized": perturbed},
+                                   {"normalized": (perturbed * ramp).tolist()})
+                       for kind in ("blur", "noise")]
+            records.append(record)
+            robust.append(RobustRecord(record.cell_id, "graft", BACKBONE, "spatial", encoder,
+                                       seed, base_of(record), record.scores.window_ids, entries))
+    table = robustness_table(records, robust, BACKBONE, "spatial", n_resamples=200)
+    assert [(name, round(mse, 9), tie) for name, mse, _, tie in table.ranking] == [
+        ("dinov2_s", 1.2, True), ("siglip", 1.5, False), ("blind", 2.0, False)]
+    assert table.most_robust == "dinov2_s" and table.least_degraded == "blind"
+    assert [(name, round(d, 9)) for name, d, _, _ in table.degradation_ranking] == [
+        ("blind", 0.0), ("dinov2_s", 0.2), ("siglip", 0.5)]
+    text = _ranking_text(table)
+    assert "**dinov2_s** predicts best under perturbation" in text
+    assert "| 3      | blind" in text and "(least degraded here: blind)" in text
 
 
 def test_a_cell_without_record_or_projector_names_the_command(world, tmp_path):

@@ -8,8 +8,11 @@ import pytest
 
 from bench.analysis.agreement import Undefined
 from bench.screen.estimators import (Moments, knn_heldout, logme, logme_fit, logme_moments,
-                                     moments, norm_entropy, ridge_fit, ridge_heldout,
-                                     squared_error, token_norms)
+                                     logme_windows, moments, norm_entropy, ridge_fit,
+                                     ridge_heldout, ridge_windows, squared_error, token_norms)
+from bench.screen.spectral import (HIGHER_ELSEWHERE, INTERIOR, NOTHING, logme_profile,
+                                   spectrum)
+from bench.screen.synthetic import synthetic_fit
 
 
 def explicit_evidence(f: np.ndarray, y: np.ndarray, alpha: float, beta: float) -> float:
@@ -154,3 +157,105 @@ def test_screen_logme_prefers_informative_features_when_d_exceeds_n():
     f, y = planted(60, 150)
     noise = np.random.default_rng(9).normal(size=f.shape)
     assert logme_moments(moments(f, y)) > logme_moments(moments(noise, y))
+
+
+def fixed_point(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int) -> np.ndarray:
+    """screen_version 2's LogME (MacKay's fixed point alpha = gamma / m^T m, beta = (n - gamma) /
+    residual from alpha = beta = 1, until the evidence moves < 1e-13 per sample), kept here as
+    the reference the bounded profile search must reproduce where it converges."""
+    alpha, beta, last = np.ones(z.shape[1]), np.ones(z.shape[1]), None
+    for _ in range(100_000):
+        lam = np.clip(alpha / beta, 1e-300, 1e300)
+        denom = lam[None, :] + sigma[:, None]
+        mm = np.sum((z / denom) ** 2, axis=0)
+        res = np.maximum(np.maximum(yy - np.sum(z ** 2 / sigma[:, None], axis=0), 0.0) + np.sum(
+            (z * lam[None, :] / denom) ** 2 / sigma[:, None], axis=0), 1e-300)
+        gamma = np.sum(sigma[:, None] / denom, axis=0)
+        ev = (n / 2 * np.log(beta) - n / 2 * np.log(2 * np.pi) - beta / 2 * (res + lam * mm)
+              - 0.5 * np.sum(np.log1p(sigma[:, None] / lam[None, :]), axis=0))
+        if last is not None and np.max(np.abs(ev - last)) / n < 1e-13:
+            break
+        last = ev
+        alpha = np.minimum(gamma / np.maximum(mm, 1e-300), 1e300)
+        beta = np.minimum((n - len(sigma) + np.sum(lam / denom, axis=0)) / res, 1e300)
+    return ev / n
+
+
+# Tolerance of screen_version 3's LogME against 2's where 2 converged to an interior maximum
+# (measured here: <= 8e-12; the tiny world and N = 721 x D = 2,568 screens: docs/PERFORMANCE.md).
+LOGME_REL_TOL = 1e-9
+
+
+@pytest.mark.parametrize("n, d, signal", [(200, 20, 0.3), (200, 20, 0.0), (60, 150, 0.3),
+                                          (60, 150, 0.0)])
+def test_the_bounded_logme_equals_the_fixed_point_where_that_converges(n, d, signal):
+    rng = np.random.default_rng(n + d)
+    f = rng.normal(size=(n, d))
+    y = signal * f @ rng.normal(size=(d, 4)) + rng.normal(size=(n, 4))
+    spec = spectrum(f, y)
+    ev, _, _, where = logme_profile(spec.sigma, spec.z, spec.yy, n - 1)
+    new, old = ev / (n - 1), fixed_point(spec.sigma, spec.z, spec.yy, n - 1)
+    interior = np.array(where) == INTERIOR
+    assert interior.any()
+    assert np.allclose(new[interior], old[interior], rtol=LOGME_REL_TOL, atol=0), new - old
+    # Where the supremum is a limit (lam -> 0: a noise-free fit, D > N) the fixed point crawls
+    # towards it and stops early (its steps fall below 1e-13): up to ~4e-9 below it here.
+    assert np.all(new >= old - 1e-12 * np.abs(old)) and np.allclose(new, old, rtol=1e-7)
+
+
+def test_the_bounded_logme_equals_the_fixed_point_where_features_carry_nothing():
+    """Low-rank ReLU features of a latent the targets never see (a random-init encoder's case,
+    the fixed point's slowest): most columns' optimum runs off to alpha -> infinity."""
+    rng = np.random.default_rng(5)
+    f = np.maximum(rng.normal(size=(60, 4)) @ rng.normal(size=(4, 150)), 0.0)
+    f += 1e-4 * rng.normal(size=f.shape)
+    spec = spectrum(f, rng.normal(size=(60, 6)))
+    ev, _, _, where = logme_profile(spec.sigma, spec.z, spec.yy, 59)
+    assert NOTHING in where
+    old = fixed_point(spec.sigma, spec.z, spec.yy, 59)
+    assert np.allclose(ev / 59, old, rtol=LOGME_REL_TOL, atol=0), np.max(np.abs(ev / 59 - old))
+
+
+def test_logme_takes_the_limit_where_the_features_explain_nothing():
+    """Targets orthogonal to every feature: the evidence rises with alpha for ever; its supremum
+    is the noise-only model's, -(ln(2 pi |y|^2 / n) + 1) / 2 per sample, a known answer."""
+    rng = np.random.default_rng(1)
+    f, y = rng.normal(size=(80, 5)), rng.normal(size=(80, 2))
+    y -= f @ np.linalg.lstsq(f, y, rcond=None)[0]  # orthogonal to the features' span
+    fits = logme_fit(f, y)
+    yy = (y * y).sum(axis=0)
+    for (ev, _, _), col in zip(fits, yy):
+        assert ev == pytest.approx(-(np.log(2 * np.pi * col / 80) + 1) / 2, rel=1e-12)
+    sigma, z = np.linalg.eigvalsh(f.T @ f), np.zeros((5, 2))
+    assert logme_profile(sigma, z, yy, 80)[3] == [NOTHING, NOTHING]
+
+
+def test_the_dual_form_equals_the_primal_one_for_logme_and_ridge():
+    """D > N: the screen decomposes the N x N kernel; the Moments path decomposes D x D. Same
+    LogME, same ridge penalty and held-out MSE (tolerance 1e-9 relative)."""
+    fit = synthetic_fit(n=120, m=30, d=300, c=14)
+    assert fit.spectrum.form == "dual"
+    dual, where = logme_windows(fit.train, fit.train_targets)
+    assert dual == pytest.approx(logme_moments(fit.train_total), rel=1e-9) and "interior" in where
+    mse, ratio = ridge_windows(fit.train, fit.train_targets, fit.train_fold,
+                               fit.heldout_features, fit.heldout_targets)
+    ref_mse, ref_ratio = ridge_heldout(fit.folds, fit.heldout)
+    assert ratio == ref_ratio and mse == pytest.approx(ref_mse, rel=1e-9)
+    small = synthetic_fit(n=120, m=30, d=40, c=14)  # D < N: the primal form, the same answers
+    assert small.spectrum.form == "primal"
+    assert logme_windows(small.train, small.train_targets)[0] == pytest.approx(
+        logme_moments(small.train_total), rel=1e-9)
+
+
+def test_where_the_evidence_has_two_maxima_the_fixed_points_is_kept_and_flagged():
+    """Two scales of eigenvalues (two large, eighteen small): the evidence peaks at lam ~ 2 and
+    again higher near lam -> infinity. screen_version 2's fixed point, from lam = 1, took the
+    first; so does the bounded search (the same scores), and it says a higher one exists."""
+    rng = np.random.default_rng(290)
+    k1, k2 = rng.integers(1, 5), rng.integers(5, 40)
+    sigma = np.concatenate([10 ** rng.uniform(3, 6, k1), 10 ** rng.uniform(-1, 1, k2)])
+    z = rng.normal(size=(len(sigma), 1)) * np.sqrt(sigma)[:, None] * 10 ** rng.uniform(-2, 0)
+    yy = np.array([float((z[:, 0] ** 2 / sigma).sum() + rng.uniform(1, 50))])
+    ev, alpha, beta, where = logme_profile(sigma, z, yy, 50)
+    assert where == [INTERIOR + HIGHER_ELSEWHERE] and 0 < np.log(alpha / beta)[0] < 2
+    assert ev / 50 == pytest.approx(fixed_point(sigma, z, yy, 50), rel=LOGME_REL_TOL)

@@ -31,7 +31,7 @@ def demo_root():
     """The spec's suite where a run keeps it (the cache, keyed on the generator's version and
     the spec): generated on a cold cache, reused warm (~15 s). The generator itself runs in
     test_generation_is_deterministic, which builds it afresh and compares the two."""
-    return demos.generate(SPEC, progress=QUIET)
+    return demos.generate(SPEC, None, progress=QUIET)
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +112,7 @@ def test_generation_is_deterministic(dataset, tmp_path):
 def test_load_suite_sim_source_reads_the_generated_dataset(demo_root, dataset):
     from bench.suites import load_suite
 
-    suite = load_suite("spatial", "sim", root=demo_root)
+    suite = load_suite("spatial", "sim", root=demo_root, progress=QUIET)
     assert suite.repo_id == demos.repo_id("spatial") and suite.fps == sim_env.CONTROL_HZ
     assert suite.num_frames == dataset.num_frames and suite.state.shape[1] == 8
     images = suite.images(torch.arange(2))

@@ -78,7 +78,7 @@ def test_a_sim_spec_picks_its_own_cached_suite(monkeypatch):
     monkeypatch.setattr(sim_env, "libero_available", lambda: False)
     spec = demo_spec("spatial", (2, 3), 7)  # never generated: the message names its folder
     with pytest.raises(SuiteUnavailable, match=f"spatial-{spec.key()}"):
-        load_suite("spatial", "sim", sim_spec=spec)
+        load_suite("spatial", "sim", sim_spec=spec, progress=QUIET)
 
 
 def test_sim_suite_without_the_extra_fails_in_one_line(monkeypatch, tmp_path):
@@ -86,7 +86,7 @@ def test_sim_suite_without_the_extra_fails_in_one_line(monkeypatch, tmp_path):
 
     monkeypatch.setattr(sim_env, "libero_available", lambda: False)
     with pytest.raises(SuiteUnavailable, match="install_libero.sh"):
-        load_suite("spatial", "sim", root=tmp_path / "absent")
+        load_suite("spatial", "sim", root=tmp_path / "absent", progress=QUIET)
 
 
 SMALL = sim_env.RenderSettings(image_size=64)

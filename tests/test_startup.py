@@ -62,7 +62,7 @@ BAD_INPUTS = [
     (["--backbones", "nope"], "--backbones nope", "valid backbones: smolvla, pi05"),
     (["--controls", "nope"], "--controls nope", "valid: native, native_wrapped"),
     (["--seeds", "0,x"], "--seeds 0,x", "not a non-negative integer"),
-    (["--steps", "0"], "--steps 0", "at least 1"),
+    (["--steps", "0"], "--steps: steps = 0", "give steps >= 1"),
     # An empty list is not the default grid (a script's unset variable would launch a study).
     (["--encoders", ""], "--encoders ''", "empty (an unset variable?); give a value (e.g. "
      "--encoders dinov2_s,siglip), or leave --encoders out for the default"),

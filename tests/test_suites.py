@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from external.paths import cache_dir
+from bench.progress import QUIET
 from bench.suites import SUITES, libero, load_suite, suite_from_dataset, synthetic
 from external.libero_format import IMAGE_KEYS, STATE_KEY
 from bench.suites.base import Suite, SuiteUnavailable
@@ -26,12 +27,12 @@ SMALL = dict(episodes_per_task=1, min_len=6, max_len=8)
 
 @pytest.fixture(scope="module")
 def spatial() -> Suite:
-    return load_suite("spatial", "tiny")
+    return load_suite("spatial", "tiny", progress=QUIET)
 
 
 @pytest.fixture(scope="module")
 def objects() -> Suite:
-    return load_suite("object", "tiny")
+    return load_suite("object", "tiny", progress=QUIET)
 
 
 def _load(root) -> Suite:
@@ -57,9 +58,9 @@ def _hand_suite(lengths: list[int], image_shape=(3, 4, 4)) -> Suite:
 
 # -- generation and loading -------------------------------------------------------------------
 def test_generation_is_deterministic_in_the_seed(tmp_path):
-    a = _load(synthetic.generate_suite("spatial", tmp_path / "a", seed=0, **SMALL))
-    b = _load(synthetic.generate_suite("spatial", tmp_path / "b", seed=0, **SMALL))
-    c = _load(synthetic.generate_suite("spatial", tmp_path / "c", seed=1, **SMALL))
+    a = _load(synthetic.generate_suite("spatial", tmp_path / "a", seed=0, progress=QUIET, **SMALL))
+    b = _load(synthetic.generate_suite("spatial", tmp_path / "b", seed=0, progress=QUIET, **SMALL))
+    c = _load(synthetic.generate_suite("spatial", tmp_path / "c", seed=1, progress=QUIET, **SMALL))
     assert a.fingerprint == b.fingerprint != c.fingerprint
     assert torch.equal(a.action, b.action) and torch.equal(a.state, b.state)
     frames = torch.arange(a.num_frames)
@@ -93,11 +94,11 @@ def test_tiny_suite_is_a_libero_format_lerobot_dataset(spatial):
 
 
 def test_tiny_suite_is_cached_under_a_content_key(spatial):
-    path = synthetic.tiny_suite_path("spatial")
+    path = synthetic.tiny_suite_path("spatial", progress=QUIET)
     assert str(path) == spatial.root and path.parent == cache_dir() / "suites"
     assert path.name == "spatial-" + synthetic.content_key("spatial", 0, **synthetic.SUITE_PARAMS["spatial"])
     assert not list(path.parent.glob(f".tmp-{path.name}-*"))
-    assert load_suite("spatial", "tiny").fingerprint == spatial.fingerprint
+    assert load_suite("spatial", "tiny", progress=QUIET).fingerprint == spatial.fingerprint
 
 
 def test_images_of_the_wrong_shape_fail_clearly():
@@ -108,11 +109,11 @@ def test_images_of_the_wrong_shape_fail_clearly():
 
 def test_unknown_names_and_sources_list_the_valid_ones():
     with pytest.raises(ValueError, match="valid names.*object.*spatial"):
-        load_suite("spatail", "tiny")
+        load_suite("spatail", "tiny", progress=QUIET)
     with pytest.raises(ValueError, match="tiny.*hub"):
-        load_suite("spatial", "local")
+        load_suite("spatial", "local", progress=QUIET)
     with pytest.raises(ValueError, match="no tiny"):
-        load_suite("goal", "tiny")
+        load_suite("goal", "tiny", progress=QUIET)
     assert set(SUITES) == {"spatial", "object", "goal", "10"}
 
 
@@ -259,14 +260,14 @@ def test_hub_suite_absent_offline_fails_fast_naming_repo_and_cache(monkeypatch, 
     monkeypatch.setattr(libero, "lerobot_home", lambda: tmp_path / "lerobot")
     start = time.perf_counter()
     with pytest.raises(SuiteUnavailable) as err:
-        load_suite("spatial", "hub")
+        load_suite("spatial", "hub", progress=QUIET)
     assert time.perf_counter() - start < 2.0
     assert "lerobot/libero_spatial_image" in str(err.value) and str(tmp_path / "lerobot") in str(err.value)
     assert "\n" not in str(err.value)
 
 
 def test_hub_source_loads_a_local_libero_copy(spatial):
-    suite = load_suite("spatial", "hub", root=spatial.root)
+    suite = load_suite("spatial", "hub", root=spatial.root, progress=QUIET)
     assert torch.equal(suite.action, spatial.action) and suite.tasks == spatial.tasks
     frames = torch.tensor([0, 17])
     assert torch.allclose(suite.images(frames)[IMAGE_KEYS[0]], spatial.images(frames)[IMAGE_KEYS[0]])
@@ -286,7 +287,7 @@ def test_hub_dataset_missing_a_feature_names_it(tmp_path):
     ds.save_episode()
     ds.finalize()
     with pytest.raises(SuiteUnavailable, match="missing camera feature 'observation.images.wrist_image'"):
-        load_suite("spatial", "hub", root=tmp_path)
+        load_suite("spatial", "hub", root=tmp_path, progress=QUIET)
 
 
 def test_validate_features_names_a_wrong_shape():

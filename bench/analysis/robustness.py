@@ -4,6 +4,11 @@ a robustness ranking with its tie band, whether the clean winner stays the winne
 the transfer question (does the small backbone's most robust encoder stay the most robust on the
 large one?). Pure functions of stored records (bench.results.record, bench.results.robust).
 
+The robustness ranking leads with what a user deploys: the perturbed MSE (mean over every
+perturbation all grafts have), lowest first, with paired intervals and a tie band. The relative
+degradation is ranked beside it (`degradation_ranking`), never in its place: a graft with nothing
+to lose (`blind`, whose features ignore the image) degrades by 0 while predicting worst.
+
 Degradation of one cell under one perturbation, per window w: (perturbed_w - clean_w) / clean,
 `clean` the cell's clean MSE over the same windows; its mean over windows is the relative
 degradation ((perturbed - clean) / clean), averaged over seeds. Intervals are the rankings'
@@ -48,7 +53,11 @@ class RobustnessTable:
     perturbations: list[str] = field(default_factory=list)  # "kind:severity", table order
     params: dict[str, dict] = field(default_factory=dict)
     cells: dict[tuple[str, str], Degradation] = field(default_factory=dict)
+    # (row, mean perturbed MSE, its interval, in the leader's tie band), lowest MSE first
     ranking: list[tuple[str, float, tuple[float, float], bool]] = field(default_factory=list)
+    # the same by mean relative degradation, least first: beside the ranking, not its lead
+    degradation_ranking: list[tuple[str, float, tuple[float, float], bool]] = field(
+        default_factory=list)
     clean_winner: str | None = None
     winners: dict[str, dict[int, str]] = field(default_factory=dict)  # kind -> severity -> row
     n_windows: int = 0
@@ -57,7 +66,12 @@ class RobustnessTable:
 
     @property
     def most_robust(self) -> str | None:
+        """The graft with the lowest perturbed MSE (the ranking's lead)."""
         return self.ranking[0][0] if self.ranking else None
+
+    @property
+    def least_degraded(self) -> str | None:
+        return self.degradation_ranking[0][0] if self.degradation_ranking else None
 
     def stays(self, kind: str) -> bool | None:
         """Whether the clean winner is the winner under `kind` at every severity measured."""
@@ -69,8 +83,9 @@ class RobustnessTable:
         return {"backbone": self.backbone, "suite": self.suite, "rows": self.rows,
                 "perturbations": self.perturbations, "params": self.params,
                 "degradation": [vars(d) for d in self.cells.values()],
-                "ranking": self.ranking, "clean_winner": self.clean_winner,
-                "winners": self.winners, "most_robust": self.most_robust,
+                "ranking": self.ranking, "degradation_ranking": self.degradation_ranking,
+                "clean_winner": self.clean_winner, "winners": self.winners,
+                "most_robust": self.most_robust, "least_degraded": self.least_degraded,
                 "n_windows": self.n_windows, "seeds": self.seeds, "stale": self.stale}
 
 
@@ -146,7 +161,8 @@ def robustness_table(records: Sequence[Record], robust: Sequence[RobustRecord], 
                     row, label, float(np.nanmean(perturbed[p, r].mean(axis=-1))),
                     float(np.nanmean(clean[r].mean(axis=-1))), float(result.mean[r]),
                     (float(result.mean_lo[r]), float(result.mean_hi[r])))
-    table.ranking = _ranking(degradation[:, : len(grafts)], grafts, boot)
+    table.ranking = _ranking(perturbed[:, : len(grafts)], grafts, boot)
+    table.degradation_ranking = _ranking(degradation[:, : len(grafts)], grafts, boot)
     table.winners = _winners(perturbed[:, : len(grafts)], grafts, keys)
     return table
 
@@ -156,17 +172,17 @@ def _kind_order(robust: Sequence[RobustRecord]) -> list[str]:
     return list(dict.fromkeys(e.kind for rr in robust for e in rr.entries))
 
 
-def _ranking(degradation: np.ndarray, grafts: list[str], boot: dict):
-    """Grafts by mean degradation over every perturbation all of them have, least first, with
-    its interval and whether it is in the tie band of the most robust (paired difference
-    interval contains 0)."""
+def _ranking(per_window: np.ndarray, grafts: list[str], boot: dict):
+    """Grafts by a (P, E, S, W) per-window score (perturbed MSE or relative degradation) averaged
+    over every perturbation all of them have, lowest first, with its interval and whether it is
+    in the leader's tie band (paired difference interval contains 0)."""
     if not grafts:
         return []
-    complete = [p for p in range(len(degradation)) if np.isfinite(
-        np.nanmean(degradation[p], axis=(1, 2))).all()]
+    complete = [p for p in range(len(per_window)) if np.isfinite(
+        np.nanmean(per_window[p], axis=(1, 2))).all()]
     if not complete:
         return []
-    score = degradation[complete].mean(axis=0)  # (E, S, W): mean over perturbations
+    score = per_window[complete].mean(axis=0)  # (E, S, W): mean over perturbations
     point = np.nanmean(score.mean(axis=-1), axis=1)
     leader = int(np.nanargmin(point))
     result = paired_window_bootstrap(score, leader, **boot)

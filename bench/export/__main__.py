@@ -3,7 +3,7 @@ python -m bench.export --best BACKBONE SUITE --results-dir DIR --out OUT
 python -m bench.export --list --results-dir DIR
 
 Writes a LeRobot pretrained_model folder of a graft cell (bench.export). Bad input: one line on
-stderr naming the thing and the fix, exit 2, nothing written."""
+stderr naming the thing and the fix, exit 4 (pytest bench's usage error), nothing written."""
 
 from __future__ import annotations
 
@@ -11,11 +11,14 @@ import argparse
 import sys
 
 from bench.export.locate import ExportError
+from bench.option_values import USAGE_ERROR, CommandParser
+
+PROG = "python -m bench.export"
 
 
 def parse(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m bench.export", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = CommandParser(prog=PROG, description=__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("cell_id", nargs="?", help="the graft cell to export")
     parser.add_argument("--best", nargs=2, metavar=("BACKBONE", "SUITE"),
                         help="export the report's winner on BACKBONE x SUITE instead")
@@ -63,9 +66,9 @@ def main(argv: list[str] | None = None) -> int:
             record, note = best_cell(args.results_dir, *args.best)
             cell_id = record.cell_id
         out = export_cell(args.results_dir, cell_id, args.out, note=note)
-    except ExportError as err:
+    except ExportError as err:  # bad input: exit 4, the usage error of every entry point
         print(f"bench.export: {err}", file=sys.stderr)
-        return 2
+        return USAGE_ERROR
     print(f"bench.export: {cell_id} -> {out} (lerobot-train --policy.path={out} ...: see "
           f"{out}/README.md)")
     return 0

@@ -4,6 +4,7 @@ the thing and the fix."""
 from __future__ import annotations
 
 import difflib
+import shlex
 from pathlib import Path
 
 from bench.grid.kinds import GRAFT
@@ -31,7 +32,7 @@ def find_record(results_dir: str | Path, cell_id: str) -> Record:
         failure = load_failure(results_dir, cell_id)
         if failure is not None:
             raise ExportError(f"cell {cell_id} failed ({failure.error}): fix it and run it "
-                              f"again (pytest bench -k {cell_id} --results-dir {results_dir})")
+                              f"again ({rerun_command(results, failure)})")
         close = difflib.get_close_matches(cell_id, list(by_id), n=3)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
         raise ExportError(f"no cell {cell_id!r} in {results_dir} ({len(by_id)} cells){hint} "
@@ -41,6 +42,37 @@ def find_record(results_dir: str | Path, cell_id: str) -> Record:
         raise ExportError(f"cell {cell_id} is a {record.kind!r} cell: only graft cells export "
                           "(their encoder replaces the vision tower); pick a graft cell")
     return record
+
+
+def rerun_command(results, failure) -> str:
+    """The `pytest bench` command that measures the failed cell again as its run measured it:
+    the profile, study file and steps of the records that share its protocol hash (else the
+    profile grid.json names), the cell's own backbone, suite, encoder, seed and kind, -k its id.
+    A bare `-k CELL` selects nothing for a cell outside the default grid (exit 5)."""
+    same = [r.measured for r in results.records
+            if r.measured.protocol_hash == failure.protocol_hash]
+    measured = same[0] if same else None
+    profile = measured.profile if measured is not None else results.grid_profile
+    grid = (measured.grid_file or {}).get("path") if measured is not None else None
+    args = ["pytest", "bench"] + (["--grid", grid] if grid else [])
+    args += ["--profile", profile] if profile else []
+    steps = (measured.protocol or {}).get("steps") if measured is not None else None
+    if steps is not None and not grid and profile and _profile_steps(profile) != steps:
+        args += ["--steps", str(steps)]
+    ident = failure.identity
+    args += ["--backbones", ident.backbone, "--suites", ident.suite, "--seeds", str(ident.seed)]
+    args += ["--encoders", ident.encoder] if ident.encoder else []
+    from bench.grid.kinds import control_kinds
+
+    args += ["--controls", ident.kind if ident.kind in control_kinds() else "none"]
+    return shlex.join(args + ["-k", ident.cell_id, "--results-dir", str(results.root)])
+
+
+def _profile_steps(name: str) -> int | None:
+    from bench.grid.protocol import PROFILES
+
+    profile = PROFILES.get(name)
+    return profile.protocol.steps if profile is not None else None
 
 
 def exportable(record: Record) -> bool:

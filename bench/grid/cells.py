@@ -67,6 +67,10 @@ def control_cells(profile: Profile) -> list[CellSpec]:
     """Per backbone x suite x seed: the released policy's controls, then each control encoder's,
     each in table order (bench.grid.kinds)."""
     kinds = [k for k in CELL_KINDS.values() if k.name in profile.controls]
+    # A kind that tunes its encoder asks a question per encoder: every grid encoder with weights
+    # to tune, not the control encoders.
+    tuned = (tunable_encoders(profile.encoders, profile.source)
+             if any(k.tune_encoder for k in kinds) else ())
     cells: list[CellSpec] = []
     for b in profile.backbones:
         for s in profile.suites:
@@ -75,8 +79,27 @@ def control_cells(profile: Profile) -> list[CellSpec]:
                           for k in kinds if k.encoder != "required" for v in k.native_variants]
                 cells += [CellSpec(k.name, b, s, seed, e, v)
                           for e in profile.control_encoders
-                          for k in kinds if k.encoder != "none" for v in k.variants]
+                          for k in kinds if k.encoder != "none" and not k.tune_encoder
+                          for v in k.variants]
+                cells += [CellSpec(k.name, b, s, seed, e, v)
+                          for k in kinds if k.tune_encoder for e in tuned for v in k.variants]
     return cells
+
+
+def tunable_encoders(names: tuple[str, ...], source: str = "tiny") -> tuple[str, ...]:
+    """The names whose encoder has weights a tuned cell can train through autograd: timm-built
+    ones (the registry's, "timm:<model>", the real wheels'). Not pixels or blind (no weights),
+    nor a user's MODULE:FACTORY (its forward is its own: nothing says it can take gradients);
+    an unknown name neither (start-up refuses it, naming the option)."""
+    from encoders import get_spec, is_user_encoder  # lazy: only a tuned kind needs the registry
+
+    def tunable(name: str) -> bool:
+        try:
+            return not is_user_encoder(name) and get_spec(name, source).timm_name is not None
+        except ValueError:
+            return False
+
+    return tuple(name for name in names if tunable(name))
 
 
 def tier_cells(profile: Profile) -> list[CellSpec]:

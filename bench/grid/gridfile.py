@@ -47,8 +47,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from bench.grid.kinds import control_kinds
-from bench.grid.protocol import PROFILES, GridFileInfo, Profile, Protocol, with_overrides
+from bench.grid.kinds import NATIVE, control_kinds
+from bench.grid.protocol import (PROFILES, GridFileInfo, Profile, Protocol, range_error,
+                                 with_overrides)
 from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
 
 
@@ -88,16 +89,29 @@ def _profile_name(where: str, key: str, value) -> str:
     return value
 
 
+# An example value of each list key, for the fix a message gives.
+_EXAMPLES = {"backbones": '["pi05"]', "suites": '["spatial"]', "encoders": '["pixels", "dinov2_s"]',
+             "control_encoders": '["pixels"]', "controls": f'["{NATIVE}"]',
+             "robustness": '["brightness", "blur:1,3"] (or ["all"])'}
+# Keys whose empty list means "nothing": [] runs no control / no robustness case. Any other
+# empty list would run no cell at all (a run that "passes" with nothing measured): refused.
+_MAY_BE_EMPTY = ("controls", "robustness")
+
+
 def _strings(where: str, key: str, value) -> tuple[str, ...]:
     if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
-        raise _fail(where, key, f"= {value!r}: give a list of names, e.g. {key} = [\"pixels\"]")
+        raise _fail(where, key, f"= {value!r}: give a list of names, e.g. {key} = "
+                                f"{_EXAMPLES.get(key, '[...]')}")
+    if not value and key not in _MAY_BE_EMPTY:
+        raise _fail(where, key, f"= []: an empty list selects no cell; give e.g. {key} = "
+                                f"{_EXAMPLES[key]}, or drop the key for the profile's")
     return tuple(value)
 
 
 def _seeds(where: str, key: str, value) -> tuple[int, ...]:
     if not isinstance(value, list) or not all(
-            isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value):
-        raise _fail(where, key, f"= {value!r}: give a list of non-negative integers, "
+            isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value) or not value:
+        raise _fail(where, key, f"= {value!r}: give a non-empty list of non-negative integers, "
                                 "e.g. seeds = [0, 1, 2]")
     return tuple(value)
 
@@ -112,8 +126,11 @@ def _controls(where: str, key: str, value) -> tuple[str, ...]:
 
 
 def _steps(where: str, key: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    if isinstance(value, bool) or not isinstance(value, int):
         raise _fail(where, key, f"= {value!r}: give a positive integer number of projector steps")
+    problem = range_error("steps", value, where)
+    if problem:
+        raise GridFileError(problem)
     return value
 
 
@@ -126,23 +143,15 @@ def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
         if name not in defaults:
             raise _unknown_key(where, f"[protocol] {name}", name, defaults)
         value = _like(where, f"[protocol] {name}", value, defaults[name])
-        low, high = _RANGES.get(name, (None, None))
-        if (low is not None and value < low) or (high is not None and value > high):
-            raise _fail(where, f"[protocol] {name}", f"= {value!r} is out of range; give a value "
-                        + (f">= {low}" if high is None else f"in [{low}, {high}]"))
+        problem = range_error(name, value, f"{where} [protocol]")  # the one table's ranges
+        if problem:
+            raise GridFileError(problem)
         if name == "tiny_image_size" and value % (patch := _tiny_patch()):
             low_side = value - value % patch
             raise _fail(where, f"[protocol] {name}", f"= {value} is not a multiple of the tiny "
                         f"patch size {patch}; give {low_side or patch} or {low_side + patch}")
         out.append((name, value))
     return tuple(out)
-
-
-# Protocol fields whose meaning has bounds (the rest are checked by type only).
-_RANGES = {"native_steps": (0, None), "native_state_dropout": (0.0, 1.0),
-           "native_state_dropout_warmup": (0, None), "native_image_shift": (0, None),
-           "graft_image_shift": (0, None),
-           "tiny_image_size": (16, 512)}
 
 
 _KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string",

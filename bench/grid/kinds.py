@@ -59,6 +59,15 @@ class CellKind:
     tower: bool = False
     # LoRA adapters on the frozen LM train beside the projector (the cell gets a private copy).
     lora: bool = False
+    # The encoder's weights train beside the projector, at Protocol.encoder_lr (the cell gets a
+    # private copy of the encoder, run in the training loop: stored features are the frozen
+    # encoder's). Its question is per encoder, so it runs for every grid encoder with weights to
+    # train (bench.grid.cells.tunable_encoders), not for the control encoders.
+    tune_encoder: bool = False
+    # Left out of the profiles' default controls (bench.grid.protocol ALL_CONTROLS): measured
+    # only when --controls or a grid file names it (a tuned encoder costs several times a frozen
+    # graft's steps; the default grids and their committed records stay as they were).
+    opt_in: bool = False
     # The cell's token grid per camera from the backbone's native grid and the variant.
     grid: Callable[[tuple[int, int], str | None], tuple[int, int]] = _same_grid
     # Input rule in training, per variant (missing variant: SAME), and in evaluation.
@@ -115,7 +124,7 @@ class CellKind:
     def shares_graft_training(self, encoder: str | None, variant: str | None) -> bool:
         """Trains exactly its graft's projector (same encoder, grid, inputs, LM): it takes the
         graft's trained projector instead of training it again; only evaluation differs."""
-        return (encoder is not None and not self.lora and not self.tower
+        return (encoder is not None and not (self.lora or self.tower or self.tune_encoder)
                 and self.grid is _same_grid and self.train_rule(variant) == SAME
                 and self.scaled_steps(1000, variant) == 1000)
 
@@ -159,6 +168,11 @@ def control_kinds() -> tuple[str, ...]:
     return tuple(k.name for k in CELL_KINDS.values() if k.name != GRAFT and not k.tier)
 
 
+def default_controls() -> tuple[str, ...]:
+    """The control kinds a profile runs unless told otherwise: `control_kinds` but the opt-in."""
+    return tuple(k for k in control_kinds() if not get_kind(k).opt_in)
+
+
 def tier_kinds() -> tuple[CellKind, ...]:
     """The kinds that are tiers of the --screen ladder (run under --screen only), in table order."""
     return tuple(k for k in CELL_KINDS.values() if k.tier)
@@ -173,6 +187,9 @@ register_kind(CellKind(NATIVE_WRAPPED, "the policy's own tower through the wrapp
                        encoder="none", tower=True))
 register_kind(CellKind("lora", "the graft plus LoRA on the frozen LM (does a frozen LM cap it?)",
                        lora=True))
+register_kind(CellKind("tuned_encoder", "the graft with its encoder's weights trained too, at "
+                       "the protocol's encoder_lr (does tuning the encoder beat freezing it?)",
+                       tune_encoder=True, opt_in=True))
 register_kind(CellKind("pooling", "the graft pooled to another token grid",
                        variants=("half", "double", "global"), grid=_pooling_grid,
                        tag="pool_{variant}"))

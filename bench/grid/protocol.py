@@ -12,7 +12,7 @@ import json
 from dataclasses import dataclass
 
 from backbones import BACKBONES
-from bench.grid.kinds import control_kinds
+from bench.grid.kinds import default_controls
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,11 @@ class Protocol:
     lora_rank: int = 8
     lora_alpha: int = 16
     lora_targets: tuple[str, ...] = ("q_proj", "v_proj")
+    # Tuned-encoder control (bench.grid.kinds tuned_encoder): the encoder's weights train beside
+    # the projector, at this AdamW learning rate under the same schedule (warm-up, cosine). 1e-5 is
+    # LeRobot ACT's `optimizer_lr_backbone`, the usual rate for fine-tuning a pretrained vision
+    # backbone: below every profile's projector lr (tiny 3e-3, paper 1e-4).
+    encoder_lr: float = 1e-5
     # Released tiny checkpoints (offline world only): native training of the whole tiny policy.
     native_steps: int = 0
     native_lr: float = 3e-4
@@ -79,12 +84,64 @@ class Protocol:
 
 
 # Fields added after records existed, with the default that keeps the older hashes.
-_ADDED_LATER = {"native_image_shift": 0, "graft_image_shift": 0, "tiny_image_size": 64}
+_ADDED_LATER = {"native_image_shift": 0, "graft_image_shift": 0, "tiny_image_size": 64,
+                "encoder_lr": 1e-5}
+
+
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric Protocol field may take: low..high (None: unbounded), the low end
+    itself excluded when `low_open` (a learning rate of 0 trains nothing)."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+
+    def __contains__(self, value) -> bool:
+        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
+            return False
+        return self.high is None or value <= self.high
+
+    def text(self) -> str:
+        """'>= 1', '> 0', 'in [0, 1]': the message's words."""
+        if self.high is None:
+            return f"{'>' if self.low_open else '>='} {self.low}"
+        return f"in {'(' if self.low_open else '['}{self.low}, {self.high}]"
+
+
+# ONE table of ranges: every int/float field of Protocol has its entry (tests/test_bad_inputs.py
+# fails for a numeric field without one). Applied wherever a value comes in: --steps
+# (bench.option_values.protocol_value), a grid file's `steps` and `[protocol]`
+# (bench.grid.gridfile), each with range_error's one message.
+# Adding a numeric field to Protocol: add its range here, in the same commit.
+PROTOCOL_RANGES: dict[str, Range] = {
+    "steps": Range(1), "batch_size": Range(1), "lr": Range(0, low_open=True),
+    "weight_decay": Range(0), "warmup_steps": Range(0), "grad_clip": Range(0),  # 0: no clipping
+    "loss_log_every": Range(1), "split_seed": Range(0), "heldout_episodes_per_task": Range(1),
+    "eval_stride": Range(1), "eval_batch_size": Range(1), "eval_noise_seed": Range(0),
+    "lora_rank": Range(1), "lora_alpha": Range(1),
+    "encoder_lr": Range(0, low_open=True),  # 0 would train nothing: the frozen graft
+    "native_steps": Range(0), "native_lr": Range(0, low_open=True),  # 0 steps: no native training
+    "native_state_dropout": Range(0, 1), "native_state_dropout_warmup": Range(0),
+    "native_image_shift": Range(0), "graft_image_shift": Range(0),
+    "tiny_image_size": Range(16, 512),
+}
+
+
+def range_error(field: str, value, where: str) -> str | None:
+    """The one message for a Protocol value out of its range (None: in range), the same from
+    every entry: `where` names where the value came in ('--steps', 'study.toml [protocol]')."""
+    allowed = PROTOCOL_RANGES.get(field)
+    if allowed is None or value in allowed:
+        return None
+    return f"{where}: {field} = {value!r} is out of range; give {field} {allowed.text()}"
+
 
 PAPER_ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
 # The study's two backbones, as the registry marks them (its base releases).
 STUDY_BACKBONES = tuple(name for name, entry in BACKBONES.items() if entry.study)
-ALL_CONTROLS = control_kinds()  # the kinds of bench.grid.kinds's table, graft aside
+# The kinds of bench.grid.kinds's table, graft and the opt-in ones (tuned_encoder) aside
+ALL_CONTROLS = default_controls()
 
 
 @dataclass(frozen=True)

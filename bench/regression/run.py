@@ -124,6 +124,7 @@ class BaselineRun:
         self.warned: set[str] = set()
         self.comparison: B.Comparison | None = None
         self.saved: tuple[Path, int, list[str]] | None = None
+        self.not_saved: str | None = None  # why --save-baseline wrote nothing
         self.checks: list = []
         self.baseline: B.Baseline | None = None
         try:
@@ -197,6 +198,11 @@ class BaselineRun:
 
             kept = [records[c] for c in ids
                     if c in records and not records[c].measured.feature_transform]
+            if not kept:  # an empty snapshot would overwrite a baseline with less than it held
+                self.not_saved = (f"baseline {self.save_name} NOT saved: none of the "
+                                  f"{len(ids)} selected cell(s) has a finished record; "
+                                  f"{self.save_path} left as it was")
+                return sections
             machine = {"node": platform.node(), "machine": platform.machine(),
                        "system": platform.system(), "python": platform.python_version()}
             data = B.snapshot(kept, self.save_name, git_commit=git_commit(), machine=machine,
@@ -210,7 +216,7 @@ class BaselineRun:
         return self.comparison is not None and bool(self.comparison.flips)
 
     def summary(self, tr) -> None:
-        if self.comparison is None and self.saved is None:
+        if self.comparison is None and self.saved is None and self.not_saved is None:
             return
         tr.write_sep("-", "graftbench baseline")
         comp = self.comparison
@@ -229,6 +235,8 @@ class BaselineRun:
                 tr.write_line(f"new (not in baseline): {', '.join(comp.new)}")
             if comp.not_compared:
                 tr.write_line(f"not compared: {', '.join(comp.not_compared)}")
+        if self.not_saved is not None:
+            tr.write_line(self.not_saved, red=True)
         if self.saved is not None:
             path, n, missing = self.saved
             tr.write_line(f"baseline {self.save_name} saved: {path} ({n} cells"

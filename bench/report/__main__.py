@@ -1,5 +1,7 @@
-"""`python -m bench.report RESULTS_DIR`: rebuild REPORT.md from stored records."""
+"""`python -m bench.report RESULTS_DIR`: rebuild REPORT.md from stored records (bench.report.cli
+checks the input first)."""
 
-from bench.report.build import main
+from bench.report.cli import main
 
-raise SystemExit(main())
+if __name__ == "__main__":
+    raise SystemExit(main())

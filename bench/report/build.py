@@ -1,6 +1,6 @@
 """Build REPORT.md (plus a tidy per-cell CSV, a JSON summary and PNG figures) from a results dir.
 
-    python -m bench.report.build RESULTS_DIR [--out REPORT.md]
+    python -m bench.report RESULTS_DIR [--out REPORT.md]   (bench.report.cli checks it first)
 
 Only stored records are read (bench.results.store). Files written beside the report at OUT:
 OUT, <stem>_cells.csv, <stem>_summary.json and <stem>_plots/*.png (linked relatively).
@@ -8,7 +8,6 @@ OUT, <stem>_cells.csv, <stem>_summary.json and <stem>_plots/*.png (linked relati
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
@@ -29,6 +28,7 @@ from bench.report.context import ReportContext
 from bench.report.lead import answer_lines
 from bench.report.provenance import per_task_section, protocol_constants, provenance_section
 from bench.report.robustness import robustness_section
+from bench.report.tuning import TITLE as TUNING_TITLE, tuning_section
 from bench.report.screen import (SCATTER_TITLE, SECTION_TITLE, calibrations, scatter_points,
                                  screen_agreements, screen_section)
 from bench.report.sections import (
@@ -48,6 +48,7 @@ SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
     ("Seed cells", seed_section),
     ("Wrapper neutrality", wrapper_section),
     ("Controls", controls_section),
+    (TUNING_TITLE, tuning_section),  # only when the store holds tuned-encoder cells
     ("Closed loop: success beside offline MSE", closed_loop_section),
     ("Per-task breakdown", per_task_section),
     (SECTION_TITLE, screen_section),  # only when the store holds screens
@@ -214,27 +215,3 @@ def build_report(results_dir: str | Path, out_path: str | Path | None = None, *,
     (out.parent / f"{out.stem}_summary.json").write_text(
         json.dumps(summary(ctx), indent=1, allow_nan=False), encoding="utf-8")
     return out
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.report.build", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results_dir", type=Path, help="results dir holding cells/ (and grid.json)")
-    # --report, as in `pytest bench --report PATH`; --out kept for older commands.
-    parser.add_argument("--report", "--out", dest="out", type=Path, default=None,
-                        help="report path (default: RESULTS_DIR/REPORT.md)")
-    parser.add_argument("--resamples", type=int, default=DEFAULT_RESAMPLES,
-                        help=f"bootstrap replicates (default {DEFAULT_RESAMPLES})")
-    parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
-    args = parser.parse_args(argv)
-    if not args.results_dir.is_dir():
-        parser.error(f"results dir {args.results_dir} does not exist; pass the folder that "
-                     f"holds cells/ (default location: .graftbench/results)")
-    path = build_report(args.results_dir, args.out, n_resamples=args.resamples,
-                        plots=not args.no_plots)
-    print(f"wrote {path}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

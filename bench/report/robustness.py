@@ -1,6 +1,7 @@
 """REPORT.md's "Robustness" section (the robustness tier): per backbone x suite, each encoder's
 MSE under every perturbation and its degradation relative to clean with paired intervals, the
-robustness ranking with its tie band, whether the clean winner stays the winner per kind, a plot
+robustness ranking with its tie band (perturbed MSE first, the degradation ranked beside it),
+whether the clean winner stays the winner per kind, a plot
 of degradation against severity per encoder, and the transfer question. Left out of a report
 whose results dir holds no robustness record (the tier is off by default)."""
 
@@ -86,13 +87,25 @@ def _params(params: dict) -> str:
 def _ranking_text(t: RobustnessTable) -> str:
     if not t.ranking:
         return "_No robustness ranking: fewer than one graft with every perturbation._"
-    rows = [[i + 1, name, pct(mean), f"[{pct(ci[0])}, {pct(ci[1])}]", yes_no(tier)]
-            for i, (name, mean, ci, tier) in enumerate(t.ranking)]
+    degraded = {name: (i + 1, mean, ci, tier)
+                for i, (name, mean, ci, tier) in enumerate(t.degradation_ranking)}
+    rows = []
+    for i, (name, mean, ci, tier) in enumerate(t.ranking):
+        d_rank, d_mean, d_ci, d_tier = degraded.get(name, (None, None, (None, None), False))
+        rows.append([i + 1, name, num(mean, 3), f"[{num(ci[0], 3)}, {num(ci[1], 3)}]",
+                     yes_no(tier), "n/a" if d_mean is None else
+                     f"{pct(d_mean)} [{pct(d_ci[0])}, {pct(d_ci[1])}]",
+                     "n/a" if d_rank is None else f"{d_rank}{' (tie band)' if d_tier else ''}"])
     tie = [r[0] for r in t.ranking if r[3]]
-    return ("Robustness ranking (grafts; mean degradation over every perturbation above; the "
-            "tie band is the most robust plus every graft whose paired difference to it has an "
-            f"interval containing 0): **{t.most_robust}** most robust, tie band {tie}.\n\n"
-            + table(rows, ["rank", "encoder", "mean degradation", "CI", "tie band"]))
+    return ("Robustness ranking (grafts), led by what a user deploys: the **perturbed MSE**, mean "
+            "over every perturbation above, lowest first; the tie band is the leader plus every "
+            "graft whose paired difference to it has an interval containing 0. **"
+            f"{t.most_robust}** predicts best under perturbation, tie band {tie}. The relative "
+            "degradation (perturbed - clean) / clean is ranked beside it, not in its place: a "
+            "graft with nothing to lose (`blind`) degrades least while predicting worst"
+            f" (least degraded here: {t.least_degraded}).\n\n"
+            + table(rows, ["rank", "encoder", "perturbed MSE", "CI", "tie band",
+                           "degradation [CI]", "degradation rank"]))
 
 
 def _winner_text(t: RobustnessTable) -> str:

@@ -150,8 +150,8 @@ class Failure(_IdentityFields):
 
     @classmethod
     def from_json(cls, data: dict) -> Failure:
-        if not isinstance(data, dict) or "cell_id" not in data:
-            raise ValueError("no cell_id")
+        if not isinstance(data, dict) or not isinstance(data.get("cell_id"), str):
+            raise ValueError("no cell_id string")  # {"cell_id": 5} is no failed cell
         ident = {f.name: data.get(f.name) for f in fields(Identity)}
         return cls(Identity(**ident), str(data.get("error")), data.get("protocol_hash"))
 

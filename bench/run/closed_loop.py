@@ -19,7 +19,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from bench.progress import STDERR, ProgressSink
+from bench.progress import ProgressSink
 from bench.results.provenance import stable_seed
 from external.libero_format import LIBERO_ACTION_DIM, STATE_KEY
 from bench.run.evaluate import sample_grafted
@@ -154,7 +154,7 @@ def rollout_log_key(spec, render, policy: str) -> str:
 
 
 def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *,
-                  graft: LoopGraft | None = None, progress: ProgressSink = STDERR, store=None,
+                  graft: LoopGraft | None = None, progress: ProgressSink, store=None,
                   policy: str = "", scenes=None, batching=None, perturb=None,
                   log_id: str | None = None) -> dict:
     """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts".

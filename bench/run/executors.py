@@ -58,18 +58,19 @@ def run_cell_job(job: CellJob) -> Record:
     """Array-task entry point, in a fresh process: rebuild the workspace, then the cell through
     the cell service (bench.run.service: claim, plan, measure, record or failure record)."""
     os.environ["GRAFTBENCH_CACHE"] = job.cache_dir
-    os.environ.setdefault("GRAFTBENCH_QUIET", "1")
     if job.profile.offline:  # before anything imports huggingface_hub
         for var in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
             os.environ[var] = "1"
     from bench.results.store import ResultStore
     from bench.run.service import CellService
-    from bench.progress import QUIET
+    from bench.progress import LogSink
     from bench.run.workspace import Workspace
 
     store = ResultStore(Path(job.results_dir))
     s = replace(job.settings, rerun=True)
-    ws = Workspace(job.profile, store, progress=QUIET, cache=Path(job.cache_dir),
+    # The task's progress goes to its log (submitit's <folder>/*_log.err): an hour-long
+    # task whose log stays empty cannot be told from a hung one (GRAFTBENCH_QUIET=1 silences it).
+    ws = Workspace(job.profile, store, progress=LogSink(), cache=Path(job.cache_dir),
                    rollouts=s.rollouts, feature_dtype=s.feature_dtype,
                    rollout_batching=job.rollout_batching)
     return CellService(job.profile, store, lambda: ws, s).run(job.cell)

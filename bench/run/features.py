@@ -32,6 +32,7 @@ from typing import Callable, Protocol
 import torch
 from torch import Tensor
 
+from bench.run import extraction
 from bench.run import feature_file as fs
 from bench.progress import Progress, say
 from encoders.base import Encoder
@@ -65,25 +66,32 @@ def encoder_device(encoder: Encoder) -> torch.device:
     return torch.device("cpu")
 
 
-def encode_grid(encoder: Encoder, images_by_camera: dict[str, Tensor]) -> dict[str, Tensor]:
-    """{camera: (B, 3, H, W) in [0,1]} -> {camera: (B, C, h, w) float32}, the encoder's own grid."""
+def encode_grid(encoder: Encoder, images_by_camera: dict[str, Tensor],
+                grad: bool = False) -> dict[str, Tensor]:
+    """{camera: (B, 3, H, W) in [0,1]} -> {camera: (B, C, h, w) float32}, the encoder's own grid.
+    `grad`: through the encoder's autograd entry (`grid`: its forward is no_grad), for a cell
+    that trains the encoder's weights (bench.grid.kinds tune_encoder); the same computation."""
     device = encoder_device(encoder)
+    if grad:
+        return {camera: encoder.grid(images.to(device, torch.float32)).float()
+                for camera, images in images_by_camera.items()}
     with torch.no_grad():
         return {camera: encoder(images.to(device, torch.float32)).float()
                 for camera, images in images_by_camera.items()}
 
 
 def encode_pooled(encoder: Encoder, images_by_camera: dict[str, Tensor],
-                  target_grid: tuple[int, int]) -> dict[str, Tensor]:
+                  target_grid: tuple[int, int], grad: bool = False) -> dict[str, Tensor]:
     """{camera: (B, 3, H, W) in [0,1]} -> {camera: (B, rows*cols, C) float32} on the encoder's
-    device."""
+    device (`grad`: as encode_grid's)."""
     return {camera: pool_grid(grid, target_grid).contiguous()
-            for camera, grid in encode_grid(encoder, images_by_camera).items()}
+            for camera, grid in encode_grid(encoder, images_by_camera, grad).items()}
 
 
 def feature_key(encoder: Encoder, suite: FeatureSource, grid: tuple[int, int] | None,
-                dtype: str = "float32") -> str:
-    """sha256 over everything that changes the stored numbers (grid: the stored one)."""
+                dtype: str = "float32", runtime: str = "torch") -> str:
+    """sha256 over everything that changes the stored numbers (grid: the stored one; runtime:
+    "torch" or an extraction.onnx_tag(), named only when not torch so torch's keys never move)."""
     spec = encoder.spec
     fields = {
         "encoder": spec.name,
@@ -101,6 +109,8 @@ def feature_key(encoder: Encoder, suite: FeatureSource, grid: tuple[int, int] | 
     }
     if encoder.weights_id.startswith("tiny"):  # tiny architecture is defined by its overrides
         fields["tiny_kwargs"] = repr(sorted(spec.tiny_kwargs.items()))
+    if runtime != "torch":  # another runtime's kernels: other float32 bits (bench.run.extraction)
+        fields["runtime"] = runtime
     blob = json.dumps(fields, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()
 
@@ -142,19 +152,25 @@ class PooledView:
 
 class FeatureStore:
     """The session's stored features under `root`: each file built once (resumably), opened once
-    and kept open, shared by every cell that reads it."""
+    and kept open, shared by every cell that reads it. `runtime`: what extracts (a key of
+    bench.run.extraction.RUNTIMES; "auto": onnxruntime where it pays and checks, else torch)."""
 
-    def __init__(self, root: str | os.PathLike, dtype: str = "fp16", progress=True,
+    def __init__(self, root: str | os.PathLike, dtype: str = "fp16", *, progress,
                  chunk_frames: int = CHUNK_FRAMES,
-                 chunk_done: Callable[[int, int], None] | None = None):
+                 chunk_done: Callable[[int, int], None] | None = None, runtime: str = "auto"):
         if dtype not in fs.DTYPES:
             raise ValueError(f"feature dtype {dtype!r} not in {tuple(fs.DTYPES)}")
+        if runtime not in extraction.RUNTIMES:
+            raise ValueError(f"extraction runtime {runtime!r} not in {extraction.RUNTIMES}")
         self.root, self.dtype, self.progress = Path(root), dtype, progress
-        self.chunk_frames, self.chunk_done = chunk_frames, chunk_done
+        self.chunk_frames, self.chunk_done, self.runtime = chunk_frames, chunk_done, runtime
         self._open: dict[str, fs.StoredFeatures] = {}  # key without grid -> open file
+        self._runs: dict[Encoder, extraction.OnnxExtractor | None] = {}  # one export an encoder
 
-    def layout(self, encoder: Encoder, suite: FeatureSource) -> fs.Layout:
-        """What the file of (encoder, suite) holds; probes the encoder once on frame 0."""
+    def layout(self, encoder: Encoder, suite: FeatureSource, tag: str | None = None) -> fs.Layout:
+        """What the file of (encoder, suite) holds; probes the encoder once on frame 0. `tag`:
+        the runtime's (default: the one planned for the encoder, decided without an export)."""
+        tag = extraction.planned_tag(encoder, self.runtime) if tag is None else tag
         n_frames = int(suite.state.shape[0])
         if n_frames == 0:
             raise ValueError(f"suite {suite.name!r} has no frames to encode")
@@ -163,7 +179,8 @@ class FeatureStore:
         grid = next(iter(probe.values()))
         _, channels, h, w = grid.shape
         nhwc = not grid.is_contiguous() and grid.is_contiguous(memory_format=torch.channels_last)
-        return fs.Layout(feature_key(encoder, suite, (h, w), self.dtype),
+        nhwc = nhwc and tag == "torch"  # onnxruntime returns contiguous NCHW arrays
+        return fs.Layout(feature_key(encoder, suite, (h, w), self.dtype, tag),
                          tuple(suite.camera_keys), n_frames, (h, w), channels, self.dtype,
                          "nhwc" if nhwc else "nchw")
 
@@ -174,13 +191,28 @@ class FeatureStore:
         """The open file of (encoder, suite), built first if no completed one exists."""
         memo = feature_key(encoder, suite, None, self.dtype)
         if memo not in self._open:
-            layout = self.layout(encoder, suite)
+            layout, run = self.layout(encoder, suite), None
+            if not self.path(layout).exists() and extraction.planned_tag(encoder,
+                                                                          self.runtime) != "torch":
+                run = self._run(encoder, suite)  # exported and checked only to build
+                if run is None:  # it failed: torch extracts, keyed as torch's
+                    layout = self.layout(encoder, suite, "torch")
             path = self.path(layout)
             if path.exists():
                 self._open[memo] = self._reopen(path, layout)
             else:
-                self._open[memo] = self._build(path, layout, encoder, suite)
+                self._open[memo] = self._build(path, layout, encoder, suite, run)
         return self._open[memo]
+
+    def _run(self, encoder: Encoder, suite: FeatureSource) -> extraction.OnnxExtractor | None:
+        """The encoder's onnxruntime extractor (exported and checked once), or None: torch."""
+        if encoder not in self._runs:
+            probe = suite.images(torch.tensor([0]))
+            self._runs[encoder] = extraction.extractor(
+                encoder, self.runtime, {c: probe[c] for c in suite.camera_keys[:1]},
+                lambda images: encode_grid(encoder, images),
+                say=lambda s: say(self.progress, f"features {encoder.spec.name}: {s}"))
+        return self._runs[encoder]
 
     def pooled_features(self, encoder: Encoder, suite: FeatureSource,
                         target_grid: tuple[int, int],
@@ -195,8 +227,8 @@ class FeatureStore:
         except fs.StoreInvalid as e:
             raise fs.StoreInvalid(f"{e}; delete {path} to have it rebuilt") from None
 
-    def _build(self, path: Path, layout: fs.Layout, encoder: Encoder,
-               suite: FeatureSource) -> fs.StoredFeatures:
+    def _build(self, path: Path, layout: fs.Layout, encoder: Encoder, suite: FeatureSource,
+               run: extraction.OnnxExtractor | None = None) -> fs.StoredFeatures:
         label = f"features {encoder.spec.name} / {suite.name} at {layout.grid[0]}x{layout.grid[1]}"
         say(self.progress, f"{label}: encoding {layout.frames} frames x {len(layout.cameras)} "
                            f"cameras into {path.name}")
@@ -204,7 +236,8 @@ class FeatureStore:
 
         def compute(start: int, stop: int) -> dict[str, Tensor]:
             images = suite.images(torch.arange(start, stop))
-            grids = encode_grid(encoder, {c: images[c] for c in layout.cameras})
+            cameras = {c: images[c] for c in layout.cameras}
+            grids = run(cameras) if run is not None else encode_grid(encoder, cameras)
             # (B, C, h, w) -> (B, h*w, C): the tokens pool_grid would give at the same grid
             return {c: g.flatten(2).transpose(1, 2).cpu() for c, g in grids.items()}
 

@@ -1,9 +1,12 @@
-"""The freeze checks of a cell. The fixed wrapper itself (pool_grid, Projector, GraftFeed) lives
-in the LeRobot plugin's distribution (graftcore.graft), so that an export stands alone; it is imported
-here for the harness's modules, not copied.
+"""The freeze checks of a cell, and the tuned-encoder control's private copy of its encoder. The
+fixed wrapper itself (pool_grid, Projector, GraftFeed) lives in the LeRobot plugin's distribution
+(graftcore.graft), so that an export stands alone; it is imported here for the harness's modules,
+not copied.
 """
 
 from __future__ import annotations
+
+import copy
 
 from torch import nn
 
@@ -33,3 +36,16 @@ def assert_only_trainable(expected: int, *modules: nn.Module, what: str = "proje
             f"freeze violated: {found} trainable parameters, expected {expected} ({what}); "
             f"first trainable: {names}"
         )
+
+
+def tunable_copy(encoder: nn.Module, name: str) -> nn.Module:
+    """A private copy of a session's frozen encoder whose weights train (the tuned-encoder
+    control): the session's own stays frozen for every other cell and the feature store. Its
+    normalisation statistics and dropout stay in eval mode (a frozen encoder's `train()` keeps
+    them so): only the weights change, and training and evaluation run the same function."""
+    tuned = copy.deepcopy(encoder)
+    tuned.requires_grad_(True)
+    if trainable_parameters(tuned) == 0 or not callable(getattr(tuned, "grid", None)):
+        raise ValueError(f"encoder {name!r} has no weights to tune through autograd (a grid() "
+                         "entry); run the tuned-encoder control for a timm-built encoder")
+    return tuned

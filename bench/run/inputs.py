@@ -31,6 +31,9 @@ class CellInputs:
     tower: bool = False
     train_shift: int = 0  # Protocol.graft_image_shift: training images moved by up to this (px)
     shift_seed: int = 0
+    # The encoder's weights train (bench.grid.kinds tune_encoder): training features keep its
+    # autograd graph; evaluation's do not.
+    tune_encoder: bool = False
 
     @property
     def on_pixels(self) -> bool:
@@ -38,8 +41,10 @@ class CellInputs:
         return self.encoder is None
 
     # --- features of a graft of an encoder ------------------------------------------------------
-    def pooled(self, frames: Tensor, source_frames: Tensor | None = None) -> dict[str, Tensor]:
-        """Graft features of `frames` (from `source_frames`' pixels for shuffled images)."""
+    def pooled(self, frames: Tensor, source_frames: Tensor | None = None,
+               grad: bool = False) -> dict[str, Tensor]:
+        """Graft features of `frames` (from `source_frames`' pixels for shuffled images); `grad`:
+        through the encoder's graph (encoder in the loop only)."""
         src = frames if source_frames is None else source_frames
         if self.features is not None:
             picked = {k: v[src] for k, v in self.features.items()}
@@ -47,7 +52,7 @@ class CellInputs:
                 picked = {k: v.pin_memory().to(self.device, non_blocking=True)
                           for k, v in picked.items()}
             return picked
-        return encode_pooled(self.encoder, self.suite.images(src), self.grid)
+        return encode_pooled(self.encoder, self.suite.images(src), self.grid, grad)
 
     def zero_pooled(self, n: int) -> dict[str, Tensor]:
         """The encoder's features of an all-zero image, for each of `n` samples."""
@@ -97,7 +102,7 @@ class CellInputs:
                 return raw, self.zero_pooled(len(frames))
             if shift:
                 return raw, encode_pooled(self.encoder, {k: raw[k] for k in self.suite.camera_keys},
-                                          self.grid)
-            return raw, self.pooled(frames)
+                                          self.grid, self.tune_encoder)
+            return raw, self.pooled(frames, grad=self.tune_encoder)
 
         return next_batch

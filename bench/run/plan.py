@@ -70,7 +70,11 @@ class CellResult:
 def cell_context(cell: CellSpec, features_mode: str = "cache", *,
                  projectors: Mapping[tuple, TrainedProjector] | None = None,
                  feature_transform: Callable | None = None) -> CellContext:
-    """The context to measure `cell` with: the graft's projector when one was kept."""
+    """The context to measure `cell` with: the graft's projector when one was kept. A cell that
+    tunes its encoder runs it in the loop whatever the run's mode: stored features are the
+    frozen encoder's."""
+    if cell.spec.tune_encoder:
+        features_mode = "loop"
     share = shared_projector_key(cell, features_mode) if feature_transform is None else None
     reuse = (projectors or {}).get(share) if share is not None and cell.kind != GRAFT else None
     return CellContext(features_mode, feature_transform, reuse,
@@ -93,7 +97,8 @@ class CellPlan:
             return "no training,"
         if self.context.reuse is not None:
             return "its graft's trained projector, then"
-        return f"{self.cell.spec.scaled_steps(steps, self.cell.variant)} projector steps, then"
+        trained = "projector + encoder" if self.cell.spec.tune_encoder else "projector"
+        return f"{self.cell.spec.scaled_steps(steps, self.cell.variant)} {trained} steps, then"
 
 
 def plan(cell: CellSpec, store, run: RunConditions, *,

@@ -23,7 +23,7 @@ from backbones.base import BackboneUnavailable, stats_fingerprint
 from backbones.hub import saved_normalizer_stats
 from external.filelock import exclusive
 from external.hubcache import download_command, folder_revision, resolved_revision
-from bench.progress import STDERR, ProgressSink, say
+from bench.progress import ProgressSink, say
 from bench.grid.protocol import Profile, Protocol
 from bench.results.provenance import stable_seed
 from bench.run.augment import shift_images
@@ -89,7 +89,7 @@ def drop_states(states: torch.Tensor, rate: float, mean: torch.Tensor,
 
 
 def train_tiny_release(name: str, backbone, profile: Profile, suites, train_frames, folder: Path,
-                       chunk_size: int, progress: ProgressSink = STDERR) -> None:
+                       chunk_size: int, progress: ProgressSink) -> None:
     """Train ALL of the untrained tiny `backbone` with its own loss, save it into `folder`."""
     from bench.suites.windows import raw_batch
 
@@ -195,13 +195,15 @@ def checkpoint_id(name: str, profile: Profile, release_dir: Path | None = None) 
 
 
 def load_released(name: str, profile: Profile, suites, train_frames, cache: Path,
-                  chunk_size: int = 10, progress: ProgressSink = STDERR, stats: dict | None = None):
+                  chunk_size: int = 10, *, progress: ProgressSink, stats: dict | None = None):
     """(the released policy for `name` in this profile's world, loaded with from_pretrained;
     its checkpoint_id). Hub: `stats` are the dataset stats to normalise with (None: the
     checkpoint's own)."""
     module = adapter_module(name)
     if profile.source == "hub":
         entry = get_entry(name)
+        # a 3B checkpoint takes a while to read (and move to the GPU): said before, not after
+        say(progress, f"policy {name}: loading {entry.repo_id} from the hub cache")
         backbone = module.load_policy(entry.repo_id, stats=stats, revision=entry.revision)
         return backbone, checkpoint_id(name, profile)
     # The untrained build (seed 0) both keys the cache and, on a miss, is what gets trained.

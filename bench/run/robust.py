@@ -27,6 +27,7 @@ from bench.results.robust import (RobustEntry, RobustRecord, base_of, load_robus
                                   write_robust)
 from bench.run.evaluate import score
 from bench.run.features import encode_pooled
+from bench.progress import Progress, say
 from bench.run.perturbations import Applied
 from bench.run.projectors import ProjectorFileError, load_projector
 from bench.run.runner import cell_inputs
@@ -186,14 +187,24 @@ class _Scorer:
         numbers across perturbations)."""
         t0 = time.perf_counter()
         n = len(self.windows)
+        say(self.ws.progress, f"robustness {self.cell.id}: rescoring {n} held-out windows under "
+                              f"{len(perturbations)} perturbation(s)")
+        bar, done = Progress(f"robustness {self.cell.id}", n * len(perturbations),
+                             self.ws.progress), [0]
+
+        def counted(pos: Tensor) -> Tensor:  # each batch of the pass asks once for its inputs
+            done[0] += len(pos)
+            bar.update(done[0], "windows")
+            return pos
+
         features_for = images_for = None
         if self.cell.encoder is not None:
             per = [self._features_for(a) for a in perturbations]
             features_for = lambda pos, frames: _by_perturbation(  # noqa: E731
-                pos, n, lambda p, rows, sel: per[p](rows, frames[sel]))
+                counted(pos), n, lambda p, rows, sel: per[p](rows, frames[sel]))
         else:
             images_for = lambda pos, frames, imgs: _by_perturbation(  # noqa: E731
-                pos, n, lambda p, rows, sel: perturbations[p].images(
+                counted(pos), n, lambda p, rows, sel: perturbations[p].images(
                     {k: v[sel] for k, v in imgs.items()}, frames[sel]))
         scores = score(self.backbone, self.suite, self.windows.repeat(len(perturbations)),
                        self.batch, self.noise_seed, feed=self.feed, features_for=features_for,

@@ -99,7 +99,11 @@ class RobustRun:
             record, measured = measure_robust(cell, ws, applied(self.profile), rerun=self.rerun,
                                               rollouts=episodes)
         except RobustUnavailable as e:
-            self.outcomes[cell.id] = failed(str(e))
-            pytest.fail(str(e), pytrace=False)
+            unavailable = str(e)
+        else:
+            unavailable = None
+        if unavailable is not None:  # failed outside `except`: no "During handling" second copy
+            self.outcomes[cell.id] = failed(unavailable)
+            pytest.fail(unavailable, pytrace=False)
         self.outcomes[cell.id] = MEASURED if measured else RESUMED
         return record

@@ -14,7 +14,7 @@ from safetensors.torch import load_file, save_file
 
 from bench.grid.cells import CellSpec
 from bench.run.evaluate import derangement, score
-from bench.run.graft import assert_only_trainable, trainable_parameters
+from bench.run.graft import assert_only_trainable, trainable_parameters, tunable_copy
 from bench.run.projectors import save_projector
 from graftcore.graft import GraftFeed, Projector
 from bench.run.inputs import CellInputs
@@ -82,6 +82,7 @@ class Graft:
     feed: GraftFeed
     inputs: CellInputs
     lora_params: int = 0
+    encoder_params: int = 0  # the tuned encoder's weights (tune_encoder kinds), trained too
 
 
 @dataclass
@@ -160,19 +161,23 @@ def cell_inputs(cell: CellSpec, p, suite, split, backbone, device) -> CellInputs
                       backbone.info.chunk_size, device,
                       cell.spec.grid(backbone.info.native_grid, cell.variant),
                       tower=cell.spec.tower, train_shift=p.graft_image_shift,
-                      shift_seed=stable_seed(cell.seed, "graft-image-shift"))
+                      shift_seed=stable_seed(cell.seed, "graft-image-shift"),
+                      tune_encoder=cell.spec.tune_encoder)
 
 
 def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
                 context: CellContext) -> Graft:
-    """The projector (seeded init), LoRA when the kind asks for it, the feed; frozen by
-    construction and checked: only the projector (+ LoRA) trains."""
+    """The projector (seeded init), LoRA or a tuned copy of the encoder when the kind asks for
+    it, the feed; frozen by construction and checked: only the projector (+ LoRA or encoder)
+    trains."""
     p, info = ws.profile.protocol, backbone.info
     if inputs.tower:
         channels = native_tower_channels(backbone, inputs.suite, ws.split(cell.suite).train_frames)
     else:
         inputs.encoder = ws.encoder(cell.encoder)
-        if context.features_mode == "cache":
+        if cell.spec.tune_encoder:  # its own copy, in the loop (stored features: the frozen one)
+            inputs.encoder = tunable_copy(inputs.encoder, cell.encoder)
+        elif context.features_mode == "cache":
             inputs.features = ws.features(cell.encoder, cell.suite, inputs.grid,
                                           transform=context.feature_transform)
         channels = (int(next(iter(inputs.features.values())).shape[-1]) if inputs.features
@@ -185,12 +190,15 @@ def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
         with torch.random.fork_rng():  # peft draws lora_A's init from the global generator
             torch.manual_seed(stable_seed(cell.seed, "lora-init"))
             lora_params = _add_lora(backbone, p)
+    encoder_params = trainable_parameters(inputs.encoder) if cell.spec.tune_encoder else 0
     frozen = [backbone.policy] + ([inputs.encoder] if inputs.encoder is not None else [])
-    assert_only_trainable(trainable_parameters(projector) + lora_params, projector, *frozen,
-                          what="projector + LoRA" if lora_params else "projector")
+    what = " + ".join(["projector"] + ["LoRA"] * bool(lora_params)
+                      + ["encoder"] * bool(encoder_params))
+    assert_only_trainable(trainable_parameters(projector) + lora_params + encoder_params,
+                          projector, *frozen, what=what)
     feed = GraftFeed(projector, backbone.camera_keys, inputs.grid,
                      tower=backbone.native_tower_grid if inputs.tower else None)
-    return Graft(projector, feed, inputs, lora_params)
+    return Graft(projector, feed, inputs, lora_params, encoder_params)
 
 
 def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
@@ -213,8 +221,10 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
     steps, warmup = (cell.spec.scaled_steps(n, cell.variant) for n in (p.steps, p.warmup_steps))
     fit_cfg = FitConfig(steps, p.batch_size, p.lr, p.weight_decay, warmup,
                         p.grad_clip, p.loss_log_every)
+    # A tuned encoder trains at its own, lower rate (Protocol.encoder_lr), same schedule.
+    tuned = ([(graft.inputs.encoder.parameters(), p.encoder_lr)] if graft.encoder_params else [])
     curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
-                feed=graft.feed, label=cell.id, progress=ws.progress)
+                feed=graft.feed, label=cell.id, progress=ws.progress, other_lrs=tuned)
     probe_losses = {"before": before,
                     "after": probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)}
     kept = None
@@ -268,8 +278,10 @@ def training_fields(backbone, graft: Graft | None, training: Fitted, encoder,
                     projector_kept: tuple[str | None, str | None]) -> TrainingPart:
     """projector_kept: (file relative to the results dir, sha256) of the trained projector."""
     projector = graft.projector if graft else None
+    # The encoder counts only when it trained (a tuned encoder); a frozen one adds 0.
+    modules = [projector, backbone.policy] + ([encoder] if encoder is not None else [])
     return TrainingPart(
-        trainable_params=trainable_parameters(projector, backbone.policy) if projector else 0,
+        trainable_params=trainable_parameters(*modules) if projector else 0,
         projector_params=trainable_parameters(projector) if projector else 0,
         lora_params=graft.lora_params if graft else 0,
         projector_from=training.projector_from,

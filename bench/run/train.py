@@ -9,13 +9,13 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Sequence
 
 import torch
 from torch import Tensor
 
 from backbones.base import Backbone
-from bench.progress import STDERR, Progress, ProgressSink
+from bench.progress import Progress, ProgressSink
 from bench.results.provenance import stable_seed
 
 # next_batch(step, frames) -> (raw batch, graft features or None)
@@ -67,6 +67,43 @@ def frozen_autocast(device: torch.device):
     return contextlib.nullcontext()
 
 
+def make_optimizer(params: Iterable[torch.nn.Parameter], cfg: FitConfig,
+                   other_lrs: Sequence[tuple[Iterable[torch.nn.Parameter], float]] = ()):
+    """AdamW over the trainable `params` (+ `other_lrs` groups at their own rate) under the
+    warm-up/cosine schedule; (optimizer, scheduler, every parameter the clip sees)."""
+    params = [p for p in params if p.requires_grad]
+    groups = [{"params": params}] + [{"params": [q for q in group if q.requires_grad], "lr": lr}
+                                     for group, lr in other_lrs]
+    optimizer = torch.optim.AdamW(groups, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    clipped = [q for group in groups for q in group["params"]]
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, cfg))
+    return optimizer, scheduler, clipped
+
+
+def noise_generator(seed: int) -> torch.Generator:
+    """The generator of a cell's flow-matching noise and time (its data order has its own)."""
+    return torch.Generator().manual_seed(stable_seed(seed, "flow-noise"))
+
+
+def draw_step(backbone: Backbone, frames: Tensor, next_batch: BatchFn,
+              noise_gen: torch.Generator) -> tuple[dict, "dict[str, Tensor] | None", Tensor, Tensor]:
+    """One step's draws, in the order `fit` has always made them: the batch (and its features),
+    then the noise, then the flow time. (raw batch, features, noise, time)."""
+    info = backbone.info
+    raw, features = next_batch(frames)
+    size = len(frames)
+    noise = torch.randn((size, info.chunk_size, info.max_action_dim), generator=noise_gen)
+    return raw, features, noise, backbone.sample_time(size, noise_gen)
+
+
+def clip_and_step(params: list[torch.nn.Parameter], optimizer, scheduler, cfg: FitConfig) -> None:
+    """Clip the gradients of `params` (when cfg asks), then one optimiser and schedule step."""
+    if cfg.grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+    optimizer.step()
+    scheduler.step()
+
+
 def fit(
     backbone: Backbone,
     params: Iterable[torch.nn.Parameter],
@@ -76,24 +113,23 @@ def fit(
     seed: int,
     feed=None,
     label: str = "train",
-    progress: ProgressSink = STDERR,
+    *,
+    progress: ProgressSink,
+    other_lrs: Sequence[tuple[Iterable[torch.nn.Parameter], float]] = (),
 ) -> list[list[float]]:
     """Train `params` with the backbone's own loss. Returns the loss curve [[step, loss], ...]
-    (every `log_every` steps, plus the first and last). Raises NonFiniteLoss naming the step."""
-    params = [p for p in params if p.requires_grad]
-    optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, cfg))
-    noise_gen = torch.Generator().manual_seed(stable_seed(seed, "flow-noise"))
-    info = backbone.info
+    (every `log_every` steps, plus the first and last). Raises NonFiniteLoss naming the step.
+    `other_lrs`: (parameters, learning rate) trained at their own rate (a tuned encoder's, at
+    Protocol.encoder_lr), under the same warm-up and decay; gradients are clipped over all."""
+    optimizer, scheduler, params = make_optimizer(params, cfg, other_lrs)
+    noise_gen = noise_generator(seed)
     bar = Progress(label, cfg.steps, progress)
     curve: list[list[float]] = []
     device = next(backbone.policy.parameters()).device
     for step, positions in enumerate(batch_order(len(frames), cfg, seed)):
-        raw, features = next_batch(frames[positions])
+        raw, features, noise, flow_time = draw_step(backbone, frames[positions], next_batch,
+                                                    noise_gen)
         batch = backbone.preprocess(raw)
-        size = len(positions)
-        noise = torch.randn((size, info.chunk_size, info.max_action_dim), generator=noise_gen)
-        flow_time = backbone.sample_time(size, noise_gen)
         if feed is not None:
             if features is not None:
                 feed.bind(features)
@@ -110,10 +146,7 @@ def fit(
             )
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if cfg.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
-        optimizer.step()
-        scheduler.step()
+        clip_and_step(params, optimizer, scheduler, cfg)
         value = float(loss.detach())
         if step % cfg.log_every == 0 or step == cfg.steps - 1:
             curve.append([step, value])

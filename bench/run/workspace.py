@@ -17,7 +17,7 @@ from bench.run.releases import (
 )
 from bench.run.features import FeatureStore
 from external.paths import cache_dir
-from bench.progress import STDERR, ProgressSink, say
+from bench.progress import ProgressSink, say
 from bench.grid.protocol import Profile
 from bench.results.store import ResultStore
 from bench.sim.batching import IN_PROCESS, Batching
@@ -42,7 +42,9 @@ class Split:
 class Workspace:
     profile: Profile
     store: ResultStore
-    progress: ProgressSink = STDERR
+    # Where every long step reports (bench.progress): required, so no step takes a default
+    # sink that pytest captures (issue 53).
+    progress: ProgressSink
     # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
     rollouts: int = 0
     # How they are run (bench.sim.rollout.Batching): envs per task at once, gym sync or async
@@ -83,7 +85,7 @@ class Workspace:
             datasets = dict(self.profile.datasets)
             suite = (load_user_suite(name, datasets[name]) if name in datasets
                      else load_suite(name, self.profile.data_source,
-                                     sim_spec=self._demos(name)))
+                                     sim_spec=self._demos(name), progress=self.progress))
             say(self.progress, f"suite {name}: {len(suite.state)} frames, "
                                f"{len(set(suite.episode_index.tolist()))} episodes "
                                f"({time.monotonic() - start:.0f} s)")

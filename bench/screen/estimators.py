@@ -1,11 +1,13 @@
 """The screen proxies' numerics on frozen features: LogME, ridge and k-NN probes, norm entropy.
 
-Pure functions, numpy in, float (or bench.stats.Undefined, with the reason) out. Memory is flat in
-the number of windows for LogME and ridge: both read only `Moments`, the sufficient statistics
-X^T X, X^T Y, Y^T Y of X = [features, 1], which a caller accumulates chunk by chunk (`add`) and
-per group of training episodes (the folds that choose a penalty or a k on training data only).
-k-NN needs the training features themselves, (N_train, D); its distances are computed in chunks
-of queries, so its extra memory is (chunk, N_train).
+Pure functions, numpy in, float (or bench.stats.Undefined, with the reason) out. Two forms:
+- from the windows themselves (`logme_windows`, `ridge_windows`, `knn_heldout`: what the screen
+  runs): one decomposition per fitting set in the cheaper of its D x D and N x N forms
+  (bench.screen.spectral), serving every target column and every ridge penalty;
+- from `Moments`, the sufficient statistics X^T X, X^T Y, Y^T Y of X = [features, 1], which a
+  caller accumulates chunk by chunk (`add`): memory flat in the windows, a D x D eigh per fit.
+  Both give the same numbers (to rounding: tests/test_screening.py).
+k-NN's distances are computed in chunks of queries, so its extra memory is (chunk, N_train).
 
 Rules (stated in the report):
 - The supervised proxies centre every column and scale every feature column to unit variance by
@@ -17,7 +19,9 @@ Rules (stated in the report):
   training episodes and scored on the held-out windows. k-NN: k in KNN_GRID (<= the fitting
   windows), chosen the same way; uniform mean of the k nearest (Euclidean, standardised).
 - LogME (You et al., 2021) is the exact evidence, with every one of the D eigenvalues of
-  F^T F in ln|A| (the reference's fast path drops (D - k) ln(alpha) and is wrong for D > N).
+  F^T F in ln|A| (the reference's fast path drops (D - k) ln(alpha) and is wrong for D > N),
+  maximised over (alpha, beta) in bounded work; a supremum at alpha/beta -> 0 or -> infinity is
+  taken as its limit, and where each column's lay is kept (bench.screen.spectral).
 """
 
 from __future__ import annotations
@@ -26,15 +30,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bench.screen.spectral import (CONSTANT_REL_VAR, ZERO_EIGEN_REL, Spectrum, logme_profile,
+                                   spectrum, standardiser)
 from bench.stats import Measure, Undefined
 
 RIDGE_GRID = tuple(float(r) for r in np.logspace(-4, 2, 13))
 KNN_GRID = (1, 2, 3, 5, 8, 13, 21, 34, 55)
-CONSTANT_REL_VAR = 1e-10
-LOGME_MAX_ITER = 100_000
-LOGME_TOL = 1e-13
-# Eigenvalues of F^T F below this fraction of the largest are rounding of exact zeros.
-ZERO_EIGEN_REL = 1e-12
 
 
 @dataclass
@@ -115,47 +116,15 @@ def standardise(m: Moments) -> Standardised | Undefined:
     return Standardised(n, gram, zy, yy, keep, mean, scale, ymean)
 
 
-def _evidence(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int, alpha: np.ndarray,
-              beta: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(log evidence, gamma, n - gamma, m^T m, residual), each (C,), at (alpha, beta) (C,) from the
-    nonzero eigenvalues `sigma` (d,) of F^T F and z = V^T F^T Y (d, C): every eigenvalue
-    enters ln|A| = sum ln(alpha + beta sigma) (a zero one adds nothing), so D > N is exact."""
-    # Written in lam = alpha / beta, with n - gamma and the residual as sums of positive terms:
-    # where the features span the targets (D >= N) the fixed point drives lam to 0 and beta to
-    # its cap, and beta ** 2, n - gamma or yy - (fit) computed directly is inf or rounding.
-    lam = np.clip(alpha / beta, 1e-300, 1e300)[None, :]
-    denom = lam + sigma[:, None]  # (d, C): (alpha + beta sigma) / beta
-    weights = z / denom  # the posterior mean m in the eigenbasis
-    mm = np.sum(weights ** 2, axis=0)
-    unfit = np.maximum(yy - np.sum(z ** 2 / sigma[:, None], axis=0), 0.0)  # least squares' residual
-    res = np.maximum(unfit + np.sum((weights * lam) ** 2 / sigma[:, None], axis=0), 1e-300)
-    gamma = np.sum(sigma[:, None] / denom, axis=0)
-    free = (n - len(sigma)) + np.sum(lam / denom, axis=0)  # n - gamma, without the rounding
-    lam = lam[0]
-    # d/2 ln(lam) - 1/2 sum ln(lam + sigma) as one sum of log1p: no two large terms cancel
-    # where lam is large (features the targets do not need: alpha -> infinity).
-    log_ev = (n / 2 * np.log(beta) - n / 2 * np.log(2 * np.pi) - beta / 2 * (res + lam * mm)
-              - 0.5 * np.sum(np.log1p(sigma[:, None] / lam[None, :]), axis=0))
-    return log_ev, gamma, free, mm, res
-
-
 def logme_columns(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(maximised log evidence per sample, alpha, beta), each (C,), by LogME's fixed point run on
-    all C columns at once: alpha = gamma / m^T m, beta = (n - gamma) / residual, until the
-    evidence of every column moves less than LOGME_TOL per sample. When D >= N the optimum can
-    lie at beta -> infinity (a noise-free fit): the evidence then converges while beta grows."""
-    alpha, beta = np.ones(z.shape[1]), np.ones(z.shape[1])
-    log_ev, gamma, free, mm, res = _evidence(sigma, z, yy, n, alpha, beta)
-    for _ in range(LOGME_MAX_ITER):
-        alpha = np.minimum(gamma / np.maximum(mm, 1e-300), 1e300)
-        beta = np.minimum(free / res, 1e300)
-        new_ev, gamma, free, mm, res = _evidence(sigma, z, yy, n, alpha, beta)
-        moved = np.max(np.abs(new_ev - log_ev)) / n
-        log_ev = new_ev
-        if moved < LOGME_TOL:
-            break
-    return log_ev / n, alpha, beta
+    """(maximised log evidence per sample, alpha, beta), each (C,), from the nonzero eigenvalues
+    `sigma` (r,) of F^T F and z = V^T F^T Y (r, C): every eigenvalue enters ln|A|, so D > N is
+    exact. Maximised in bounded work (bench.screen.spectral.logme_profile); where D >= N the
+    optimum can lie at beta -> infinity (a noise-free fit), where the features explain nothing at
+    alpha -> infinity: the evidence is then its limit there."""
+    ev, alpha, beta, _ = logme_profile(sigma, z, yy, n)
+    return ev / n, alpha, beta
 
 
 def _spectrum(gram: np.ndarray, fty: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,14 +143,37 @@ def logme_gram(gram: np.ndarray, fty: np.ndarray, yty: np.ndarray, n: int) -> Me
     `n` the dimension the targets live in (the windows, less one where both are centred)."""
     if n < 2:
         return Undefined(f"{n} window(s): too few windows")
-    if not np.any(yty > 0):
-        return Undefined("every target column is zero")
-    sigma, z = _spectrum(gram, fty)
+    return logme_spectrum(*_spectrum(gram, fty), yty, n)[0]
+
+
+def logme_spectrum(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int
+                   ) -> tuple[Measure, str | None]:
+    """(mean over the target columns of LogME, where the optima lie: "interior 340, lam->0 10")
+    from the nonzero eigenvalues sigma (r,), z (r, C), yy (C,) in `n` dimensions."""
+    if not np.any(yy > 0):
+        return Undefined("every target column is zero"), None
     if len(sigma) == 0:
-        return Undefined("features are all zero")
-    live = yty > 0
-    value = float(np.mean(logme_columns(sigma, z[:, live], yty[live], n)[0]))
-    return value if np.isfinite(value) else Undefined(f"LogME's evidence is not finite ({value})")
+        return Undefined("features are all zero"), None
+    live = yy > 0
+    ev, _, _, where = logme_profile(sigma, z[:, live], yy[live], n)
+    value = float(np.mean(ev / n))
+    counts = ", ".join(f"{k} {where.count(k)}" for k in dict.fromkeys(sorted(where)))
+    if not np.isfinite(value):
+        return Undefined(f"LogME's evidence is not finite ({value})"), counts
+    return value, counts
+
+
+def logme_windows(train: np.ndarray, targets: np.ndarray, spec: Spectrum | Undefined | None = None
+                  ) -> tuple[Measure, str | None]:
+    """The screen's LogME (logme_moments) from the windows (N, D), (N, C) themselves, through
+    the cheaper of the D x D and N x N decompositions (`spec`: that Spectrum, if made already);
+    also where the optima lie (logme_spectrum)."""
+    spec = spectrum(train, targets) if spec is None else spec
+    if isinstance(spec, Undefined):
+        return spec, None
+    if spec.n - 1 < 2:
+        return Undefined(f"{spec.n} fitting window(s): too few windows"), None
+    return logme_spectrum(spec.sigma, spec.z, spec.yy, spec.n - 1)
 
 
 def logme_fit(features: np.ndarray, targets: np.ndarray) -> list[tuple[float, float, float]]:
@@ -266,18 +258,45 @@ def ridge_heldout(folds: list[Moments], heldout: Moments) -> tuple[Measure, floa
     return squared_error(heldout, *fit) / (heldout.n * heldout.outputs), RIDGE_GRID[best]
 
 
-def _standardiser(features: np.ndarray, weights: np.ndarray | None = None, chunk: int = 4096):
+def ridge_windows(train: np.ndarray, targets: np.ndarray, fold: np.ndarray,
+                  heldout: np.ndarray, heldout_targets: np.ndarray,
+                  spec: Spectrum | Undefined | None = None) -> tuple[Measure, float | None]:
+    """ridge_heldout from the windows themselves: train (N, D), targets (N, C), fold (N,) the
+    episode fold of each (>= 2), heldout (M, D), (M, C); `spec` the Spectrum of all training
+    windows if made already. One decomposition per fitting set, in the cheaper form, serves
+    every penalty; errors are summed from the residuals themselves."""
+    folds = np.unique(fold)
+    if len(folds) < 2:
+        return Undefined(f"{len(folds)} training episode fold(s): the penalty cannot be chosen "
+                         "on training episodes"), None
+    y = np.asarray(targets, float)
+    errors = np.zeros(len(RIDGE_GRID))
+    for f in folds:
+        inside = fold == f
+        fit = spectrum(train[~inside], y[~inside])
+        if isinstance(fit, Undefined):
+            return fit, None
+        basis = fit.project(train[inside])
+        errors += [float(((fit.predict(basis, r) - y[inside]) ** 2).sum()) for r in RIDGE_GRID]
+    best = max(i for i, e in enumerate(errors) if e <= min(errors))  # ties: the larger penalty
+    fit = spectrum(train, y) if spec is None else spec
+    if isinstance(fit, Undefined):
+        return fit, None
+    if len(heldout) == 0:
+        return Undefined("no held-out windows"), RIDGE_GRID[best]
+    error = ((fit.predict(fit.project(heldout), RIDGE_GRID[best]) - heldout_targets) ** 2).sum()
+    return float(error / np.size(heldout_targets)), RIDGE_GRID[best]
+
+
+def _standardiser(features: np.ndarray, weights: np.ndarray | None = None):
     """f(x) -> standardised kept columns (times `weights` (D,) when given), by `features`' own
     mean and std; or Undefined."""
-    m = Moments(features.shape[1], 1)
-    for start in range(0, len(features), chunk):
-        part = features[start:start + chunk]
-        m.add(part, np.zeros((len(part), 1)))
-    s = standardise(m)
-    if isinstance(s, Undefined):
-        return s
-    factor = (np.ones(m.dim) if weights is None else np.asarray(weights, float))[s.keep]
-    return lambda x: (np.asarray(x, float)[:, s.keep] - s.mean[s.keep]) / s.scale[s.keep] * factor
+    stats = standardiser(features)
+    if isinstance(stats, Undefined):
+        return stats
+    keep, mean, scale = stats
+    factor = (np.ones(len(keep)) if weights is None else np.asarray(weights, float))[keep]
+    return lambda x: (np.asarray(x, float)[:, keep] - mean[keep]) / scale[keep] * factor
 
 
 def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarray,
@@ -297,10 +316,13 @@ def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarr
             nearest = np.take_along_axis(near, order, axis=1)
         else:
             nearest = np.argsort(dist, axis=1, kind="stable")
-        running = np.cumsum(reference_targets[nearest], axis=1)  # (b, kmax, C)
         truth = query_targets[start:start + chunk]
-        for i, k in enumerate(ks):
-            sse[i] += float(((running[:, k - 1] / k - truth) ** 2).sum())
+        running = np.zeros_like(truth)  # the sum of the j nearest targets, in order (no
+        # (b, kmax, C) array: at C = 350 its cumsum was most of the k-NN's time)
+        for j in range(kmax):
+            running += reference_targets[nearest[:, j]]
+            if j + 1 in ks:
+                sse[ks.index(j + 1)] += float(((running / (j + 1) - truth) ** 2).sum())
     return sse
 
 

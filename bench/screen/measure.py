@@ -14,7 +14,8 @@ higher is better. k-NN weighs the state and each camera's block equally in its d
 (block_weights): unweighted, hundreds of feature columns drown the 8 state columns. The
 label-free proxies (norm entropy) read the tokens of all cameras' grids (the backbone's native
 grid, as stored) of the held-out windows.
-Memory: LogME and ridge read chunked `Moments`; k-NN keeps the (N_train, D) training inputs.
+Memory: the (N_train, D) training and (M, D) held-out inputs as float32, plus one float64
+standardised copy and the cheaper of a D x D or N x N matrix (bench.screen.spectral).
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from bench.screen.estimators import Moments
 from bench.screen.proxies import INPUT_SETS, FitInputs, label_free_proxies, supervised_proxies
 from bench.screen.records import (GAIN, ScreenConditions, ScreenFailure, ScreenRecord,
                                   ScreenScores, new_screen_record)
@@ -40,8 +40,7 @@ CHUNK = 2048  # windows read at a time
 class _Inputs:
     """What one pass over a set of windows yields (train: with folds and kept arrays)."""
 
-    moments: dict[str, list[Moments]]  # input set -> per fold (held out: one)
-    arrays: dict[str, list[np.ndarray]]  # input set -> chunks of inputs (for k-NN)
+    arrays: dict[str, list[np.ndarray]]  # input set -> chunks of inputs
     targets: list[np.ndarray]
     folds: list[np.ndarray]
     norms: list[np.ndarray]
@@ -59,9 +58,9 @@ def window_inputs(views: dict, suite, frames: torch.Tensor, normalize_actions, c
     return (suite.state[frames].float().numpy(), features, targets.numpy(), norms)
 
 
-def _read(views, suite, frames: torch.Tensor, fold_of: np.ndarray, n_folds: int,
-          normalize_actions, chunk_size: int, keep_arrays: bool) -> _Inputs:
-    out = _Inputs({}, {s: [] for s in INPUT_SETS}, [], [], [])
+def _read(views, suite, frames: torch.Tensor, fold_of: np.ndarray, normalize_actions,
+          chunk_size: int) -> _Inputs:
+    out = _Inputs({s: [] for s in INPUT_SETS}, [], [], [])
     for start in range(0, len(frames), CHUNK):
         part = frames[start:start + CHUNK]
         state, features, targets, norms = window_inputs(views, suite, part, normalize_actions,
@@ -69,14 +68,7 @@ def _read(views, suite, frames: torch.Tensor, fold_of: np.ndarray, n_folds: int,
         sets = {"state": state, "state+features": np.concatenate([state, features], axis=1)}
         fold = fold_of[start:start + CHUNK]
         for name, x in sets.items():
-            per_fold = out.moments.setdefault(
-                name, [Moments(x.shape[1], targets.shape[1]) for _ in range(n_folds)])
-            for f in range(n_folds):
-                inside = fold == f
-                if inside.any():
-                    per_fold[f].add(x[inside], targets[inside])
-            if keep_arrays:
-                out.arrays[name].append(x.astype(np.float32))
+            out.arrays[name].append(x.astype(np.float32))
         out.targets.append(targets)
         out.folds.append(fold)
         out.norms.append(norms)
@@ -107,10 +99,9 @@ def _screen(views: dict, suite, split, normalize_actions, chunk_size: int,
     out = ScreenScores(*names)
     n_folds = min(FOLDS, len(split.train_episodes))
     train_folds = episode_folds(suite, split.train_frames, split.train_episodes, n_folds)
-    train = _read(views, suite, split.train_frames, train_folds, n_folds, normalize_actions,
-                  chunk_size, keep_arrays=True)
-    held = _read(views, suite, split.windows, np.zeros(len(split.windows), int), 1,
-                 normalize_actions, chunk_size, keep_arrays=True)
+    train = _read(views, suite, split.train_frames, train_folds, normalize_actions, chunk_size)
+    held = _read(views, suite, split.windows, np.zeros(len(split.windows), int),
+                 normalize_actions, chunk_size)
     out.n_train, out.n_heldout = len(split.train_frames), len(split.windows)
     y_train, y_held = np.concatenate(train.targets), np.concatenate(held.targets)
     folds = np.concatenate(train.folds)
@@ -118,9 +109,8 @@ def _screen(views: dict, suite, split, normalize_actions, chunk_size: int,
     blocks = {"state": [state_dim],
               "state+features": [state_dim] + [int(views[k].shape[-1]) for k in sorted(views)]}
     for name in INPUT_SETS:
-        out.dims[name] = train.moments[name][0].dim
-        fit = FitInputs(train.moments[name], held.moments[name][0],
-                        np.concatenate(train.arrays[name]), y_train, folds,
+        out.dims[name] = int(train.arrays[name][0].shape[1])
+        fit = FitInputs(np.concatenate(train.arrays[name]), y_train, folds,
                         np.concatenate(held.arrays[name]), y_held, block_weights(blocks[name]))
         out.chosen[name] = {}
         for proxy in supervised_proxies():

@@ -17,12 +17,14 @@ report read the table without torch.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
 
-from bench.screen.estimators import (Moments, knn_heldout, logme_moments, norm_entropy,
-                                     ridge_heldout)
+from bench.screen.estimators import (Moments, knn_heldout, logme_windows, moments,
+                                     norm_entropy, ridge_windows)
+from bench.screen.spectral import Spectrum, spectrum
 from bench.stats import Measure, Undefined, is_defined
 from bench.table import Table
 
@@ -33,19 +35,32 @@ INPUT_SETS = ("state", "state+features")  # a supervised proxy's two fits; the g
 
 @dataclass
 class FitInputs:
-    """One input set's windows, as a supervised proxy reads them: `folds` the training windows'
-    Moments per episode fold (>= 1), `heldout` the held-out windows' Moments; the same windows
-    as arrays, train (N, D) float32 with targets (N, C) and fold (N,) int, heldout (M, D)
-    float32 with targets (M, C); `weights` (D,) the k-NN distance factor of each column."""
+    """One input set's windows, as a supervised proxy reads them: train (N, D) float32 with
+    targets (N, C) and fold (N,) int (the episode fold of each training window), heldout (M, D)
+    float32 with targets (M, C); `weights` (D,) the k-NN distance factor of each column. Derived
+    on first use: `spectrum`, the training windows' decomposition (LogME and ridge's final fit
+    share it), and the same windows as `Moments` (`folds`, `heldout`, `train_total`)."""
 
-    folds: list[Moments]
-    heldout: Moments
     train: np.ndarray
     train_targets: np.ndarray
     train_fold: np.ndarray
     heldout_features: np.ndarray
     heldout_targets: np.ndarray
     weights: np.ndarray
+
+    @cached_property
+    def spectrum(self) -> Spectrum | Undefined:
+        return spectrum(self.train, self.train_targets)
+
+    @cached_property
+    def folds(self) -> list[Moments]:
+        """The training windows' Moments per episode fold, in fold order."""
+        return [moments(self.train[self.train_fold == f], self.train_targets[self.train_fold == f])
+                for f in np.unique(self.train_fold)]
+
+    @cached_property
+    def heldout(self) -> Moments:
+        return moments(self.heldout_features, self.heldout_targets)
 
     @property
     def train_total(self) -> Moments:
@@ -120,12 +135,13 @@ def label_free_proxies() -> tuple[Proxy, ...]:
     return tuple(p for p in PROXIES.values() if not p.supervised)
 
 
-def _logme(fit: FitInputs) -> tuple[Measure, None]:
-    return logme_moments(fit.train_total), None
+def _logme(fit: FitInputs) -> tuple[Measure, str | None]:
+    return logme_windows(fit.train, fit.train_targets, fit.spectrum)
 
 
 def _ridge(fit: FitInputs) -> tuple[Measure, float | None]:
-    return ridge_heldout(fit.folds, fit.heldout)
+    return ridge_windows(fit.train, fit.train_targets, fit.train_fold, fit.heldout_features,
+                         fit.heldout_targets, fit.spectrum)
 
 
 def _knn(fit: FitInputs) -> tuple[Measure, int | None]:
@@ -135,7 +151,10 @@ def _knn(fit: FitInputs) -> tuple[Measure, int | None]:
 
 # Table order is the order of the records' proxies, --screen-by's choices and the report's columns.
 # --screen-by's default, and the gain the screen's progress lines show.
-DEFAULT_PROXY = register_proxy(Proxy("logme", "LogME", HIGHER, WINDOWS, _logme)).name
+# LogME "chooses" nothing; it keeps where each target column's optimum lay (interior, or the
+# limits lam -> 0 / lam -> inf, bench.screen.spectral.logme_profile): how its maximum was reached.
+DEFAULT_PROXY = register_proxy(Proxy("logme", "LogME", HIGHER, WINDOWS, _logme,
+                                     chooses="logme_optimum")).name
 register_proxy(Proxy("ridge", "ridge", LOWER, WINDOWS, _ridge, chooses="ridge_penalty_ratio",
                      value_column="ridge MSE"))
 register_proxy(Proxy("knn", "k-NN", LOWER, WINDOWS, _knn, chooses="knn_k",

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.progress import STDERR, ProgressSink, say
+from bench.progress import STDERR, Progress, ProgressSink, countdown, say
 from bench.sim.expert import ExpertParams, ScriptedExpert, check_solvable, episode_seed
 from external.filelock import exclusive
 from external.paths import build_dataset_dir, cache_dir
@@ -125,9 +125,10 @@ class Episode:
 
 def run_expert_episode(env, suite: str, task: int, init_state: int, seed: int,
                        max_steps: int, description: str, action_noise: float = 0.0,
-                       expert_speed: float = 1.0) -> Episode:
+                       expert_speed: float = 1.0, on_step=None) -> Episode:
     """Run the scripted expert once from `init_state`, recording every observed frame (and the
-    expert's clean action as its label, whatever noise is executed: DemoSpec.action_noise)."""
+    expert's clean action as its label, whatever noise is executed: DemoSpec.action_noise).
+    `on_step(k)` before each step k: an attempt renders for up to a minute or two."""
     from bench.sim import env as sim_env
 
     start = time.perf_counter()
@@ -137,7 +138,9 @@ def run_expert_episode(env, suite: str, task: int, init_state: int, seed: int,
     noise = np.random.default_rng(episode_seed(seed, task, init_state))
     images, wrists, states, actions = [], [], [], []
     success = False
-    for _ in range(max_steps):
+    for step in range(max_steps):
+        if on_step is not None:
+            on_step(step)
         raw = sim_env.observe([obs], [description])
         action = expert(env)
         images.append(sim_env.to_uint8_hwc(raw[IMAGE_KEYS[0]][0]))
@@ -191,9 +194,10 @@ class _Work:
             return {k: data[k] for k in data.files}
 
 
-def run_attempts(spec: DemoSpec, work: _Work, progress: ProgressSink = STDERR
-                 ) -> dict[tuple[int, int], dict]:
-    """Run (or resume) the expert attempts of `spec`; returns the attempts log by (task, init)."""
+def run_attempts(spec: DemoSpec, work: _Work, progress: ProgressSink) -> dict[tuple[int, int], dict]:
+    """Run (or resume) the expert attempts of `spec`; returns the attempts log by (task, init).
+    A line per attempt (10-90 s each; every 30 s inside one): the demonstrations kept of all the
+    suite needs, and the time left at this run's mean rate per kept one."""
     import torch
 
     from bench.sim import env as sim_env
@@ -202,6 +206,12 @@ def run_attempts(spec: DemoSpec, work: _Work, progress: ProgressSink = STDERR
     render = sim_env.RenderSettings(image_size=spec.image_size)
     descriptions = sim_env.task_descriptions(spec.suite)
     done = work.attempts()
+    needed = len(spec.tasks) * spec.episodes_per_task
+    resumed = _kept(done, spec)
+    say(progress, f"sim demos: {spec.suite}: rendering {needed - resumed} scripted demonstrations "
+                  f"({len(spec.tasks)} tasks x {spec.episodes_per_task}"
+                  f"{f', {resumed} resumed' if resumed else ''}; a line per attempt)")
+    start = time.monotonic()
     for task in spec.tasks:
         env = None
         kept = sum(1 for (t, _), r in done.items() if t == task and r["success"])
@@ -210,20 +220,31 @@ def run_attempts(spec: DemoSpec, work: _Work, progress: ProgressSink = STDERR
                 break
             if (task, init_state) in done:
                 continue
-            if env is None:
+            if env is None:  # a minute or so under load: say so before it starts
+                say(progress, f"sim demos: {spec.suite} task {task}: building its scene")
                 env = sim_env.make_env(spec.suite, task, render, max_steps=spec.max_steps)
+            within = Progress(f"sim demos: {spec.suite} task {task} init {init_state}: step",
+                              spec.max_steps, progress)  # a line every 30 s inside an attempt
             episode = run_expert_episode(env, spec.suite, task, init_state, spec.seed,
                                          spec.max_steps, descriptions[task], spec.action_noise,
-                                         spec.expert_speed)
+                                         spec.expert_speed, on_step=within.update)
             work.record(episode)
             done[(task, init_state)] = {"success": episode.success, "steps": episode.steps}
             kept += int(episode.success)
             say(progress, f"sim demos: {spec.suite} task {task} init {init_state}: "
                           f"{'success' if episode.success else 'failure'} in {episode.steps} "
-                          f"steps ({episode.seconds:.1f} s); kept {kept}/{spec.episodes_per_task}")
+                          f"steps ({episode.seconds:.1f} s); kept {kept}/{spec.episodes_per_task}"
+                          f"; suite {countdown(start, _kept(done, spec), needed, resumed)}")
         if env is not None:
             env.close()
     return work.attempts()
+
+
+def _kept(attempts: dict[tuple[int, int], dict], spec: DemoSpec) -> int:
+    """Demonstrations kept so far, over all tasks (at most episodes_per_task a task)."""
+    return sum(min(spec.episodes_per_task,
+                   sum(1 for (t, _), r in attempts.items() if t == task and r["success"]))
+               for task in spec.tasks)
 
 
 def expert_success(spec: DemoSpec, attempts: dict[tuple[int, int], dict]) -> dict:
@@ -242,12 +263,14 @@ def expert_success(spec: DemoSpec, attempts: dict[tuple[int, int], dict]) -> dic
     return per_task
 
 
-def write_suite(spec: DemoSpec, work: _Work, attempts: dict, root: Path) -> Path:
+def write_suite(spec: DemoSpec, work: _Work, attempts: dict, root: Path,
+                progress: ProgressSink) -> Path:
     """The kept episodes of `spec` as a LeRobotDataset at `root` (must not exist), written by the
     one writer (external.lerobot_dataset), then the suite's own files: how it was generated and
     the expert's measured success."""
     from bench.sim import env as sim_env
 
+    say(progress, f"sim demos: {spec.suite}: writing the kept episodes as a LeRobotDataset")
     descriptions = sim_env.task_descriptions(spec.suite)
     per_task = expert_success(spec, attempts)
 
@@ -273,9 +296,10 @@ def write_suite(spec: DemoSpec, work: _Work, attempts: dict, root: Path) -> Path
     return root
 
 
-def generate(spec: DemoSpec, root: str | Path | None = None,
-             progress: ProgressSink = STDERR) -> Path:
-    """Generate (or resume, or reuse) the demonstration suite of `spec`; returns its folder."""
+def generate(spec: DemoSpec, root: str | Path | None, progress: ProgressSink) -> Path:
+    """Generate (or resume, or reuse) the demonstration suite of `spec` (None `root`: in the
+    cache); returns its folder. `progress` is required: a session's own sink, or STDERR from
+    the command line; the default used to be stderr, captured by pytest (issue 53)."""
     final = Path(root) if root is not None else suite_path(spec)
     if (final / "meta" / "info.json").is_file():
         return final
@@ -291,7 +315,8 @@ def generate(spec: DemoSpec, root: str | Path | None = None,
         if short:
             say(progress, f"sim demos: fewer than {spec.episodes_per_task} successes for tasks "
                           f"{short} within {spec.max_attempts} attempts")
-        return build_dataset_dir(final, lambda tmp: write_suite(spec, work, attempts, tmp))
+        return build_dataset_dir(final, lambda tmp: write_suite(spec, work, attempts, tmp,
+                                                                progress))
 
 
 def suite_path(spec: DemoSpec) -> Path:
@@ -316,34 +341,55 @@ def render_settings(root: str | Path):
     return RenderSettings(**suite_info(root)["render"])
 
 
-def main(argv: list[str] | None = None) -> None:
-    """python -m bench.sim.demos [--suite spatial|object] [--tasks 0,1,2,3] [--episodes 3] ..."""
-    import argparse
+def _parse_main(argv: list[str] | None):
+    """(DemoSpec, --root) from the command line, every input and the simulator checked before
+    any env is built: bad input is one line naming the option and the fix, exit 4 (the usage
+    error of every entry point, bench.option_values)."""
+    from bench.option_values import CommandParser, refuse, whole_at_least
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    prog = "python -m bench.sim.demos"
+    parser = CommandParser(prog=prog, description=__doc__.splitlines()[0])
     parser.add_argument("--suite", default="spatial", choices=["spatial", "object"])
     parser.add_argument("--tasks", default=None, help="LIBERO task ids, e.g. 0,1,2 "
                         "(default: the suite's DEFAULT_SPECS entry)")
-    parser.add_argument("--episodes", type=int, default=None)
-    parser.add_argument("--max-attempts", type=int, default=None)
-    parser.add_argument("--seed", type=int, default=None)
-    parser.add_argument("--image-size", type=int, default=None)
+    parser.add_argument("--episodes", type=whole_at_least(1, "3"), default=None)
+    parser.add_argument("--max-attempts", type=whole_at_least(1, "10"), default=None)
+    parser.add_argument("--seed", type=whole_at_least(0, "0"), default=None)
+    parser.add_argument("--image-size", type=whole_at_least(16, "128"), default=None)
     parser.add_argument("--root", default=None, help="output folder (default: the cache)")
     args = parser.parse_args(argv)
     base = DEFAULT_SPECS[args.suite]
+    if args.tasks is not None and not all(t.strip().isdigit() for t in args.tasks.split(",")):
+        refuse(prog, f"--tasks {args.tasks!r}: not a comma list of LIBERO task ids; give e.g. "
+                     "--tasks 0,1,2")
+    tasks = tuple(int(t) for t in args.tasks.split(",")) if args.tasks else base.tasks
     try:
-        tasks = tuple(int(t) for t in args.tasks.split(",")) if args.tasks else base.tasks
-        spec = DemoSpec(
-            args.suite, tasks,
-            base.episodes_per_task if args.episodes is None else args.episodes,
-            base.max_attempts if args.max_attempts is None else args.max_attempts,
-            base.seed if args.seed is None else args.seed,
-            base.max_steps,
-            base.image_size if args.image_size is None else args.image_size,
-        )
-    except ValueError as e:  # one line naming the option, before any env is built
-        parser.error(f"--tasks {args.tasks or ','.join(map(str, base.tasks))}: {e}")
-    path = generate(spec, args.root)
+        check_solvable(args.suite, tasks)
+    except ValueError as e:
+        refuse(prog, f"--tasks {args.tasks or ','.join(map(str, tasks))}: {e}")
+    episodes = base.episodes_per_task if args.episodes is None else args.episodes
+    attempts = base.max_attempts if args.max_attempts is None else args.max_attempts
+    try:
+        spec = DemoSpec(args.suite, tasks, episodes, attempts,
+                        base.seed if args.seed is None else args.seed, base.max_steps,
+                        base.image_size if args.image_size is None else args.image_size)
+    except ValueError as e:  # one line naming the options, before any env is built
+        refuse(prog, f"--episodes {episodes} --max-attempts {attempts}: {e}; give "
+                     "--max-attempts at least --episodes")
+    if args.root is not None and Path(args.root).exists() and not Path(args.root).is_dir():
+        refuse(prog, f"--root {args.root}: a file, not a folder; give a folder for the suites")
+    from bench.sim.env import INSTALL_HINT, libero_available
+
+    if not libero_available():
+        refuse(prog, f"the LIBERO simulator (the libero extra) is not installed; fix: "
+                     f"{INSTALL_HINT}")
+    return spec, args.root
+
+
+def main(argv: list[str] | None = None) -> None:
+    """python -m bench.sim.demos [--suite spatial|object] [--tasks 0,1,2,3] [--episodes 3] ..."""
+    spec, root = _parse_main(argv)
+    path = generate(spec, root, STDERR)
     print(path)
     print((path / EXPERT_SUCCESS_FILE).read_text())
 

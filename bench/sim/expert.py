@@ -339,7 +339,7 @@ class ReplayPolicy:
 
 
 def measure(suite: str, tasks: list[int], init_states: list[int], seed: int = 0,
-            max_steps: int = 280, progress: ProgressSink = STDERR, speed: float = 1.0) -> dict:
+            max_steps: int = 280, *, progress: ProgressSink, speed: float = 1.0) -> dict:
     """Expert success per task without rendering (cameras off while stepping): a measurement.
 
     Returns {task: {"successes", "attempts", "steps": [...], "seconds": [...]}}.
@@ -390,7 +390,8 @@ if __name__ == "__main__":
     parser.add_argument("--speed", type=float, default=1.0, help="ExpertParams.speed")
     args = parser.parse_args()
     result = measure(args.suite, [int(t) for t in args.tasks.split(",")],
-                     list(range(args.init_states)), args.seed, speed=args.speed)
+                     list(range(args.init_states)), args.seed, progress=STDERR,
+                     speed=args.speed)
     text = json.dumps(result, indent=1)
     if args.out:
         open(args.out, "w").write(text)

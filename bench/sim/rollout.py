@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from bench.progress import STDERR, ProgressSink, as_sink
+from bench.progress import ProgressSink, as_sink, countdown
 from bench.sim import env as sim_env
 from bench.sim.batching import IN_PROCESS, Batching
 from bench.stats import wilson_interval
@@ -86,14 +86,28 @@ def rollout_env_seed(seed: int, task: int, episode: int) -> int:
     return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
 
 
-def progress_line(progress, spec, row: dict) -> None:
+def progress_line(progress, spec, row: dict, count: str = "") -> None:
     """One line per finished episode, through the progress sink: inside `pytest bench` a bare
-    stderr print is captured until the test ends, i.e. after the last episode."""
+    stderr print is captured until the test ends, i.e. after the last episode. `count`: how far
+    the rollouts are (bench.progress.countdown)."""
     sink = as_sink(progress)
     if sink is not None:
         sink.line(f"[rollout] {spec.suite} task {row['task']} episode {row['episode']} "
                   f"(init {row['init_state']}): {'success' if row['success'] else 'failure'} in "
-                  f"{row['steps']} steps ({row['seconds']:.1f} s)")
+                  f"{row['steps']} steps ({row['seconds']:.1f} s)"
+                  + (f"; episodes {count}" if count else ""))
+
+
+def episode_reporter(progress, spec, resumed: int) -> Callable[[dict], None]:
+    """`report(row)` for each episode this run finishes: its line, with the episodes done of
+    the spec's and the time left at this run's mean rate (resumed episodes are not timed)."""
+    total, start, done = len(spec.tasks) * spec.episodes_per_task, time.monotonic(), [resumed]
+
+    def report(row: dict) -> None:
+        done[0] += 1
+        progress_line(progress, spec, row, countdown(start, done[0], total, resumed))
+
+    return report
 
 
 def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
@@ -126,7 +140,7 @@ def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
 
 
 
-def run_rollouts(act: ActFn, spec: RolloutSpec, progress: ProgressSink = STDERR,
+def run_rollouts(act: ActFn, spec: RolloutSpec, progress: ProgressSink,
                  render: sim_env.RenderSettings | None = None, *, finished: list[dict] = (),
                  on_episode: Callable[[dict], None] | None = None,
                  scenes: Scenes = LIBERO, batching: Batching = IN_PROCESS,
@@ -145,18 +159,19 @@ def run_rollouts(act: ActFn, spec: RolloutSpec, progress: ProgressSink = STDERR,
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # 2 shared cores: one thread each for sim and policy is faster
     start = time.perf_counter()
+    resumed = len({(e["task"], e["episode"]) for e in finished})
     try:
-        episodes = _run_all(act, spec, progress, render, finished, on_episode, scenes,
-                            batching, vector_scenes)
+        episodes = _run_all(act, spec, episode_reporter(progress, spec, resumed), render,
+                            finished, on_episode, scenes, batching, vector_scenes)
     finally:
         torch.set_num_threads(threads)
-    out = summarise(episodes, spec, render, time.perf_counter() - start,
-                    resumed=len({(e["task"], e["episode"]) for e in finished}))
+    out = summarise(episodes, spec, render, time.perf_counter() - start, resumed=resumed)
     out["settings"].update(batch=batching.size, env_mode=batching.label)
     return out
 
 
-def _run_all(act: ActFn, spec: RolloutSpec, progress: ProgressSink, render: sim_env.RenderSettings,
+def _run_all(act: ActFn, spec: RolloutSpec, report: Callable[[dict], None],
+             render: sim_env.RenderSettings,
              finished, on_episode, scenes: Scenes, batching: Batching = IN_PROCESS,
              vector_scenes=None) -> list[dict]:
     done = {(int(e["task"]), int(e["episode"])): e for e in finished}
@@ -168,7 +183,7 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: ProgressSink, render: sim_
                 if on_episode is not None else "no episode log: a rerun starts over")
 
     if batching.size > 1:
-        return _run_batched(act, spec, progress, render, done, on_episode, batching,
+        return _run_batched(act, spec, report, render, done, on_episode, batching,
                             vector_scenes, descriptions, episodes, kept)
 
     for task in spec.tasks:
@@ -193,14 +208,15 @@ def _run_all(act: ActFn, spec: RolloutSpec, progress: ProgressSink, render: sim_
                 if on_episode is not None:
                     on_episode(row)
                 episodes.append(row)
-                progress_line(progress, spec, row)
+                report(row)
         finally:
             if env is not None:
                 env.close()
     return episodes
 
 
-def _run_batched(act: ActFn, spec: RolloutSpec, progress: ProgressSink, render, done: dict, on_episode,
+def _run_batched(act: ActFn, spec: RolloutSpec, report: Callable[[dict], None], render,
+                 done: dict, on_episode,
                  batching: Batching, vector_scenes, descriptions, episodes: list,
                  kept: Callable[[], str]) -> list[dict]:
     """_run_all's batch > 1 way (bench.sim.batched): the same planned episodes, B at a time."""
@@ -210,7 +226,7 @@ def _run_batched(act: ActFn, spec: RolloutSpec, progress: ProgressSink, render, 
         if on_episode is not None:
             on_episode(row)
         episodes.append(row)
-        progress_line(progress, spec, row)
+        report(row)
 
     vector_scenes = vector_scenes or batched.LIBERO_VECTOR
     n = vector_scenes.num_init_states

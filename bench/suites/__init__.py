@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bench.progress import ProgressSink
 from bench.suites import libero, synthetic
 from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 from bench.suites.base import Suite, SuiteUnavailable
@@ -38,9 +39,10 @@ SUITES: dict[str, SuiteSpec] = {
 
 
 def load_suite(name: str, source: str, root: str | Path | None = None,
-               sim_spec=None) -> Suite:
+               sim_spec=None, *, progress: ProgressSink) -> Suite:
     """Load suite `name` from `source` ("tiny" | "hub" | "sim"); `root`: optional local folder;
-    `sim_spec`: the sim source's bench.sim.demos.DemoSpec (default: its DEFAULT_SPECS entry)."""
+    `sim_spec`: the sim source's bench.sim.demos.DemoSpec (default: its DEFAULT_SPECS entry);
+    `progress`: where generating a sim suite on first use (minutes) reports (bench.progress)."""
     if name not in SUITES:
         raise ValueError(f"unknown suite {name!r}; valid names: {sorted(SUITES)}")
     if source == "tiny":
@@ -50,7 +52,7 @@ def load_suite(name: str, source: str, root: str | Path | None = None,
                              "or source='hub'")
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-        path = synthetic.tiny_suite_path(name)
+        path = synthetic.tiny_suite_path(name, progress=progress)
         ds = LeRobotDataset(synthetic.repo_id(name), root=path)
         libero.validate_features(ds.features, synthetic.repo_id(name))
         return suite_from_dataset(name, ds, images_in_memory=True)
@@ -61,14 +63,15 @@ def load_suite(name: str, source: str, root: str | Path | None = None,
 
         from bench.sim import demos
 
-        path = _sim_suite_path(name, root, sim_spec)
+        path = _sim_suite_path(name, root, sim_spec, progress=progress)
         ds = LeRobotDataset(demos.repo_id(name), root=path)
         libero.validate_features(ds.features, demos.repo_id(name))
         return suite_from_dataset(name, ds, images_in_memory=True)
     raise ValueError(f"unknown suite source {source!r}; choose one of {list(SOURCES)}")
 
 
-def _sim_suite_path(name: str, root: str | Path | None = None, spec=None) -> Path:
+def _sim_suite_path(name: str, root: str | Path | None = None, spec=None, *,
+                    progress: ProgressSink) -> Path:
     """Folder of the generated "sim" suite `name` (generated on first use; needs the extra)."""
     from bench.sim import demos
     from bench.sim import env as sim_env
@@ -84,7 +87,7 @@ def _sim_suite_path(name: str, root: str | Path | None = None, spec=None) -> Pat
         raise SuiteUnavailable(f"sim suite {name!r} is not generated at {path} and the LIBERO "
                                f"simulator is missing; {sim_env.INSTALL_HINT}, then "
                                f"`.venv/bin/python -m bench.sim.demos --suite {name}`")
-    return demos.generate(spec, path)
+    return demos.generate(spec, path, progress)
 
 
 def _columns(hf_dataset, keys: list[str]) -> dict[str, np.ndarray]:

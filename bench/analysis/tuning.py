@@ -1,0 +1,156 @@
+"""Tuned encoder against frozen: does training the encoder's weights beside the projector beat
+grafting it frozen, per encoder and backbone x suite, and does the encoder ranking change?
+
+A tuned cell is any kind of the table with `tune_encoder` (bench.grid.kinds); its frozen twin is
+the graft cell of the same backbone, suite, encoder and seed. diff = tuned - frozen on normalised
+MSE (negative: tuning helps), averaged over the seeds both have, with the paired window bootstrap
+of the rankings (bench.analysis.rankings: one window resample per replicate shared by every cell;
+seeds kept, not resampled).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from bench.analysis.rankings import (
+    DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, paired_window_bootstrap,
+)
+from bench.grid.kinds import GRAFT, kind_of
+from bench.results.record import NORMALIZED
+
+HELPS, HURTS, UNCLEAR = "tuning helps", "tuning hurts", "no clear difference"
+
+
+@dataclass
+class TunedComparison:
+    """One encoder on one backbone x suite: tuned minus frozen over the seeds both have."""
+
+    backbone: str
+    suite: str
+    encoder: str
+    seeds: list[int]
+    frozen_mse: float
+    tuned_mse: float
+    diff: float  # tuned - frozen, normalised MSE
+    diff_ci: tuple[float, float]
+    # Train seconds per optimiser step (record timings / steps), mean over the paired seeds: the
+    # tuned cell runs and back-propagates its encoder; the frozen one reads stored features.
+    tuned_step_s: float = float("nan")
+    frozen_step_s: float = float("nan")
+
+    @property
+    def relative(self) -> float:
+        return self.diff / self.frozen_mse if self.frozen_mse else float("nan")
+
+    @property
+    def verdict(self) -> str:
+        lo, hi = self.diff_ci
+        if np.isfinite(hi) and hi < 0:
+            return HELPS
+        if np.isfinite(lo) and lo > 0:
+            return HURTS
+        return UNCLEAR
+
+
+@dataclass
+class TunedRanking:
+    """The encoders of one backbone x suite that have both, ordered best first frozen and tuned
+    (mean normalised MSE over the paired seeds; ties by name)."""
+
+    backbone: str
+    suite: str
+    frozen_order: list[str] = field(default_factory=list)
+    tuned_order: list[str] = field(default_factory=list)
+
+    @property
+    def changed(self) -> bool:
+        return self.frozen_order != self.tuned_order
+
+    @property
+    def leader_changed(self) -> bool:
+        return bool(self.frozen_order) and self.frozen_order[0] != self.tuned_order[0]
+
+
+def is_tuned(record) -> bool:
+    kind = kind_of(record)
+    return kind is not None and kind.tune_encoder
+
+
+def _step_seconds(record) -> float:
+    steps = record.training.train_steps
+    train = (record.run.timings_s or {}).get("train")
+    return float(train) / steps if steps and train is not None else float("nan")
+
+
+def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, *,
+                  n_resamples: int = DEFAULT_RESAMPLES,
+                  random_seed: int = 0) -> TunedComparison | str:
+    """Tuned vs frozen for one encoder, or a one-line reason why they cannot be compared."""
+    here = [r for r in records if (r.backbone, r.suite, r.encoder) == (backbone, suite, encoder)]
+    tuned = {int(r.seed): r for r in sorted(here, key=lambda r: r.cell_id) if is_tuned(r)}
+    frozen = {int(r.seed): r for r in here if r.kind == GRAFT}
+    seeds = sorted(set(tuned) & set(frozen))
+    if not seeds:
+        return (f"{encoder}: no seed with both a tuned and a frozen graft cell (tuned seeds "
+                f"{sorted(tuned)}, frozen seeds {sorted(frozen)})")
+    cells = [frozen[s] for s in seeds] + [tuned[s] for s in seeds]
+    try:
+        _, orders = align_windows(cells)
+    except WindowMismatchError as err:
+        return f"{encoder}: not compared: {err}"
+    values = [np.asarray(c.scores.per_window_in(NORMALIZED), dtype=float)[o]
+              for c, o in zip(cells, orders)]
+    # (2, S, W): row 0 frozen, row 1 tuned, seed s paired with seed s
+    per_window = np.stack([values[:len(seeds)], values[len(seeds):]])
+    boot = paired_window_bootstrap(per_window, leader=0, n_resamples=n_resamples,
+                                   random_seed=random_seed)
+    return TunedComparison(
+        backbone, suite, encoder, seeds, frozen_mse=float(boot.mean[0]),
+        tuned_mse=float(boot.mean[1]), diff=float(boot.diff[1]),
+        diff_ci=(float(boot.diff_lo[1]), float(boot.diff_hi[1])),
+        tuned_step_s=float(np.mean([_step_seconds(tuned[s]) for s in seeds])),
+        frozen_step_s=float(np.mean([_step_seconds(frozen[s]) for s in seeds])))
+
+
+def tuned_ranking(comparisons: Sequence[TunedComparison]) -> TunedRanking:
+    """Frozen and tuned orders of one backbone x suite's compared encoders."""
+    first = comparisons[0]
+    out = TunedRanking(first.backbone, first.suite)
+    out.frozen_order = [c.encoder for c in sorted(comparisons,
+                                                  key=lambda c: (c.frozen_mse, c.encoder))]
+    out.tuned_order = [c.encoder for c in sorted(comparisons,
+                                                 key=lambda c: (c.tuned_mse, c.encoder))]
+    return out
+
+
+@dataclass
+class TunedStudy:
+    comparisons: list[TunedComparison] = field(default_factory=list)
+    rankings: list[TunedRanking] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def tuned_vs_frozen(records: Sequence, *, n_resamples: int = DEFAULT_RESAMPLES,
+                    random_seed: int = 0) -> TunedStudy:
+    """Every encoder with tuned cells, per backbone x suite (the rankings' order), and the
+    orders of each backbone x suite; empty when no record is of a tuned kind."""
+    study = TunedStudy()
+    keys = sorted({(r.backbone, r.suite, r.encoder) for r in records if is_tuned(r)})
+    order = backbone_order([b for b, _, _ in keys])
+    for backbone, suite in sorted({(b, s) for b, s, _ in keys},
+                                  key=lambda p: (p[1], order.index(p[0]))):
+        found = []
+        for encoder in sorted(e for b, s, e in keys if (b, s) == (backbone, suite)):
+            got = compare_tuned(records, backbone, suite, encoder, n_resamples=n_resamples,
+                                random_seed=random_seed)
+            if isinstance(got, str):
+                study.notes.append(f"{backbone} x {suite}: {got}")
+            else:
+                found.append(got)
+        study.comparisons += found
+        if found:
+            study.rankings.append(tuned_ranking(found))
+    return study
