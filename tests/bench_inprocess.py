@@ -97,3 +97,21 @@ def run_bench(*args: str, shared: bool = True, figures: bool = False,
         finally:
             torch.set_num_threads(threads)
     return BenchRun(int(code), out.getvalue(), err.getvalue())
+
+
+@pytest.fixture
+def bench_run(pytester):
+    """`pytest bench ARGS` through pytester in this process (a module using it declares
+    `pytest_plugins = ["pytester"]`), with a private results folder and report: each run's
+    `.screen` is its stdout and stderr joined, `.records` the cell files it wrote; `bench_run.path`
+    is the folder."""
+    def run(*args: str):
+        out = pytester.runpytest_inprocess(
+            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", "--results-dir",
+            str(pytester.path / "results"), "--report", str(pytester.path / "REPORT.md"), *args)
+        out.screen = "\n".join(out.outlines + out.errlines)
+        out.records = sorted((pytester.path / "results").glob("cells/*.json"))
+        return out
+
+    run.path = pytester.path
+    return run

@@ -21,24 +21,10 @@ import backbones  # noqa: F401  (imported before pytester's sys.modules snapshot
 import encoders  # noqa: F401
 from bench.grid.gridfile import GridFileError, parse_grid
 from bench.grid.protocol import PROTOCOL_RANGES, GridFileInfo, Protocol, range_error
-from external.paths import REPO_ROOT
+from tests.bench_inprocess import bench_run  # noqa: F401  (the fixture)
 from tests.factories import make_failed, make_record, save_record
 
 pytest_plugins = ["pytester"]
-
-
-@pytest.fixture
-def bench_run(pytester):
-    """`pytest bench ARGS` in this process, with a private results dir and report."""
-    def run(*args: str):
-        out = pytester.runpytest_inprocess(
-            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", "--results-dir",
-            str(pytester.path / "results"), "--report", str(pytester.path / "REPORT.md"), *args)
-        out.screen = "\n".join(out.outlines + out.errlines)
-        return out
-
-    run.path = pytester.path
-    return run
 
 
 def assert_one_screen(out, *says: str) -> None:

@@ -23,7 +23,7 @@ import bench.screen.measure  # noqa: F401
 import encoders
 from encoders import real
 from external.hubcache import file_sha256
-from external.paths import REPO_ROOT
+from tests.bench_inprocess import bench_run  # noqa: F401  (the fixture)
 
 pytest_plugins = ["pytester"]
 
@@ -148,16 +148,6 @@ def test_the_hub_worlds_pretrained_load_returns_the_wheels_tensors(tmp_path, mon
     assert json.loads((snapshot / "config.json").read_text())["pretrained_cfg"]["mean"] == [0.5] * 3
 
 
-@pytest.fixture
-def bench_run(pytester):
-    def run(*args: str):
-        out = pytester.runpytest_inprocess(
-            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", "--results-dir",
-            str(pytester.path / "results"), "--report", str(pytester.path / "REPORT.md"), *args)
-        out.screen = "\n".join(out.outlines + out.errlines)
-        out.records = sorted((pytester.path / "results").glob("cells/*.json"))
-        return out
-    return run
 
 
 @pytest.mark.parametrize("fault, says", [
