@@ -189,7 +189,8 @@ def train_pack(cells: Sequence, ws, contexts: Sequence, label: str = "packed") -
     train their projectors in one pack, each with what runner.train_graft does alone around its
     `fit` (its step count, probe loss before and after). Contexts: the cells' CellContexts (a
     reused projector is not packed: take it as runner.measure does)."""
-    from bench.run.runner import Fitted, build_graft, cell_inputs, probe_frames, probe_loss
+    from bench.run.runner import (Fitted, build_graft, cell_inputs, graft_fit_config,
+                                  probe_frames, probe_loss)
 
     worlds = {(c.backbone, c.suite) for c in cells}
     reasons = [f"{c.id}: {why}" for c in cells if (why := packable(c))]
@@ -207,10 +208,7 @@ def train_pack(cells: Sequence, ws, contexts: Sequence, label: str = "packed") -
         inputs = cell_inputs(cell, p, ws.suite(cell.suite), split, backbone, device)
         graft = build_graft(cell, ws, backbone, inputs, context)
         next_batch = inputs.train_batches(cell.spec.train_rule(cell.variant))
-        # runner.train_graft's schedule: a short graft runs the whole schedule, compressed.
-        steps, warmup = (cell.spec.scaled_steps(n, cell.variant) for n in (p.steps, p.warmup_steps))
-        cfg = FitConfig(steps, p.batch_size, p.lr, p.weight_decay, warmup, p.grad_clip,
-                        p.loss_log_every)
+        cfg = graft_fit_config(cell, p)  # runner.train_graft's own schedule
         before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
         packed.append((PackedGraft(cell, graft), next_batch, before, cfg))
         members.append(PackedCell(cell.id, list(graft.projector.parameters()), graft.feed,

@@ -201,6 +201,14 @@ def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
     return Graft(projector, feed, inputs, lora_params, encoder_params)
 
 
+def graft_fit_config(cell: CellSpec, p) -> FitConfig:
+    """The projector's schedule for `cell` under protocol `p`: a short graft (bench.grid.kinds
+    train_fraction) runs the whole schedule, compressed."""
+    steps, warmup = (cell.spec.scaled_steps(n, cell.variant) for n in (p.steps, p.warmup_steps))
+    return FitConfig(steps, p.batch_size, p.lr, p.weight_decay, warmup, p.grad_clip,
+                     p.loss_log_every)
+
+
 def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
                 context: CellContext) -> tuple[Fitted, TrainedProjector | None]:
     """Fit the projector, or take the identical one its graft trained this session (the plan's
@@ -217,10 +225,7 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
     before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
     params = list(graft.projector.parameters()) + [
         q for q in backbone.policy.parameters() if q.requires_grad]
-    # A short graft (bench.grid.kinds train_fraction) runs the whole schedule, compressed.
-    steps, warmup = (cell.spec.scaled_steps(n, cell.variant) for n in (p.steps, p.warmup_steps))
-    fit_cfg = FitConfig(steps, p.batch_size, p.lr, p.weight_decay, warmup,
-                        p.grad_clip, p.loss_log_every)
+    fit_cfg = graft_fit_config(cell, p)
     # A tuned encoder trains at its own, lower rate (Protocol.encoder_lr), same schedule.
     tuned = ([(graft.inputs.encoder.parameters(), p.encoder_lr)] if graft.encoder_params else [])
     curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
