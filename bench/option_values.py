@@ -135,7 +135,8 @@ def number(option: str, value, kind: type = int, example: str = "10"):
 NUMBERS = {"--steps": (int, "1000"), "--rollouts": (int, "10"), "--rollout-batch": (int, "5"),
            "--sim-demos": (int, "3"), "--sim-demo-noise": (float, "0.1"),
            "--sim-demo-speed": (float, "0.5"), "--slurm-time": (int, "240"),
-           "--slurm-gpus-per-task": (int, "1"), "--slurm-array-parallelism": (int, "64")}
+           "--slurm-gpus-per-task": (int, "1"), "--slurm-array-parallelism": (int, "64"),
+           "--pack-grafts": (int, "4")}
 # Options with a few values, declared without argparse's `choices=` for the same reason.
 CHOICES = {"--features": ("cache", "loop"), "--feature-dtype": ("fp16", "bf16", "float32"),
            "--rollout-envs": ("sync", "async"), "--executor": ("local", "slurm", "submitit-local")}
@@ -161,6 +162,28 @@ def choice(option: str, value: str, choices: tuple[str, ...]) -> str:
     give = close[0] if close else choices[0]
     raise pytest.UsageError(f"{option} {value}: not one of {', '.join(choices)}; give e.g. "
                             f"{option} {give}")
+
+
+def pack_grafts(given: int | None, grid_file, executor: str) -> int:
+    """Graft cells trained per backbone pass (bench.run.pack_run): --pack-grafts, else the grid
+    file's `pack_grafts` (checked when the file was read), else 1. A run setting: the protocol
+    and every record's identity stay as they are. K > 1 needs cells measured in this process."""
+    where = f"--pack-grafts {given}"
+    if given is None and grid_file is not None:
+        import tomllib
+
+        given = tomllib.loads(grid_file.text).get("pack_grafts")
+        where = f"{grid_file.path}: pack_grafts = {given}"
+    if given is None:
+        return 1
+    if given < 1:
+        raise pytest.UsageError(f"{where}: give a whole number of grafts per backbone pass >= 1, "
+                                "e.g. --pack-grafts 4 (1: one at a time, the default)")
+    if given > 1 and executor != "local":
+        raise pytest.UsageError(f"{where} with --executor {executor}: each array task measures "
+                                "one cell in its own process, so no pack can form; fix: "
+                                "--executor local, or drop the packing")
+    return given
 
 
 def protocol_value(option: str, field: str, value):

@@ -19,8 +19,8 @@ from bench.run.robust_run import add_robustness_option, with_robustness
 from bench.screen.proxies import PROXIES, proxy_names
 from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
                                     parse_screen_by, parse_screen_keep)
-from bench.option_values import (listed, positive, protocol_value, refuse_empty, report_file,
-                                 seeds, typed_options)
+from bench.option_values import (listed, pack_grafts, positive, protocol_value, refuse_empty,
+                                 report_file, seeds, typed_options)
 from bench.sim.batching import IN_PROCESS, Batching
 from bench.startup import (check_environment, check_rollout_batch, check_rollouts_possible,
                            check_sim_suites_possible)
@@ -197,6 +197,9 @@ def _add_executor_options(g) -> None:
     g.addoption("--slurm-gpus-per-task", default=1, help="sbatch --gpus-per-task")
     g.addoption("--slurm-array-parallelism", default=64,
                 help="array tasks running at once (sbatch --array=0-N%%P)")
+    g.addoption("--pack-grafts", metavar="K", help="train up to K graft cells of one backbone x "
+                "suite through one frozen-backbone pass, each its own record (default 1: one at "
+                "a time; grid-file key pack_grafts; --executor local only)")
 
 
 def build_profile(config: pytest.Config):
@@ -351,6 +354,7 @@ class RunOptions:
     slurm: object = None  # bench.run.executors.SlurmOptions
     baseline: object = None  # bench.regression.run.BaselineOptions
     screen: object = None  # bench.screen.selection.ScreenOptions; None without --screen
+    pack_grafts: int = 1  # graft cells per backbone pass (bench.run.pack_run); 1: unpacked
 
 
 def parse_options(config: pytest.Config) -> RunOptions:
@@ -389,4 +393,5 @@ def parse_options(config: pytest.Config) -> RunOptions:
         rerun=bool(opt("--rerun")), features_mode=opt("--features"),
         feature_dtype=opt("--feature-dtype"), rollouts=rollouts,
         rollout_batching=Batching(rollout_batch, opt("--rollout-envs")), executor=opt("--executor"),
-        slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen)
+        slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen,
+        pack_grafts=pack_grafts(opt("--pack-grafts"), profile.grid_file, opt("--executor")))

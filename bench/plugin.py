@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from bench.grid.cells import (CellSpec, ScreenCase, control_cells, graft_cells, grid_cells,
-                              screen_cases, tier_cells)
+                              screen_cases, staggered, tier_cells)
 from bench.options import pytest_addoption  # noqa: F401  (the hook, found here by name)
 from bench.session import GraftSession, Selection
 from bench.startup import check_writable
@@ -152,29 +152,32 @@ def pytest_pycollect_makeitem(collector, name: str, obj):
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     names = metafunc.fixturenames
     session: GraftSession = metafunc.config.stash[SESSION_KEY]
+    # Every worker collects the same order (xdist checks); the controller collects nothing.
+    workers = getattr(metafunc.config, "workerinput", {}).get("workercount", 1)
     if "screen_case" in names:  # --screen: before the grafts, in bench/test_grid.py's order
         metafunc.parametrize("screen_case", [
             pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))
-            for c in screen_cases(session.profile)])
+            for c in staggered(screen_cases(session.profile), workers)])
         return
     if "tier_cell" in names:  # --screen: the short grafts, after the screens
         metafunc.parametrize("tier_cell", [
             pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))
-            for c in tier_cells(session.profile)])
+            for c in staggered(tier_cells(session.profile), workers)])
         return
     if "robust_cell" in names:  # --robustness: after every cell, in bench/test_grid.py's order
         from bench.run.robust_run import robust_cells
 
         metafunc.parametrize("robust_cell", [
             pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))
-            for c in robust_cells(session.profile)])
+            for c in staggered(robust_cells(session.profile), workers)])
         return
     if "graft_cell" not in names and "control_cell" not in names:
         return
     if not hasattr(metafunc.config, "workerinput"):
         # A grid module outside bench/ (tests' own): checked here, at its collection.
         _write_lines(metafunc.config, session.check_names_once())
-    cells = graft_cells(session.profile) if "graft_cell" in names else control_cells(session.profile)
+    cells = staggered(graft_cells(session.profile) if "graft_cell" in names
+                      else control_cells(session.profile), workers)
     argname = "graft_cell" if "graft_cell" in names else "control_cell"
     metafunc.parametrize(
         argname,

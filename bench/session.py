@@ -183,15 +183,31 @@ class GraftSession:
 
             o = self.options
             settings = RunSettings(rerun=o.rerun, features_mode=o.features_mode,
-                                   feature_dtype=o.feature_dtype, rollouts=o.rollouts)
+                                   feature_dtype=o.feature_dtype, rollouts=o.rollouts,
+                                   pack_grafts=o.pack_grafts)
             self._cells = CellService(
                 self.profile, self.store, self.workspace, settings,
                 runner=self.seams.cell_runner,
                 measure_with=self._measure_submitted if o.executor != "local" else None,
                 feature_transform=lambda cell: self.baseline.feature_transform(
                     cell, self.workspace),
-                order=lambda: self.selection.cells, claim=o.executor == "local")
+                order=lambda: self.selection.cells, claim=o.executor == "local",
+                pack_candidates=self._pack_candidates)
         return self._cells
+
+    def _pack_candidates(self, cell: CellSpec) -> list[CellSpec]:
+        """The selected cells that may share `cell`'s pack (--pack-grafts), in run order: of its
+        backbone x suite and tier (short grafts run before the screen's selection exists), none
+        the screen dropped."""
+        from bench.grid.cells import grid_cells
+
+        specs = {c.id: c for c in grid_cells(self.profile, self.screen_options is not None)}
+        alike = [specs[i] for i in self.selection.cells if i in specs
+                 and (specs[i].backbone, specs[i].suite, specs[i].spec.tier)
+                 == (cell.backbone, cell.suite, cell.spec.tier)]
+        if self.screening is None or cell.spec.tier:
+            return alike
+        return [c for c in alike if not self.screening.dropped_reason(c)]
 
     outcomes = property(lambda self: self.cells.outcomes)  # cell id -> Outcome
     records = property(lambda self: self.cells.records)

@@ -3,6 +3,8 @@ screen's proxies at the real study's size (issue 51):
 
     .venv/bin/pytest benchmarks/bench_screen.py --benchmark-only -p no:randomly
     .venv/bin/pytest benchmarks/bench_screen.py --benchmark-only -p no:randomly -k synthetic
+    .venv/bin/pytest benchmarks/bench_screen.py --benchmark-only -p no:randomly -k real_store \
+        --benchmark-timer time.process_time
 
 test_proxies_synthetic: every supervised proxy of the table on one [state, features] input set
 of N = 721 training windows (5 episode folds) and 144 held out, D = 8 + 2,568 float32 columns,
@@ -10,6 +12,11 @@ C = 350 targets (bench.screen.synthetic), one BLAS thread; `planted`: features t
 task, `random`: features of an independent latent (the random-init twin's case). A fresh
 FitInputs each round (its decomposition is cached on it). The goal: about a second, a few
 percent of a 600-step tiny graft (22-34 s on this machine class).
+
+test_screen_real_store: one whole screen (read, pool, every proxy on both input sets, entropy)
+from a completed fp16 store at docs/real's shapes (Lite0 7x7x1280 and Lite2 9x9x1280, Lite0's
+stride-16 tap 14x14x112, DINOv2-S 16x16x384 channels-last; 1,082 frames x 2 cameras, 721
+training windows in 5 folds, 122 held out, pooled to the tiny backbones' 2x2 / 4x4 grids).
 
 Per encoder on the tiny profile (SmolVLA, spatial, seed 0): one graft cell through
 bench.run.service.run_cell (1 round: a cell takes ~10-30 s on 2 cores), then its screen through
@@ -88,3 +95,67 @@ def test_proxies_synthetic(benchmark, kind):
                                  rounds=3, iterations=1)
     benchmark.extra_info.update({name: str(value) for name, value in out.items()})
     print(f"\n{kind}: {benchmark.stats.stats.min:.2f} s (min of 3), {out}")
+
+
+# docs/real's stored grids (fp16, 1,082 frames x 2 cameras): (grid, channels, memory format)
+# and the tiny backbone's grid it is pooled to (SmolVLA 2x2, pi0.5 4x4).
+REAL_STORES = {"effnet_lite0-smolvla": ((7, 7), 1280, "nchw", (2, 2)),
+               "effnet_lite2-pi05": ((9, 9), 1280, "nchw", (4, 4)),
+               "effnet_lite0_s4-smolvla": ((14, 14), 112, "nchw", (2, 2)),
+               "dinov2_s_focus-pi05": ((16, 16), 384, "nhwc", (4, 4))}
+REAL_FRAMES, REAL_EPISODES, HELD_OUT = 1082, 12, (3, 7, 11)
+
+
+def _real_store(root, name: str):
+    """A completed fp16 store at `name`'s shapes: ReLU units of a per-episode latent walk."""
+    import torch
+
+    from bench.run import feature_file as fs
+
+    grid, channels, memory_format, _ = REAL_STORES[name]
+    layout = fs.Layout(name, ("cam0", "cam1"), REAL_FRAMES, grid, channels, "fp16", memory_format)
+    gen = torch.Generator().manual_seed(0)
+    latent = torch.cumsum(torch.randn(REAL_FRAMES, 12, generator=gen) * 0.3, 0)
+    mix = torch.randn(12, channels, generator=gen)
+
+    def compute(start: int, stop: int) -> dict:
+        tokens = grid[0] * grid[1]
+        return {c: torch.relu((latent[start:stop] @ mix)[:, None, :] + 0.5 * torch.randn(
+            stop - start, tokens, channels, generator=gen)) for c in layout.cameras}
+
+    return fs.build(root / f"{name}.feat", layout, compute, 128)
+
+
+def _real_world():
+    """(suite, split) with docs/real's sizes: 721 training windows in 9 episodes, 122 held out."""
+    from types import SimpleNamespace
+
+    import torch
+
+    gen = torch.Generator().manual_seed(0)
+    episode = torch.arange(REAL_FRAMES) * REAL_EPISODES // REAL_FRAMES
+    suite = SimpleNamespace(state=torch.randn(REAL_FRAMES, 8, generator=gen),
+                            action=torch.randn(REAL_FRAMES, 7, generator=gen),
+                            episode_index=episode)
+    held = torch.isin(episode, torch.tensor(HELD_OUT))
+    split = SimpleNamespace(train_frames=torch.nonzero(~held).flatten()[:721],
+                            train_episodes=[e for e in range(REAL_EPISODES) if e not in HELD_OUT],
+                            windows=torch.nonzero(held).flatten()[::3][:122])
+    return suite, split
+
+
+@pytest.mark.parametrize("name", sorted(REAL_STORES))
+def test_screen_real_store(benchmark, tmp_path_factory, name):
+    """One whole screen (bench.screen.measure.screen_features: read and pool both cameras'
+    stored grids, every proxy on [state] and [state, features], entropy) from a store at
+    docs/real's shapes, one thread; the goal: <= 5% of a tiny graft cell (22-34 s here)."""
+    from bench.run.features import PooledView
+    from bench.screen.measure import screen_features
+
+    stored = _real_store(tmp_path_factory.mktemp("real-store"), name)
+    views = {c: PooledView(stored, c, REAL_STORES[name][3]) for c in stored.layout.cameras}
+    suite, split = _real_world()
+    benchmark.pedantic(screen_features, args=(views, suite, split, lambda a: 0.5 * a, 50,
+                                              (name, "smolvla", "spatial")),
+                       rounds=3, iterations=1)
+    print(f"\n{name}: {benchmark.stats.stats.min:.2f} s (min of 3)")

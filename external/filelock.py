@@ -27,3 +27,22 @@ def exclusive(lock_file: Path, on_wait=None):
         yield
     finally:
         os.close(fd)
+
+
+@contextlib.contextmanager
+def try_exclusive(lock_file: Path):
+    """`exclusive` without waiting: yields True holding the lock, or False at once (and holds
+    nothing) when another process holds it. For work that can simply be left to its holder."""
+    lock_file = Path(lock_file)
+    lock_file.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            held = False
+        else:
+            held = True
+        yield held
+    finally:
+        os.close(fd)

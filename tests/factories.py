@@ -17,11 +17,13 @@ from bench.results.store import ResultStore
 
 
 def _default_reference(kind: str, backbone: str, suite: str, encoder: str | None,
-                       seed: int) -> str | None:
-    ref = get_kind(kind).reference(encoder)
+                       seed: int, variant: str | None = None) -> str | None:
+    ref = get_kind(kind).reference_cell(encoder, variant)
     if ref is None:
         return None
-    return cell_id(ref, backbone, suite, encoder if ref == GRAFT else None, seed)
+    ref_kind, ref_variant = ref
+    return cell_id(ref_kind, backbone, suite, encoder if ref_kind != NATIVE else None, seed,
+                   ref_variant)
 
 
 def _scores(values: np.ndarray, n_tasks: int, chunk: int, raw_scale: float) -> Scores:
@@ -69,7 +71,7 @@ def make_record(*, kind: str = GRAFT, backbone: str = "smolvla", suite: str = "s
         values = np.asarray(per_window, dtype=float)
     record = Record(
         Identity(this_id, kind, backbone, suite, encoder, seed, variant,
-                 _default_reference(kind, backbone, suite, encoder, seed)),
+                 _default_reference(kind, backbone, suite, encoder, seed, variant)),
         MeasuredUnder(profile="tiny", protocol=TINY.protocol.to_dict(),
                       protocol_hash=TINY.protocol.hash),
         _scores(values, n_tasks, chunk, raw_scale),

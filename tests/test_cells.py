@@ -71,3 +71,25 @@ def test_a_screen_id_spells_the_encoder_as_its_grafts_cell_id_does():
     for encoder in ("effl:pretrained", "timm:resnet18", "dinov2_s"):
         graft = CellSpec("graft", "smolvla", "spatial", 0, encoder).id
         assert ScreenCase("smolvla", "spatial", encoder).id + "-seed0" == graft
+
+
+def test_staggered_gives_each_backbones_worker_other_encoders_at_the_same_time():
+    """Two workers, one backbone each: at every position of their queues they need different
+    encoders' features (shared per suite: the same order made one worker wait on the other's
+    extraction); one worker, or one backbone: the order is kept."""
+    from bench.grid.cells import staggered
+    from bench.grid.kinds import GRAFT
+
+    profile = with_overrides(TINY, backbones=("pi05", "smolvla"),
+                             encoders=("dinov2_s", "siglip", "pixels", "blind"), seeds=(0, 1))
+    cells = graft_cells(profile) + control_cells(profile)
+    order = staggered(cells, workers=2)
+    assert sorted(order, key=lambda c: c.id) == sorted(cells, key=lambda c: c.id)
+    queues = {b: [c for c in order if c.backbone == b] for b in ("pi05", "smolvla")}
+    for a, b in zip(*queues.values()):
+        assert a.encoder is None or a.encoder != b.encoder, (a.id, b.id)
+    assert [c.encoder for c in queues["smolvla"] if c.kind == GRAFT] == \
+        ["pixels", "pixels", "blind", "blind", "dinov2_s", "dinov2_s", "siglip", "siglip"]
+    assert staggered(cells, workers=1) == cells
+    one = [c for c in cells if c.backbone == "pi05"]
+    assert staggered(one, workers=2) == one

@@ -26,6 +26,7 @@ NOT_RECORDS = {
     "bench/grid/protocol.py": {"protocol"},  # a profile's own dict
     "bench/grid/userworld.py": {"camera_map"},  # a --policy's config
     "bench/run/releases.py": {"backbone", "loss_curve", "revision"},  # release metadata, checkpoint id
+    "bench/grid/pinned_release.py": {"backbone"},  # a pinned release's metadata
     "bench/run/userworld.py": {"revision"},  # a --policy's checkpoint id
     "bench/run/features.py": {"encoder", "grid", "suite"},  # the feature store's manifest
     "bench/run/feature_file.py": {"grid"},  # the feature file's manifest

@@ -259,3 +259,29 @@ def test_where_the_evidence_has_two_maxima_the_fixed_points_is_kept_and_flagged(
     ev, alpha, beta, where = logme_profile(sigma, z, yy, 50)
     assert where == [INTERIOR + HIGHER_ELSEWHERE] and 0 < np.log(alpha / beta)[0] < 2
     assert ev / 50 == pytest.approx(fixed_point(sigma, z, yy, 50), rel=LOGME_REL_TOL)
+
+
+@pytest.mark.parametrize("d", [40, 300])  # the primal and the dual form
+def test_ridge_fold_errors_from_two_small_matrices_equal_the_predictions_own(d):
+    """Spectrum.squared_errors (a^T ((B^T B) o (z z^T)) a - 2 a^T rowsum((B^T Yc) o z) + |Yc|^2)
+    against the summed squared residuals of `predict` at every penalty: equal to rounding."""
+    from bench.screen.estimators import RIDGE_GRID
+
+    fit = synthetic_fit(n=120, m=30, d=d, c=14)
+    spec, basis = fit.spectrum, fit.spectrum.project(fit.heldout_features)
+    want = [((spec.predict(basis, r) - fit.heldout_targets) ** 2).sum() for r in RIDGE_GRID]
+    got = spec.squared_errors(basis, fit.heldout_targets, RIDGE_GRID)
+    assert np.allclose(got, want, rtol=1e-11, atol=0), np.max(np.abs(got / want - 1))
+
+
+def test_knn_folds_from_one_product_choose_what_a_product_per_fold_chooses(monkeypatch):
+    """k-NN's fold distances as blocks of one N x N product (estimators.KNN_GRAM_MAX) give the
+    same k and the same held-out MSE, bit for bit, as a product per fold (the path above it)."""
+    from bench.screen import estimators
+
+    fit = synthetic_fit(n=120, m=30, d=300, c=14)
+    args = (fit.train, fit.train_targets, fit.train_fold, fit.heldout_features,
+            fit.heldout_targets)
+    shared = knn_heldout(*args, weights=fit.weights)
+    monkeypatch.setattr(estimators, "KNN_GRAM_MAX", 0)
+    assert knn_heldout(*args, weights=fit.weights) == shared

@@ -140,19 +140,3 @@ def test_the_short_graft_tier_against_the_graft_by_hand():
     assert eighth.point.top1_regret == pytest.approx(0.01)  # model_1's graft 0.06 - 0.05
     assert short_graft_agreement(grafts(), "smolvla", "spatial", "1_4").missing.startswith(
         "not measured: 0 encoder(s)")
-
-
-def test_the_cost_table_counts_the_extraction_a_screen_found_stored():
-    """A screen that opened the graft's stored features spent 0.017 s; the file took 300 s to
-    extract. The table showed 0.017: the screen looked free."""
-    from bench.report.screen import cost_table
-    from bench.screen.records import ScreenConditions, ScreenScores, new_screen_record
-
-    conditions = ScreenConditions("h", "f", "fp16")
-    stored = [new_screen_record(ScreenScores("dinov2_s", "smolvla", "spatial", seconds=0.5),
-                                conditions, 0.017, extraction_seconds=300.0),
-              new_screen_record(ScreenScores("pixels", "smolvla", "spatial", seconds=0.5),
-                                conditions, 2.0)]  # a record from before extraction_seconds
-    row = next(line for line in cost_table(stored, []).splitlines() if "| smolvla" in line)
-    assert [c.strip() for c in row.strip("|").split("|")][:5] == [
-        "smolvla", "spatial", "2", "0.5", "151"]  # (300 + 2) / 2

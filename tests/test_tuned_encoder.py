@@ -175,9 +175,43 @@ def test_pairs_only_common_seeds_and_says_what_it_cannot_pair():
     study = tuned_vs_frozen(records, n_resamples=50)
     (c,) = study.comparisons
     assert c.seeds == [0] and c.diff == pytest.approx(-0.1)
-    assert study.notes == ["smolvla x spatial: siglip: no seed with both a tuned and a frozen "
-                           "graft cell (tuned seeds [0], frozen seeds [])"]
+    assert study.notes == ["smolvla x spatial: siglip: no seed with both a tuned cell and a "
+                           "frozen graft of as many steps (tuned seeds [0], frozen seeds [])"]
     assert tuned_vs_frozen(records[:1]).comparisons == []  # no tuned cell: nothing to say
+
+
+def test_a_tuned_cell_is_paired_with_the_frozen_graft_of_as_many_steps():
+    """tuned_encoder_1_8 (75 steps) against the short_1_8 graft, the full tuned cell (600)
+    against the graft: two questions, two rankings; never a 75-step cell against a 600-step one."""
+    short_kind = next(k for k in CELL_KINDS.values() if k.tier)
+    tuned_short = next(k.name for k in CELL_KINDS.values()
+                       if k.tune_encoder and k.scaled_steps(600, None) == 75)
+    short_variant = next(v for v in short_kind.variants if short_kind.scaled_steps(600, v) == 75)
+    base = [1.0, 2.0, 3.0, 4.0]
+    records = [make_record(encoder="dinov2_s", per_window=base, train_steps=600),
+               make_record(kind=TUNED, encoder="dinov2_s", per_window=[v - 0.5 for v in base],
+                           train_steps=600),
+               make_record(kind=short_kind.name, variant=short_variant, encoder="dinov2_s",
+                           per_window=[v + 1.0 for v in base], train_steps=75),
+               make_record(kind=tuned_short, encoder="dinov2_s", per_window=[v + 1.2 for v in base],
+                           train_steps=75)]
+    study = tuned_vs_frozen(records, n_resamples=50)
+    got = {c.steps: c for c in study.comparisons}
+    assert sorted(got) == [75, 600] and not study.notes
+    assert got[600].frozen_mse == pytest.approx(2.5) and got[600].diff == pytest.approx(-0.5)
+    assert got[75].frozen_mse == pytest.approx(3.5) and got[75].diff == pytest.approx(0.2)
+    assert [r.steps for r in study.rankings] == [600, 75]
+    # The controls section's reference is the same step-matched twin.
+    assert CellSpec(tuned_short, "smolvla", "spatial", 0, "dinov2_s").reference.id == \
+        records[2].cell_id
+    assert CellSpec(TUNED, "smolvla", "spatial", 0, "dinov2_s").reference.id == records[0].cell_id
+    assert records[3].reference == records[2].cell_id
+    # Without its short twin, the 1/8 cell is named as unpaired, not compared with the graft.
+    alone = tuned_vs_frozen([r for r in records if r.kind != short_kind.name], n_resamples=50)
+    assert [c.steps for c in alone.comparisons] == [600]
+    assert alone.notes == ["smolvla x spatial: dinov2_s at 75 steps: no seed with both a tuned "
+                           "cell and a frozen graft of as many steps (tuned seeds [0], frozen "
+                           "seeds [])"]
 
 
 def test_report_section_renders_the_verdicts_and_is_left_out_without_tuned_cells(tmp_path):

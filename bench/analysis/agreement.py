@@ -18,6 +18,8 @@ The tie rule (one rule, every statistic; quoted in the report, see TIE_RULE):
 
 Pearson r (SimplerEnv reports it beside MMRV) measures linear agreement of the two score
 vectors; it is undefined on the same terms (a side without spread has no correlation).
+Spearman's rho (the Critical Interval MSE study's statistic) is Pearson r of the ranks, tied
+scores sharing their mean rank (SPEARMAN_TIES): under the same rule a tie orders nothing.
 """
 
 from __future__ import annotations
@@ -38,6 +40,10 @@ TIE_RULE = (
     "counts a pair the cheaper tier ties but the graft separates as a violation (SimplerEnv's "
     "definition), top-1 regret takes the worst graft score among the picks tied for first. A "
     "side whose scores all tie has no order: the statistic is reported undefined, with the reason."
+)
+SPEARMAN_TIES = (
+    "Spearman's rho is Pearson r of the ranks, tied scores sharing their mean rank, so a tie "
+    "orders nothing there either."
 )
 
 
@@ -127,6 +133,15 @@ def pearson_r(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
     if isinstance(pair, Undefined):
         return pair
     return float(scipy.stats.pearsonr(*pair).statistic)
+
+
+def spearman_rho(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
+    """Spearman's rank correlation of two (n,) higher-is-better vectors, in [-1, 1]; ties share
+    their mean rank; undefined when a side ties throughout (no order to correlate)."""
+    pair = _ordered(predicted, actual)
+    if isinstance(pair, Undefined):
+        return pair
+    return float(scipy.stats.spearmanr(*pair).statistic)
 
 
 @dataclass(frozen=True)
@@ -219,10 +234,24 @@ def _percentile_intervals(values: dict[str, list[float]], reasons: dict[str, str
 
 
 WITH_PEARSON = (*STATISTICS, "pearson_r")
+# Every statistic by name, for a caller that picks a few (bench.analysis.offline_measures).
+BY_NAME = {"tau_b": kendall_tau_b, "weighted_tau": weighted_tau, "mmrv": mmrv,
+           "top1_regret": top1_regret, "pearson_r": pearson_r, "spearman_rho": spearman_rho}
+
+
+def masked_mean(scores: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """(n,) row means of (n, K) `scores` over the columns `mask` (n, K) keeps (None: all); NaN
+    where a row keeps none (its statistics are then undefined, never 0)."""
+    if mask is None:
+        return scores.mean(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (scores * mask).sum(axis=1) / mask.sum(axis=1)
 
 
 def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: int = 1000,
-                       seed: int = 0, confidence: float = 0.95
+                       seed: int = 0, confidence: float = 0.95, *,
+                       statistics: tuple[str, ...] = WITH_PEARSON,
+                       masks: tuple[np.ndarray, np.ndarray] | None = None
                        ) -> dict[str, Interval | Undefined]:
     """Paired bootstrap when the two tiers are measured on different units: each replicate draws
     the W columns of `predicted` and, independently, the E columns of `actual` with replacement,
@@ -230,20 +259,22 @@ def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: i
     closed-loop success over rollout episodes that every item shares).
 
     predicted: (n, W) per-window scores; actual: (n, E) per-episode scores; both higher is
-    better. Intervals of the four statistics and Pearson r (WITH_PEARSON)."""
+    better. Intervals of `statistics` (names of BY_NAME; default the four and Pearson r).
+    masks: (n, W) and (n, E) 0/1 weights, row i averaging only the columns its masks keep (an
+    item x task pair: its task's windows and episodes); the draws are the same either way."""
     predicted = np.asarray(predicted, dtype=float)
     actual = np.asarray(actual, dtype=float)
     if predicted.ndim != 2 or actual.ndim != 2 or len(predicted) != len(actual):
         raise ValueError(f"predicted must be (n, W) and actual (n, E); got {predicted.shape} and "
                          f"{actual.shape}")
+    pm, am = (None, None) if masks is None else (np.asarray(m, dtype=float) for m in masks)
     rng = np.random.default_rng(seed)
-    values: dict[str, list[float]] = {k: [] for k in WITH_PEARSON}
+    values: dict[str, list[float]] = {k: [] for k in statistics}
     reasons: dict[str, str] = {}
     for _ in range(n_resamples):
         w = rng.integers(0, predicted.shape[1], predicted.shape[1])
         e = rng.integers(0, actual.shape[1], actual.shape[1])
-        s, r = predicted[:, w].mean(axis=1), actual[:, e].mean(axis=1)
-        stats = agreement(s, r)
-        _keep(values, reasons, {k: pearson_r(s, r) if k == "pearson_r" else getattr(stats, k)
-                                for k in WITH_PEARSON})
+        s = masked_mean(predicted[:, w], None if pm is None else pm[:, w])
+        r = masked_mean(actual[:, e], None if am is None else am[:, e])
+        _keep(values, reasons, {k: BY_NAME[k](s, r) for k in statistics})
     return _percentile_intervals(values, reasons, n_resamples, confidence)

@@ -28,6 +28,7 @@ from bench.analysis.agreement import (
     Interval, Measure, Undefined, WITH_PEARSON, agreement, bootstrap_two_axes, kendall_p_value,
     pearson_r,
 )
+from bench.analysis.offline_measures import MeasureAgreement, Rolled, measure_agreements
 from bench.analysis.rankings import CONFIDENCE, PRIMARY
 from bench.grid.kinds import record_label
 from bench.stats import wilson_interval
@@ -71,6 +72,8 @@ class ClosedLoop:
     intervals: dict[str, Interval | Undefined] = field(default_factory=dict)
     n_resamples: int = 0
     missing: str | None = None
+    # Every offline measure's agreement with success (bench.analysis.offline_measures).
+    measures: list[MeasureAgreement] = field(default_factory=list)
 
     @property
     def measured(self) -> bool:
@@ -83,7 +86,9 @@ class ClosedLoop:
         return (ci.low, ci.high) if isinstance(ci, Interval) else None
 
     def to_dict(self) -> dict:
-        out = {k: v for k, v in asdict(self).items() if k not in ("agreement", "intervals")}
+        out = {k: v for k, v in asdict(self).items()
+               if k not in ("agreement", "intervals", "measures")}
+        out["measures"] = [m.to_dict() for m in self.measures]
         out["agreement"] = {k: _jsonable(v) for k, v in self.agreement.items()}
         out["intervals"] = {k: _jsonable(v) for k, v in self.intervals.items()}
         return out
@@ -132,6 +137,8 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     out.agreement["p_value"] = kendall_p_value(predicted, actual)
     out.intervals = bootstrap_two_axes(-per_window, per_episode, n_resamples=n_resamples,
                                        seed=random_seed, confidence=CONFIDENCE)
+    rolled_items = Rolled(out.items, groups, per_episode, np.array([k[0] for k in keys]))
+    out.measures = measure_agreements(rolled_items, n_resamples=n_resamples, seed=random_seed)
     return out
 
 

@@ -2,7 +2,9 @@
 grafting it frozen, per encoder and backbone x suite, and does the encoder ranking change?
 
 A tuned cell is any kind of the table with `tune_encoder` (bench.grid.kinds); its frozen twin is
-the graft cell of the same backbone, suite, encoder and seed. diff = tuned - frozen on normalised
+the cell of the same backbone, suite, encoder and seed that trained the projector alone for the
+same number of steps: the graft for a full-length tuned cell, the short_1_8 graft for
+tuned_encoder_1_8 (both schedules compressed alike). diff = tuned - frozen on normalised
 MSE (negative: tuning helps), averaged over the seeds both have, with the paired window bootstrap
 of the rankings (bench.analysis.rankings: one window resample per replicate shared by every cell;
 seeds kept, not resampled).
@@ -18,7 +20,7 @@ import numpy as np
 from bench.analysis.rankings import (
     DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, paired_window_bootstrap,
 )
-from bench.grid.kinds import GRAFT, kind_of
+from bench.grid.kinds import GRAFT, SHORT_GRAFT, kind_of
 from bench.results.record import NORMALIZED
 
 HELPS, HURTS, UNCLEAR = "tuning helps", "tuning hurts", "no clear difference"
@@ -31,6 +33,7 @@ class TunedComparison:
     backbone: str
     suite: str
     encoder: str
+    steps: int  # training steps of both the tuned cell and its frozen twin
     seeds: list[int]
     frozen_mse: float
     tuned_mse: float
@@ -62,6 +65,7 @@ class TunedRanking:
 
     backbone: str
     suite: str
+    steps: int
     frozen_order: list[str] = field(default_factory=list)
     tuned_order: list[str] = field(default_factory=list)
 
@@ -85,17 +89,20 @@ def _step_seconds(record) -> float:
     return float(train) / steps if steps and train is not None else float("nan")
 
 
-def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, *,
+def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, steps: int, *,
                   n_resamples: int = DEFAULT_RESAMPLES,
                   random_seed: int = 0) -> TunedComparison | str:
-    """Tuned vs frozen for one encoder, or a one-line reason why they cannot be compared."""
-    here = [r for r in records if (r.backbone, r.suite, r.encoder) == (backbone, suite, encoder)]
+    """Tuned vs frozen for one encoder at `steps` training steps, or a one-line reason why they
+    cannot be compared."""
+    here = [r for r in records if (r.backbone, r.suite, r.encoder) == (backbone, suite, encoder)
+            and r.training.train_steps == steps]
     tuned = {int(r.seed): r for r in sorted(here, key=lambda r: r.cell_id) if is_tuned(r)}
-    frozen = {int(r.seed): r for r in here if r.kind == GRAFT}
+    frozen = {int(r.seed): r for r in here if r.kind in (GRAFT, SHORT_GRAFT)}
     seeds = sorted(set(tuned) & set(frozen))
     if not seeds:
-        return (f"{encoder}: no seed with both a tuned and a frozen graft cell (tuned seeds "
-                f"{sorted(tuned)}, frozen seeds {sorted(frozen)})")
+        at = f" at {steps} steps" if steps else ""
+        return (f"{encoder}{at}: no seed with both a tuned cell and a frozen graft of as many "
+                f"steps (tuned seeds {sorted(tuned)}, frozen seeds {sorted(frozen)})")
     cells = [frozen[s] for s in seeds] + [tuned[s] for s in seeds]
     try:
         _, orders = align_windows(cells)
@@ -108,7 +115,7 @@ def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, *,
     boot = paired_window_bootstrap(per_window, leader=0, n_resamples=n_resamples,
                                    random_seed=random_seed)
     return TunedComparison(
-        backbone, suite, encoder, seeds, frozen_mse=float(boot.mean[0]),
+        backbone, suite, encoder, steps, seeds, frozen_mse=float(boot.mean[0]),
         tuned_mse=float(boot.mean[1]), diff=float(boot.diff[1]),
         diff_ci=(float(boot.diff_lo[1]), float(boot.diff_hi[1])),
         tuned_step_s=float(np.mean([_step_seconds(tuned[s]) for s in seeds])),
@@ -116,9 +123,9 @@ def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, *,
 
 
 def tuned_ranking(comparisons: Sequence[TunedComparison]) -> TunedRanking:
-    """Frozen and tuned orders of one backbone x suite's compared encoders."""
+    """Frozen and tuned orders of one backbone x suite's encoders compared at one step count."""
     first = comparisons[0]
-    out = TunedRanking(first.backbone, first.suite)
+    out = TunedRanking(first.backbone, first.suite, first.steps)
     out.frozen_order = [c.encoder for c in sorted(comparisons,
                                                   key=lambda c: (c.frozen_mse, c.encoder))]
     out.tuned_order = [c.encoder for c in sorted(comparisons,
@@ -135,17 +142,19 @@ class TunedStudy:
 
 def tuned_vs_frozen(records: Sequence, *, n_resamples: int = DEFAULT_RESAMPLES,
                     random_seed: int = 0) -> TunedStudy:
-    """Every encoder with tuned cells, per backbone x suite (the rankings' order), and the
-    orders of each backbone x suite; empty when no record is of a tuned kind."""
+    """Every encoder with tuned cells, per backbone x suite (the rankings' order) and step count
+    (a full-length and a 1/8 tuned cell are two questions), and the orders of each; empty when
+    no record is of a tuned kind."""
     study = TunedStudy()
-    keys = sorted({(r.backbone, r.suite, r.encoder) for r in records if is_tuned(r)})
-    order = backbone_order([b for b, _, _ in keys])
-    for backbone, suite in sorted({(b, s) for b, s, _ in keys},
-                                  key=lambda p: (p[1], order.index(p[0]))):
+    keys = sorted({(r.backbone, r.suite, r.training.train_steps, r.encoder)
+                   for r in records if is_tuned(r)})
+    order = backbone_order([b for b, _, _, _ in keys])
+    for backbone, suite, steps in sorted({k[:3] for k in keys},
+                                         key=lambda p: (p[1], order.index(p[0]), -(p[2] or 0))):
         found = []
-        for encoder in sorted(e for b, s, e in keys if (b, s) == (backbone, suite)):
-            got = compare_tuned(records, backbone, suite, encoder, n_resamples=n_resamples,
-                                random_seed=random_seed)
+        for encoder in sorted(e for b, s, n, e in keys if (b, s, n) == (backbone, suite, steps)):
+            got = compare_tuned(records, backbone, suite, encoder, steps,
+                                n_resamples=n_resamples, random_seed=random_seed)
             if isinstance(got, str):
                 study.notes.append(f"{backbone} x {suite}: {got}")
             else:

@@ -12,6 +12,8 @@ Schema (every key optional; lists are TOML arrays):
     control_encoders = ["pixels"]    # encoders the control cells run for
     steps = 60                       # projector steps (the same as [protocol] steps: give one)
     robustness = ["brightness", "blur:1,3"]  # the robustness tier: perturbation kinds (all: every one)
+    pack_grafts = 4                  # graft cells trained per backbone pass (a run setting, not the
+                                     #   protocol: no record changes identity; bench.run.pack_run)
 
     [protocol]                       # any bench.grid.protocol.Protocol field by name, its type kept:
     lr = 0.003                       #   int, float (an int is taken), str, list of str
@@ -32,6 +34,11 @@ replace the file's table):
     mydata = "data/my_dataset"       #   a relative path is relative to the grid file's folder
     [camera_map]                     # POLICY_CAMERA = "DATASET_CAMERA" (short names allowed)
     front = "top"
+
+A committed study's tiny releases, pinned (bench.grid.pinned_release; checked at start-up):
+
+    [releases]                       # BACKBONE = "FOLDER": <backbone>-<content hash>, relative
+    pi05 = "releases/pi05-0123456789abcdef"   # to the grid file's folder; tiny profiles only
 
 Adding a key is one entry in `KEYS` or `TABLES` plus the line of `GridFile.apply` that passes it
 on. A key nothing can pass on yet is rejected, never silently ignored.
@@ -68,12 +75,18 @@ class GridFile:
     protocol: tuple[tuple[str, Any], ...]  # (Protocol field, value)
     # [policies], [datasets], [camera_map] (None: not in the file)
     user_world: tuple[tuple[str, Any], ...] = ()
+    # A run setting, not the profile's: bench.options reads it (--pack-grafts replaces it).
+    pack_grafts: int | None = None
 
     def apply(self, base: Profile) -> Profile:
         """`base` with the file's values and its provenance (grid_file) set."""
         with_file = dataclasses.replace(base, protocol=base.protocol.replace(**dict(self.protocol)),
                                         grid_file=self.info)
         with_file = with_user_world(with_file, **dict(self.user_world))
+        if dict(self.grid).get("releases") and base.source != "tiny":
+            raise _fail(self.info.path, "[releases]", f"pins tiny releases, and profile "
+                        f"{base.name!r} loads real checkpoints; drop [releases] or use a tiny "
+                        "profile (tiny, tiny-full, sim)")
         return with_overrides(with_file, steps=self.steps, **dict(self.grid))
 
 
@@ -131,6 +144,13 @@ def _steps(where: str, key: str, value) -> int:
     problem = range_error("steps", value, where)
     if problem:
         raise GridFileError(problem)
+    return value
+
+
+def _pack_grafts(where: str, key: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise _fail(where, key, f"= {value!r}: give a whole number of grafts per backbone pass "
+                                ">= 1, e.g. pack_grafts = 4 (1: one at a time, the default)")
     return value
 
 
@@ -201,6 +221,7 @@ KEYS: dict[str, Callable] = {
     "control_encoders": _strings,
     "steps": _steps,
     "robustness": _strings,  # perturbations, checked with --robustness's rules (bench.options)
+    "pack_grafts": _pack_grafts,  # passed on by bench.options (a run setting), not by `apply`
 }
 def _named_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
     if not isinstance(table, dict) or not all(isinstance(v, str) and v for v in table.values()):
@@ -227,11 +248,30 @@ def _camera_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
         raise GridFileError(f"{where}: {e}") from None
 
 
+def _releases_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
+    """[releases]: each folder checked now (its content hash), so a tampered pin stops the run
+    at start-up instead of measuring on other weights."""
+    from bench.grid.pinned_release import check_pinned
+
+    if not isinstance(table, dict) or not all(isinstance(v, str) and v for v in table.values()):
+        raise _fail(where, key, f"= {table!r}: give a [{key}] table of BACKBONE = \"FOLDER\"")
+    out = []
+    for backbone, target in table.items():
+        folder = Path(where).parent / Path(target).expanduser()
+        try:
+            pinned = check_pinned(backbone, folder, f"{where}: [{key}]")
+            out.append((backbone, str(pinned.resolve())))
+        except ValueError as e:
+            raise GridFileError(str(e)) from None
+    return tuple(out)
+
+
 TABLES: dict[str, Callable] = {"protocol": _protocol, "policies": _named_table,
-                               "datasets": _named_table, "camera_map": _camera_table}
+                               "datasets": _named_table, "camera_map": _camera_table,
+                               "releases": _releases_table}
 USER_WORLD_TABLES = {"policies": "policies", "datasets": "datasets", "camera_map": "camera_map"}
 PROFILE_FIELDS = ("backbones", "suites", "encoders", "seeds", "controls", "control_encoders",
-                  "robustness")
+                  "robustness", "releases")
 
 
 def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
@@ -251,7 +291,8 @@ def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
                     grid=tuple((k, values[k]) for k in PROFILE_FIELDS if k in values),
                     steps=values.get("steps"), protocol=protocol,
                     user_world=tuple((field, values[t]) for t, field in USER_WORLD_TABLES.items()
-                                     if t in values))
+                                     if t in values),
+                    pack_grafts=values.get("pack_grafts"))
 
 
 def read_grid_file(path: str | Path) -> GridFile:

@@ -43,6 +43,10 @@ def _pooling_grid(native: tuple[int, int], variant: str | None) -> tuple[int, in
     }[variant]
 
 
+# Steps to compare training fractions at: divisible by every fraction of the table.
+_FRACTION_PROBE = 1000
+
+
 @dataclass(frozen=True)
 class CellKind:
     """One kind of cell. `encoder`: "required" (a graft of the named encoder), "none" (the
@@ -126,13 +130,28 @@ class CellKind:
         graft's trained projector instead of training it again; only evaluation differs."""
         return (encoder is not None and not (self.lora or self.tower or self.tune_encoder)
                 and self.grid is _same_grid and self.train_rule(variant) == SAME
-                and self.scaled_steps(1000, variant) == 1000)
+                and self.scaled_steps(_FRACTION_PROBE, variant) == _FRACTION_PROBE)
 
     def reference(self, encoder: str | None) -> str | None:
         """The kind of the cell a control is compared against: its graft, or the native policy."""
         if not self.control:
             return None
         return GRAFT if encoder is not None else NATIVE
+
+    def reference_cell(self, encoder: str | None,
+                       variant: str | None) -> tuple[str, str | None] | None:
+        """(kind, variant) of the cell a control is compared against: a control trained for a
+        fraction of the steps (tuned_encoder_1_8) against the short graft of as many steps, not
+        the full graft; a tier (the short graft itself) against the graft it stands for."""
+        ref = self.reference(encoder)
+        if ref is None:
+            return None
+        steps = self.scaled_steps(_FRACTION_PROBE, variant)
+        if ref != GRAFT or self.tier or steps == _FRACTION_PROBE:
+            return ref, None
+        short = CELL_KINDS[SHORT_GRAFT]
+        matched = [v for v in short.variants if short.scaled_steps(_FRACTION_PROBE, v) == steps]
+        return (SHORT_GRAFT, matched[0]) if matched else (GRAFT, None)
 
     def id_parts(self, encoder: str | None, variant: str | None) -> list[str]:
         """The middle of the cell id (between backbone-suite and seed)."""
@@ -190,6 +209,12 @@ register_kind(CellKind("lora", "the graft plus LoRA on the frozen LM (does a fro
 register_kind(CellKind("tuned_encoder", "the graft with its encoder's weights trained too, at "
                        "the protocol's encoder_lr (does tuning the encoder beat freezing it?)",
                        tune_encoder=True, opt_in=True))
+# The same question at an eighth of the steps (whole schedule compressed, as short_1_8): its
+# frozen twin is the short_1_8 graft. A tuned cell runs its encoder inside every step (a ViT-S at
+# 224 px: ~6-10 s a step on one CPU thread), so this is the one a CPU study can afford.
+register_kind(CellKind("tuned_encoder_1_8", "the tuned-encoder control trained for 1/8 of the "
+                       "steps, against the short_1_8 graft (the frozen twin at the same steps)",
+                       tune_encoder=True, opt_in=True, train_fraction=((None, (1, 8)),)))
 register_kind(CellKind("pooling", "the graft pooled to another token grid",
                        variants=("half", "double", "global"), grid=_pooling_grid,
                        tag="pool_{variant}"))

@@ -197,6 +197,10 @@ class Profile:
     # "kind:severity" (bench.run.perturbations), () = off. Not part of `protocol`: it adds cases
     # (test_robust) and their own records; the cells' numbers do not depend on it.
     robustness: tuple[str, ...] = ()
+    # Pinned tiny releases (the grid file's [releases], bench.grid.pinned_release): (BACKBONE,
+    # FOLDER) pairs loaded instead of training or reusing the cached release. Not part of
+    # `protocol`: the records carry the weights' sha256 (checkpoint revision) instead.
+    releases: tuple[tuple[str, str], ...] = ()
 
     @property
     def data_source(self) -> str:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from bench.analysis.agreement import TIE_RULE, Interval, Undefined
+from bench.analysis.agreement import SPEARMAN_TIES, TIE_RULE, Interval, Undefined
+from bench.analysis.offline_measures import MEASURES, TABLE_STATISTICS
 from bench.analysis.rankings import CONFIDENCE
 from bench.report.context import ReportContext
 from bench.report.format import interval, num, table
@@ -56,12 +57,42 @@ def closed_loop_caveat(ctx: ReportContext) -> str:
             + "a pre-commitment diagnostic for choosing an encoder, not a deployment claim.")
 
 
+MEASURE_COLUMNS = {"tau_b": "Kendall tau-b", "spearman_rho": "Spearman", "pearson_r": "Pearson r",
+                   "mmrv": "MMRV", "top1_regret": "top-1 regret"}
+MEASURES_INTRO = (
+    "Offline measures against success (bench.analysis.offline_measures; predicted: -measure, "
+    "actual: success rate; each statistic with its bootstrap interval, windows and episodes "
+    "drawn as above; 'per task' ranks item x task pairs, each pair's windows and episodes "
+    "only). A measure whose inputs the records lack is 'not measured', never 0. "
+    + SPEARMAN_TIES + " Definitions: "
+    + "; ".join(f"**{m.name}**: {m.definition}" for m in MEASURES) + "."
+)
+
+
+def measures_table(cl) -> str:
+    """One table: a row per offline measure, its agreement statistics with their intervals."""
+    rows = []
+    for m in cl.measures:
+        if m.missing:
+            rows.append([m.name, "not measured", *[""] * len(TABLE_STATISTICS), m.missing])
+            continue
+        cells = [stat_text(m.value[k]) + " " + (interval(m.interval_of(k), 2)
+                                                if m.interval_of(k) else
+                                                f"({stat_text(m.intervals.get(k))})")
+                 for k in TABLE_STATISTICS]
+        rows.append([m.name, len(m.labels), *cells, m.note])
+    return table(rows, ["measure", "rows", *(MEASURE_COLUMNS[k] for k in TABLE_STATISTICS),
+                        "note"])
+
+
 def closed_loop_section(ctx: ReportContext) -> str:
     if not ctx.closed_loop:
         return ("_No cell was rolled out (run with `--rollouts N` on a simulated suite, see "
                 "docs/LIBERO_SIM.md)._")
     parts = [CLOSED_LOOP_INTRO, "Tie rule (here the cheaper tier is offline -MSE and the graft "
              f"score is closed-loop success): {TIE_RULE}"]
+    if any(cl.measures for cl in ctx.closed_loop):
+        parts.append(MEASURES_INTRO)
     for cl in ctx.closed_loop:
         head = f"**{cl.backbone} x {cl.suite}**"
         rows = [[item, ", ".join(map(str, cl.seeds.get(item, []))), num(mse), f"{succ:.1%}",
@@ -85,5 +116,7 @@ def closed_loop_section(ctx: ReportContext) -> str:
                      f"{stat_text(cl.agreement['p_value'], 3)}):\n\n"
                      + table(stats, ["statistic", "value", f"{CONFIDENCE:.0%} bootstrap CI",
                                      "replicates defined"]))
+            if cl.measures:
+                head += f"\n\nOffline measures against success:\n\n{measures_table(cl)}"
         parts.append(head)
     return "\n\n".join(parts)

@@ -17,6 +17,7 @@ from bench.report.context import ReportContext
 from bench.report.study import DISAGREES, NOT_RECORDED, OURS, STUDY, STUDY_SOURCE, compare_records
 
 PHASES = ("build", "features", "train", "eval", "total")
+NOT_RECORDED_RUNTIME = "not recorded"  # a record or screen from before feature_runtime
 
 
 def per_task_section(ctx: ReportContext) -> str:
@@ -144,6 +145,9 @@ def provenance_section(ctx: ReportContext) -> str:
         + (f", {len(res.set_aside)} unreadable record(s) moved aside to `unreadable/` and "
            "measured again" if res.set_aside else ""),
     ]
+    runtimes = extraction_runtimes(records, res.screens)
+    if runtimes:  # stores from before the field: no line, the report as it was
+        lines.append(runtimes)
     grid_files = Counter((g["path"], g["sha256"]) for r in records if (g := r.measured.grid_file))
     if grid_files:  # runs without --grid: no line, the report as it was
         lines.append("Grid file(s): " + ", ".join(f"`{path}` sha256 `{sha}` ({n} cells)"
@@ -166,6 +170,22 @@ def provenance_section(ctx: ReportContext) -> str:
         parts.append("Unreadable or invalid files skipped:\n\n"
                      + table([list(s) for s in res.skipped], ["file", "reason"]))
     return "\n\n".join(parts)
+
+
+def extraction_runtimes(records, screens) -> str | None:
+    """One line: per encoder, the runtime(s) that extracted the stored features its cells
+    (features_mode "cache") and screens read, "not recorded" for records from before the field;
+    None when no record names one."""
+    seen: dict[str, set[str]] = defaultdict(set)
+    for r in records:
+        if r.encoder is not None and r.measured.features_mode == "cache":
+            seen[r.encoder].add(r.measured.feature_runtime or NOT_RECORDED_RUNTIME)
+    for s in screens:
+        seen[s.scores.encoder].add(s.extraction_runtime or NOT_RECORDED_RUNTIME)
+    if not any(v - {NOT_RECORDED_RUNTIME} for v in seen.values()):
+        return None
+    return ("Feature extraction runtime per encoder (bench.run.extraction): "
+            + "; ".join(f"{e}: {', '.join(sorted(v))}" for e, v in sorted(seen.items())))
 
 
 def _timing_tables(records) -> list[str]:

@@ -107,7 +107,26 @@ def caveats(ctx: ReportContext) -> str:
     if len(hashes) > 1:
         lines.append(f"**Warning: records come from {len(hashes)} different protocols** "
                      f"({', '.join(hashes)}); numbers measured under different rules are mixed.")
+    lines += [release_warning(b, cells) for b, cells in mixed_releases(ctx.records).items()]
     return bullets(lines)
+
+
+def mixed_releases(records) -> dict[str, dict[str, list[str]]]:
+    """{backbone: {revision: cell ids}} for each backbone whose records were measured on more
+    than one release (weights sha256 or hub commit): a study continued on another machine."""
+    found: dict[str, dict[str, list[str]]] = {}
+    for r in records:
+        found.setdefault(r.backbone, {}).setdefault(str(r.measured.revision), []).append(r.cell_id)
+    return {b: revs for b, revs in sorted(found.items()) if len(revs) > 1}
+
+
+def release_warning(backbone: str, cells: dict[str, list[str]]) -> str:
+    """The caveat naming each release of `backbone` and the cells measured on it."""
+    parts = [f"{rev}: {', '.join(sorted(ids)[:3])}{' ...' if len(ids) > 3 else ''} "
+             f"({len(ids)} cell(s))" for rev, ids in sorted(cells.items())]
+    return (f"**Warning: {backbone}'s records were measured on {len(cells)} different releases** "
+            f"({'; '.join(parts)}); their numbers are not comparable: measure them again on one "
+            "release, or pin it in the grid file's [releases] (docs/sim/REBUILD.md).")
 
 
 def rankings_section(ctx: ReportContext) -> str:

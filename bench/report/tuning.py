@@ -12,8 +12,9 @@ TITLE = "Tuned encoder vs frozen"
 RULE = (
     "A tuned cell trains the projector AND the encoder's weights (at the protocol's "
     "`encoder_lr`, same steps and schedule; backbone frozen; normalisation statistics and "
-    "dropout in eval mode), its encoder run in the loop; its frozen twin is the graft of the same "
-    "encoder and seed, on stored features. tuned - frozen is normalised MSE averaged over the "
+    "dropout in eval mode), its encoder run in the loop; its frozen twin is the cell of the same "
+    "encoder and seed that trained the projector alone for as many steps, on stored features "
+    "(the graft; for `tuned_encoder_1_8`, the short_1_8 graft). tuned - frozen is normalised MSE averaged over the "
     "seeds both have (negative: tuning helps); the interval is the paired window bootstrap of "
     "the rankings (one window resample per replicate shared by every cell; seeds kept): it is "
     "the held-out windows' uncertainty given the trained cells, not training noise, so a "
@@ -27,31 +28,36 @@ def _ratio(tuned: float, frozen: float) -> str:
     return f"x{num(tuned / frozen, 3)}" if is_num(tuned) and is_num(frozen) and frozen > 0 else "n/a"
 
 
+def _at(steps) -> str:
+    return f" at {steps} steps" if steps else ""
+
+
 def tuning_section(ctx: ReportContext, study: TunedStudy | None = None) -> str | None:
     """None (the section is left out) when no record is of a tuned-encoder kind."""
     study = study or tuned_vs_frozen(ctx.records, n_resamples=ctx.n_resamples or 2000)
     if not study.comparisons and not study.notes:
         return None
-    rows = [[c.backbone, c.suite, c.encoder, ", ".join(map(str, c.seeds)), num(c.frozen_mse),
+    rows = [[c.backbone, c.suite, c.encoder, str(c.steps), ", ".join(map(str, c.seeds)), num(c.frozen_mse),
              num(c.tuned_mse), num(c.diff, 3), interval(c.diff_ci, 3), pct(c.relative),
              c.verdict, f"{num(c.tuned_step_s, 3)} vs {num(c.frozen_step_s, 3)} "
              f"({_ratio(c.tuned_step_s, c.frozen_step_s)})"]
             for c in study.comparisons]
     parts = [RULE]
     if rows:
-        parts.append(table(rows, ["backbone", "suite", "encoder", "seeds", "frozen norm. MSE",
+        parts.append(table(rows, ["backbone", "suite", "encoder", "steps", "seeds", "frozen norm. MSE",
                                   "tuned norm. MSE", "tuned - frozen", f"{CONFIDENCE:.0%} CI",
                                   "relative", "verdict", "s/step tuned vs frozen"]))
     lines = []
     for r in study.rankings:
         if len(r.frozen_order) < 2:
-            lines.append(f"{r.backbone} x {r.suite}: one encoder compared "
+            lines.append(f"{r.backbone} x {r.suite}{_at(r.steps)}: one encoder compared "
                          f"({r.frozen_order[0]}): no ranking to change")
             continue
         change = ("**the ranking changes**" + (f", the leader too ({r.frozen_order[0]} -> "
                                                f"{r.tuned_order[0]})" if r.leader_changed else "")
                   if r.changed else "the ranking is unchanged")
-        lines.append(f"{r.backbone} x {r.suite}: frozen {' > '.join(r.frozen_order)}; tuned "
+        lines.append(f"{r.backbone} x {r.suite}{_at(r.steps)}: frozen "
+                     f"{' > '.join(r.frozen_order)}; tuned "
                      f"{' > '.join(r.tuned_order)} ({change}; point means over each encoder's "
                      "paired seeds, not a test)")
     lines += study.notes

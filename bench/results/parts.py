@@ -12,7 +12,10 @@ NORMALIZED, RAW = "normalized", "raw"  # the two action spaces every score is gi
 SPACES = (NORMALIZED, RAW)
 # Written only when set (absent from records that have none; every other field is always written).
 _OMITTED_WHEN_NONE = {"feature_dtype", "feature_transform", "grid_file", "camera_map", "dataset",
-                      "rollouts", "projector_file", "projector_sha256", "train_steps"}
+                      "feature_runtime",
+                      "rollouts", "projector_file", "projector_sha256", "train_steps",
+                      "chunk_length", "n_action_steps", "per_window_executed", "window_critical",
+                      "critical_rule"}
 
 
 def flat(part) -> dict:
@@ -58,6 +61,9 @@ class MeasuredUnder:
     grid: list | None = None  # the pooled token grid (rows, cols)
     features_mode: str | None = None  # "cache" | "loop" | None (no encoder)
     feature_dtype: str | None = None  # how cached features were stored (absent: float32)
+    # What extracted the stored features (bench.run.extraction): "torch" or an onnxruntime tag
+    # such as "onnxruntime==1.31.1/opset17"; absent: no store read, or a record from before it.
+    feature_runtime: str | None = None
     feature_transform: str | None = None  # a planted degradation: never resumed, never a baseline
     grid_file: dict | None = None
     camera_map: dict | None = None  # a --policy's camera pairing
@@ -92,6 +98,18 @@ class Scores:
     tasks: list[str] | None = None
     per_task: dict[str, dict] | None = None  # task -> {space: mse, "n": windows}
     per_horizon: dict[str, list[float]] | None = None  # space -> (chunk,) per step
+    # What the offline measures of bench.analysis.offline_measures read; None in records from
+    # before them (those measures are then "not measured"). chunk_length: steps per predicted
+    # chunk; n_action_steps: the steps of each chunk the policy executes before it replans.
+    chunk_length: int | None = None
+    n_action_steps: int | None = None
+    # space -> (n_windows,) MSE over each window's first n_action_steps real steps; written only
+    # when n_action_steps < chunk_length (otherwise it is per_window, bit for bit).
+    per_window_executed: dict[str, list[float]] | None = None
+    # (n_windows,) whether the window's scored span nears a gripper open/close event, and the
+    # rule's parameters (bench.suites.critical), so records made under another rule never mix.
+    window_critical: list[bool] | None = None
+    critical_rule: dict | None = None
 
     def mse_in(self, space: str = NORMALIZED) -> float:
         return float(self.mse[space])
@@ -167,6 +185,11 @@ class RunInfo:
     @property
     def total_s(self) -> float | None:
         return self.timings_s.get("total")
+
+    @property
+    def rollout_action_steps(self) -> int | None:
+        """Chunk steps the stored rollouts executed before replanning; None: no rollouts."""
+        return ((self.rollouts or {}).get("spec") or {}).get("n_action_steps")
 
     def has_rollouts(self, episodes_per_task: int) -> bool:
         """Whether closed-loop episodes of this size (or the kind's skip line) are stored."""

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.grid.kinds import GRAFT
-from external.filelock import exclusive
+from external.filelock import exclusive, try_exclusive
 from bench.results.current import RunConditions, is_current
 from bench.results.record import Failure, Record
 from bench.screen.records import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
@@ -320,6 +320,25 @@ class ResultStore:
                 yield
             finally:
                 held.discard(path)
+
+    @contextlib.contextmanager
+    def try_cell_lock(self, cell_id: str):
+        """`cell_lock` without waiting (a packed graft's mates, bench.run.pack_run): yields True
+        holding the claim, False at once when another process holds it (the cell is left to it).
+        Within this thread a claim already held counts as held."""
+        path = self.claim_path(cell_id)
+        held = _HELD.__dict__.setdefault("paths", set())
+        if path in held:
+            yield True
+            return
+        with try_exclusive(path) as claimed:
+            if claimed:
+                held.add(path)
+            try:
+                yield claimed
+            finally:
+                if claimed:
+                    held.discard(path)
 
     def set_aside(self, cell_id: str) -> str | None:
         """Move a stored record that cannot be read (truncated, not JSON, invalid) to

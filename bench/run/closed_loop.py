@@ -22,7 +22,7 @@ from torch import Tensor
 from bench.progress import ProgressSink
 from bench.results.provenance import stable_seed
 from external.libero_format import LIBERO_ACTION_DIM, STATE_KEY
-from bench.run.evaluate import sample_grafted
+from bench.run.evaluate import executed_steps, sample_grafted
 from bench.grid.kinds import NO_CLOSED_LOOP, ZERO
 from external.libero_format import LIBERO_SUITES
 
@@ -172,7 +172,7 @@ def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *,
     from bench.sim.rollout import IN_PROCESS, LIBERO, run_rollouts
 
     scenes = scenes or LIBERO
-    spec = rollout_spec(suite, episodes_per_task, backbone.info.chunk_size, scenes.descriptions)
+    spec = rollout_spec(suite, episodes_per_task, executed_steps(backbone), scenes.descriptions)
     render = suite_render(suite)
     act = cell_act(cell, backbone, noise_seed=spec.seed, graft=graft, perturb=perturb)
     log = (store.episode_log(log_id or cell.id, rollout_log_key(spec, render, policy))
@@ -181,7 +181,10 @@ def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *,
                        finished=log.finished() if log else [],
                        on_episode=log.add if log else None, scenes=scenes,
                        batching=batching or IN_PROCESS)
-    return {**out, "spec": asdict(spec)}
+    # Each task's instruction, so an episode's LIBERO task id meets the record's task name
+    # (per-task success against per-task MSE: bench.analysis.offline_measures).
+    texts = scenes.descriptions(spec.suite)
+    return {**out, "spec": asdict(spec), "task_names": {str(t): texts[t] for t in spec.tasks}}
 
 
 def suite_render(suite):

@@ -5,11 +5,14 @@
 - the backbone's own sampler, default step count, with noise fixed per window (common random
   numbers): the noise of a window depends only on (eval_noise_seed, window frame id);
 - only the real action dims (LIBERO: 7) and only real chunk steps (action_is_pad masked);
-- normalised (the policy's action space) and raw units; per window, per task, per horizon step.
+- normalised (the policy's action space) and raw units; per window, per task, per horizon step;
+- for the offline measures (bench.analysis.offline_measures): per window over only the steps the
+  policy executes before it replans, and which windows are task-critical (bench.suites.critical).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import torch
@@ -18,6 +21,7 @@ from torch import Tensor
 from backbones.base import Backbone
 from bench.results.provenance import stable_seed
 from bench.results.record import NORMALIZED, RAW, Scores, task_score
+from bench.suites.critical import critical_rule, critical_windows
 from bench.suites.windows import raw_batch
 from bench.run.train import frozen_autocast
 
@@ -43,6 +47,22 @@ def masked_sq_error(pred: Tensor, target: Tensor, valid: Tensor) -> tuple[Tensor
     sq = (pred - target).pow(2).mean(dim=-1) * valid
     per_window = sq.sum(dim=1) / valid.sum(dim=1).clamp(min=1)
     return per_window, sq
+
+
+def executed_steps(backbone: Backbone) -> int:
+    """Chunk steps the cell's policy executes before it replans: the closed loop
+    (bench.run.closed_loop) runs the whole chunk, as LeRobot's n_action_steps = chunk_size in
+    every policy built here, so offline scoring and rollouts read this one number."""
+    return backbone.info.chunk_size
+
+
+def prefix_window_error(per_step: Tensor, valid: Tensor, n_steps: int) -> Tensor:
+    """(B,) mean squared error over each window's first `n_steps` real steps.
+
+    per_step: (B, T) masked_sq_error's per-step error; valid: (B, T) bool. With n_steps = T it is
+    masked_sq_error's per-window error, bit for bit (the same reductions over the same values)."""
+    head = valid[:, :n_steps]
+    return per_step[:, :n_steps].sum(dim=1) / head.sum(dim=1).clamp(min=1)
 
 
 @torch.no_grad()
@@ -76,6 +96,8 @@ def score(
     info = backbone.info
     chunk = info.chunk_size
     err = {NORMALIZED: [], RAW: []}
+    executed = {NORMALIZED: [], RAW: []}
+    n_exec = executed_steps(backbone)
     horizon_sum = {NORMALIZED: torch.zeros(chunk), RAW: torch.zeros(chunk)}
     horizon_n = torch.zeros(chunk)
     device = next(backbone.policy.parameters()).device
@@ -100,11 +122,27 @@ def score(
         for space, (p, t) in pairs.items():
             per_window, per_step = masked_sq_error(p, t, valid)
             err[space].append(per_window)
+            executed[space].append(prefix_window_error(per_step, valid, n_exec))
             horizon_sum[space] += per_step.sum(dim=0)
         horizon_n += valid.sum(dim=0)
     per_window = {k: torch.cat(v) for k, v in err.items()}
-    return summarise(suite, windows, per_window, {k: v / horizon_n.clamp(min=1)
-                                                  for k, v in horizon_sum.items()})
+    scores = summarise(suite, windows, per_window, {k: v / horizon_n.clamp(min=1)
+                                                    for k, v in horizon_sum.items()})
+    return with_measure_inputs(scores, suite, windows, chunk, n_exec,
+                               {k: torch.cat(v) for k, v in executed.items()})
+
+
+def with_measure_inputs(scores: Scores, suite, windows: Tensor, chunk: int, n_action_steps: int,
+                        executed: dict[str, Tensor]) -> Scores:
+    """`scores` with what the offline measures read: the chunk and executed step counts, the
+    per-window error over the executed steps (kept only when it is not per_window itself) and
+    the critical-window flags with their rule."""
+    kept = ({k: v.tolist() for k, v in executed.items()} if n_action_steps < chunk else None)
+    critical = critical_windows(suite, windows, chunk)  # None: no gripper in these actions
+    return dataclasses.replace(
+        scores, chunk_length=chunk, n_action_steps=n_action_steps, per_window_executed=kept,
+        window_critical=critical.tolist() if critical is not None else None,
+        critical_rule=critical_rule() if critical is not None else None)
 
 
 def summarise(suite, windows: Tensor, per_window: dict[str, Tensor],

@@ -127,9 +127,10 @@ class PooledView:
     summation order only (~1e-7), far below the storage rounding."""
 
     def __init__(self, stored: fs.StoredFeatures, camera: str, grid: tuple[int, int],
-                 transform: FeatureTransform | None = None):
+                 transform: FeatureTransform | None = None, runtime: str | None = None):
         lay = stored.layout
         self.stored, self.camera, self.grid, self.transform = stored, camera, grid, transform
+        self.runtime = runtime  # what extracted the file: "torch" or an onnxruntime tag
         self._index = lay.cameras.index(camera)
         self.shape = torch.Size((lay.frames, grid[0] * grid[1], lay.channels))
 
@@ -150,6 +151,14 @@ class PooledView:
         return pooled.reshape(*index.shape, *pooled.shape[1:])
 
 
+def feature_runtime(views: dict | None) -> str | None:
+    """The runtime that extracted stored feature `views` ({camera: PooledView}): "torch" or an
+    extraction.onnx_tag(); None for no store (the encoder in the loop) or views that do not say
+    (in-memory arrays)."""
+    tags = {getattr(v, "runtime", None) for v in (views or {}).values()}
+    return tags.pop() if len(tags) == 1 else None
+
+
 class FeatureStore:
     """The session's stored features under `root`: each file built once (resumably), opened once
     and kept open, shared by every cell that reads it. `runtime`: what extracts (a key of
@@ -166,6 +175,7 @@ class FeatureStore:
         self.chunk_frames, self.chunk_done, self.runtime = chunk_frames, chunk_done, runtime
         self._open: dict[str, fs.StoredFeatures] = {}  # key without grid -> open file
         self._runs: dict[Encoder, extraction.OnnxExtractor | None] = {}  # one export an encoder
+        self._tags: dict[str, str] = {}  # key without grid -> the runtime that extracted it
 
     def layout(self, encoder: Encoder, suite: FeatureSource, tag: str | None = None) -> fs.Layout:
         """What the file of (encoder, suite) holds; probes the encoder once on frame 0. `tag`:
@@ -191,12 +201,14 @@ class FeatureStore:
         """The open file of (encoder, suite), built first if no completed one exists."""
         memo = feature_key(encoder, suite, None, self.dtype)
         if memo not in self._open:
-            layout, run = self.layout(encoder, suite), None
-            if not self.path(layout).exists() and extraction.planned_tag(encoder,
-                                                                          self.runtime) != "torch":
+            tag, run = extraction.planned_tag(encoder, self.runtime), None
+            layout = self.layout(encoder, suite, tag)
+            if not self.path(layout).exists() and tag != "torch":
                 run = self._run(encoder, suite)  # exported and checked only to build
                 if run is None:  # it failed: torch extracts, keyed as torch's
-                    layout = self.layout(encoder, suite, "torch")
+                    tag = "torch"
+                    layout = self.layout(encoder, suite, tag)
+            self._tags[memo] = tag
             path = self.path(layout)
             if path.exists():
                 self._open[memo] = self._reopen(path, layout)
@@ -219,7 +231,9 @@ class FeatureStore:
                         transform: FeatureTransform | None = None) -> dict[str, PooledView]:
         """{camera: PooledView} of (encoder, suite) at `target_grid`; nothing is read yet."""
         stored = self.stored(encoder, suite)
-        return {c: PooledView(stored, c, target_grid, transform) for c in suite.camera_keys}
+        runtime = self._tags[feature_key(encoder, suite, None, self.dtype)]
+        return {c: PooledView(stored, c, target_grid, transform, runtime)
+                for c in suite.camera_keys}
 
     def _reopen(self, path: Path, layout: fs.Layout) -> fs.StoredFeatures:
         try:
@@ -253,3 +267,4 @@ class FeatureStore:
         for stored in self._open.values():
             stored.close()
         self._open.clear()
+        self._tags.clear()

@@ -10,12 +10,13 @@ is its own cell's. Clipping, AdamW and the schedule stay per cell. What differs 
 `fit` is the float rounding of batched kernels only (tests/test_packed.py measures how much).
 
 Not packable: cells that change the backbone (LoRA) or train their encoder (`other_lrs`).
-`train_pack` trains grid cells so; no option routes a run's cells through it yet (the service
-still measures one cell at a time).
+`train_pack` trains grid cells so; `--pack-grafts K` (grid-file key `pack_grafts`) routes a
+run's cells through it (bench.run.pack_run).
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -163,12 +164,15 @@ def _packed_losses(backbone: Backbone, active: list[_Run], step: int,
 @dataclass
 class PackedGraft:
     """One graft cell trained in a pack: its graft (projector trained, in eval mode) and what its
-    training gave (runner.Fitted, as runner.train_graft gives it alone), or the error."""
+    training gave (runner.Fitted, as runner.train_graft gives it alone), or the error; `timings`
+    (seconds): its build and features, and as train its probe losses plus its 1/K share of the
+    pack's training (the shares of a pack sum to its wall time)."""
 
     cell: object  # bench.grid.cells.CellSpec
     graft: object  # bench.run.runner.Graft
     fitted: object = None  # bench.run.runner.Fitted
     error: Exception | None = None
+    timings: dict = field(default_factory=dict)
 
 
 def packable(cell) -> str | None:
@@ -205,20 +209,29 @@ def train_pack(cells: Sequence, ws, contexts: Sequence, label: str = "packed") -
     device, probe = next(backbone.policy.parameters()).device, probe_frames(split.train_frames)
     packed, members = [], []
     for cell, context in zip(cells, contexts):
+        t0 = time.perf_counter()
         inputs = cell_inputs(cell, p, ws.suite(cell.suite), split, backbone, device)
+        t1 = time.perf_counter()
         graft = build_graft(cell, ws, backbone, inputs, context)
+        t2 = time.perf_counter()
         next_batch = inputs.train_batches(cell.spec.train_rule(cell.variant))
         cfg = graft_fit_config(cell, p)  # runner.train_graft's own schedule
         before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
-        packed.append((PackedGraft(cell, graft), next_batch, before, cfg))
+        timings = {"build": t1 - t0, "features": t2 - t1, "train": time.perf_counter() - t2}
+        packed.append((PackedGraft(cell, graft, timings=timings), next_batch, before, cfg))
         members.append(PackedCell(cell.id, list(graft.projector.parameters()), graft.feed,
                                   split.train_frames, next_batch, cell.seed, cfg))
+    t0 = time.perf_counter()
     fits = fit_packed(backbone, members, members[0].cfg, label=label, progress=ws.progress)
+    share = (time.perf_counter() - t0) / len(members)
     for (item, next_batch, before, cfg), fitted in zip(packed, fits):
+        item.timings["train"] += share
         if fitted.error is not None:
             item.error = fitted.error
             continue
+        t0 = time.perf_counter()
         after = probe_loss(backbone, item.graft.feed, next_batch, probe, p.split_seed)
+        item.timings["train"] += time.perf_counter() - t0
         item.graft.projector.eval()
         item.fitted = Fitted(fitted.curve, {"before": before, "after": after}, steps=cfg.steps)
     return [item for item, _, _, _ in packed]

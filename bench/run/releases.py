@@ -4,7 +4,8 @@ A random-init tiny VLA has no meaningful native tower, so the offline world trai
 policy natively (all of it, its own tower included) on the training episodes of the tiny suites,
 saves it with save_pretrained and from then on loads it through the same from_pretrained path as
 a real checkpoint. Deterministic, keyed by (config, data fingerprints, protocol), rebuilt only
-when missing.
+when missing. The key does not hold the CPU's kernels or the thread count, which change the
+weights (docs/sim/REBUILD.md): a committed study pins its release (bench.grid.pinned_release).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from backbones.hub import saved_normalizer_stats
 from external.filelock import exclusive
 from external.hubcache import download_command, folder_revision, resolved_revision
 from bench.progress import ProgressSink, say
+from bench.grid.pinned_release import check_pinned
 from bench.grid.protocol import Profile, Protocol
 from bench.results.provenance import stable_seed
 from bench.run.augment import shift_images
@@ -156,6 +158,9 @@ def normalizer_for(name: str, profile: Profile, suites, train_frames) -> Normali
     """The normaliser of backbone `name` on `suites` (hub "dataset" stats: ONE suite, so that its
     numbers do not depend on which other suites a run selects)."""
     entry = get_entry(name)
+    pinned = dict(profile.releases).get(name)
+    if pinned is not None:  # its own stats: this machine's suites may render other frames
+        return Normalizer("checkpoint", None, stats_fingerprint(saved_normalizer_stats(pinned)))
     if profile.source != "hub":  # the tiny release keeps what it was trained with: all suites
         stats = union_stats(suites, train_frames)
         return Normalizer("checkpoint", None, stats_fingerprint(stats))
@@ -206,6 +211,8 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
         say(progress, f"policy {name}: loading {entry.repo_id} from the hub cache")
         backbone = module.load_policy(entry.repo_id, stats=stats, revision=entry.revision)
         return backbone, checkpoint_id(name, profile)
+    if name in dict(profile.releases):
+        return load_pinned(name, profile, progress)
     # The untrained build (seed 0) both keys the cache and, on a miss, is what gets trained.
     side, tiny_stats = profile.protocol.tiny_image_size, union_stats(suites, train_frames)
     untrained = module.build_tiny_policy(tiny_stats, suites[0].camera_keys, image_hw=(side, side),
@@ -228,3 +235,11 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
                 train_tiny_release(name, untrained, profile, suites, train_frames, folder,
                                    chunk_size, progress)
     return module.load_policy(str(folder)), checkpoint_id(name, profile, folder)
+
+
+def load_pinned(name: str, profile: Profile, progress: ProgressSink):
+    """(the pinned release of `name` (the grid file's [releases]), its checkpoint_id), its
+    content hash checked again: the folder may have changed since start-up."""
+    folder = check_pinned(name, dict(profile.releases)[name], "[releases]")
+    say(progress, f"policy {name}: the pinned release {folder} (not trained, not the cache's)")
+    return adapter_module(name).load_policy(str(folder)), checkpoint_id(name, profile, folder)

@@ -14,6 +14,7 @@ from safetensors.torch import load_file, save_file
 
 from bench.grid.cells import CellSpec
 from bench.run.evaluate import derangement, score
+from bench.run.features import feature_runtime
 from bench.run.graft import assert_only_trainable, trainable_parameters, tunable_copy
 from bench.run.projectors import save_projector
 from graftcore.graft import GraftFeed, Projector
@@ -119,8 +120,21 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
         timings["train"] = time.perf_counter() - t0
     else:
         timings["features"] = timings["train"] = 0.0
+    record = score_and_write(cell, ws, context, backbone, inputs, graft, training, timings,
+                             spent=time.perf_counter() - t_start)
+    return CellResult(record, trained)
 
-    t0 = time.perf_counter()
+
+def score_and_write(cell: CellSpec, ws: Workspace, context: CellContext, backbone,
+                    inputs: CellInputs, graft: Graft | None, training: Fitted,
+                    timings: dict[str, float], spent: float):
+    """The cell's trained graft (or none) scored on the held-out windows, rolled out when the run
+    asks, and its record written (returned). `timings`: the phases so far (seconds); `spent`:
+    the seconds they took in all (a packed cell: its share of the pack, bench.run.pack_run)."""
+    p, kind = ws.profile.protocol, cell.spec
+    suite, split = ws.suite(cell.suite), ws.split(cell.suite)
+    device = next(backbone.policy.parameters()).device
+    t_scoring = t0 = time.perf_counter()
     scores = score(backbone, suite, split.windows, p.eval_batch_size, p.eval_noise_seed,
                    feed=graft.feed if graft else None,
                    features_for=inputs.eval_features(kind.eval_inputs),
@@ -138,7 +152,7 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
             policy=policy_fingerprint(backbone, feed, json.dumps(asdict(measured),
                                                                  sort_keys=True, default=str)))
         timings.update(rollouts=time.perf_counter() - t0)  # the phase (a timings_s entry)
-    timings["total"] = time.perf_counter() - t_start
+    timings["total"] = spent + time.perf_counter() - t_scoring
 
     record = new_record(
         cell,
@@ -152,7 +166,7 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
                     hardware=hardware(), versions=versions(), git_commit=git_commit(),
                     rollouts=rollouts))
     ws.store.write(record)
-    return CellResult(record, trained)
+    return record
 
 
 def cell_inputs(cell: CellSpec, p, suite, split, backbone, device) -> CellInputs:
@@ -232,14 +246,20 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
                 feed=graft.feed, label=cell.id, progress=ws.progress, other_lrs=tuned)
     probe_losses = {"before": before,
                     "after": probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)}
-    kept = None
-    if context.keep_as is not None:
-        path = ws.session_dir() / f"projector-{cell.id}.safetensors"
-        save_file({k: v.detach().cpu().contiguous()
-                   for k, v in graft.projector.state_dict().items()}, path)
-        kept = TrainedProjector(path, curve, probe_losses, cell.id)
+    kept = (keep_projector(cell, ws, graft, curve, probe_losses)
+            if context.keep_as is not None else None)
     graft.projector.eval()
     return Fitted(curve, probe_losses, steps=fit_cfg.steps), kept
+
+
+def keep_projector(cell: CellSpec, ws: Workspace, graft: Graft, curve: list,
+                   probe_losses: dict) -> TrainedProjector:
+    """The trained projector saved for the session, for a later cell that takes it (the plan's
+    `CellContext.keep_as`)."""
+    path = ws.session_dir() / f"projector-{cell.id}.safetensors"
+    save_file({k: v.detach().cpu().contiguous()
+               for k, v in graft.projector.state_dict().items()}, path)
+    return TrainedProjector(path, curve, probe_losses, cell.id)
 
 
 def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
@@ -256,6 +276,7 @@ def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
         grid=list(inputs.grid),
         features_mode=features_mode if inputs.encoder is not None else None,
         feature_dtype=ws.feature_dtype if inputs.features is not None else None,
+        feature_runtime=feature_runtime(inputs.features),
         # never resumed, never a baseline
         feature_transform=(getattr(transform, "description", "a feature transform")
                            if transform is not None else None),

@@ -8,7 +8,9 @@ record aside, plans (bench.run.plan: resume the stored record or measure, with w
 through its `measure_with` (here, or in an array task), writes a failure record when that
 raises, keeps the projector a later cell takes, and returns the record with a typed outcome
 (bench.run.outcome). The screen's measurements go through `screen` alike (bench.run.screen_run
-keeps only the selection), and its short grafts through `run`.
+keeps only the selection), and its short grafts through `run`. With `pack_grafts` > 1 a measured
+cell may lead a pack of graft cells trained together (bench.run.pack_run), each still claimed,
+written, failed and reported one by one.
 
 It imports nothing of pytest: the session turns what it raises into a case's failure.
 """
@@ -28,12 +30,14 @@ from bench.run.plan import CellPlan, CellResult, plan
 @dataclass(frozen=True)
 class RunSettings:
     """How this run measures (its options, not the protocol): measure again whatever is stored
-    (`rerun`), the features mode, the stored features' dtype, closed-loop episodes per task."""
+    (`rerun`), the features mode, the stored features' dtype, closed-loop episodes per task,
+    graft cells trained per backbone pass (`pack_grafts`, bench.run.pack_run; 1: one at a time)."""
 
     rerun: bool = False
     features_mode: str = "cache"
     feature_dtype: str = "fp16"
     rollouts: int = 0
+    pack_grafts: int = 1
 
 
 def measure_here(cell: CellSpec, ws, context) -> CellResult:
@@ -48,32 +52,40 @@ class CellService:
     the (lazy) workspace; `runner(cell, ws, context) -> CellResult` measures in this process;
     `measure_with(plan) -> CellResult`, when given, measures elsewhere (a job array);
     `feature_transform(cell)`: a planted degradation for the cell (the baseline's), or None;
-    `order()`: the run's selected cell ids, for "cell i/n" in the start line."""
+    `order()`: the run's selected cell ids, for "cell i/n" in the start line;
+    `pack_candidates(cell)`: the selected cells that may share `cell`'s pack, in run order
+    (with `settings.pack_grafts` > 1; bench.run.pack_run picks and claims its mates)."""
 
     def __init__(self, profile, store, workspace: Callable, settings: RunSettings, *,
                  runner: Callable = measure_here, measure_with: Callable | None = None,
                  feature_transform: Callable = lambda cell: None,
                  order: Callable[[], Sequence[str]] = tuple, claim: bool = True,
-                 projectors: dict | None = None) -> None:
+                 projectors: dict | None = None,
+                 pack_candidates: Callable[[CellSpec], Sequence[CellSpec]] = lambda cell: ()
+                 ) -> None:
         self.profile, self.store, self.workspace, self.settings = profile, store, workspace, settings
         self.runner, self.measure_with = runner, measure_with
         self.feature_transform, self.order, self.claim = feature_transform, order, claim
+        self.pack_candidates = pack_candidates
         # Projectors measured cells handed back (CellContext.keep_as): later plans take them.
         self.projectors: dict = {} if projectors is None else projectors
         self.records: dict = {}  # cell id -> the Record this service measured or resumed
         self.outcomes: dict[str, Outcome] = {}  # cell id -> what became of it
+        # A pack mate whose training failed: its case raises this when reached (not retrained).
+        self.pack_failures: dict[str, Exception] = {}
         self.set_aside_lines: list[str] = []  # unreadable records moved aside (store.set_aside)
 
     # --- one cell ---------------------------------------------------------------------------
     def run(self, cell: CellSpec):
         """The cell's record: resumed when the stored one stands for this run, else measured
         and written (a failure record when measuring raises, then the error)."""
-        if cell.id in self.records:  # a short graft the selection ran before its own case
+        # A short graft the selection ran before its own case, or a mate of an earlier pack.
+        if cell.id in self.records:
             return self.records[cell.id]
+        if cell.id in self.pack_failures:  # its pack's training failed it: record written
+            raise self.pack_failures[cell.id]
         with self._claim(cell):  # another process on this results dir: wait, then resume
-            if (line := self.store.set_aside(cell.id)) is not None:
-                self.set_aside_lines.append(line)
-                say(self.progress(), line)
+            self.set_aside(cell)
             cell_plan = self.plan(cell)
             if cell_plan.resume is not None:
                 record, outcome = cell_plan.resume, RESUMED
@@ -95,6 +107,12 @@ class CellService:
 
     def progress(self):
         return self.workspace().progress
+
+    def set_aside(self, cell: CellSpec) -> None:
+        """Move `cell`'s unreadable stored record aside, saying so (call it under its claim)."""
+        if (line := self.store.set_aside(cell.id)) is not None:
+            self.set_aside_lines.append(line)
+            say(self.progress(), line)
 
     # --- one screen ---------------------------------------------------------------------------
     def screen_conditions(self, backbone: str, suite: str):
@@ -146,18 +164,32 @@ class CellService:
             self.store.forget(cell.id)
         self._say_start(cell_plan)
         try:
-            result = (self.measure_with(cell_plan) if self.measure_with is not None
-                      else self.runner(cell, self.workspace(), cell_plan.context))
-        except Exception as e:
-            from bench.results.record import Failure
+            if self.measure_with is not None:
+                result = self.measure_with(cell_plan)
+            elif self.settings.pack_grafts > 1 and self.claim:
+                from bench.run.pack_run import measure_packed
 
-            self.store.write_failure(Failure.of(cell, self.profile.protocol.hash, e))
-            self.outcomes[cell.id] = failed(f"{type(e).__name__}: {e}")
+                result = measure_packed(self, cell_plan)  # with mates, when it finds them
+            else:
+                result = self.runner(cell, self.workspace(), cell_plan.context)
+        except Exception as e:
+            self.note_failure(cell, e)
             raise
+        return self.note_measured(cell_plan, result)
+
+    def note_failure(self, cell: CellSpec, error: Exception) -> None:
+        """`cell`'s failure record written and its outcome set (the error is the caller's)."""
+        from bench.results.record import Failure
+
+        self.store.write_failure(Failure.of(cell, self.profile.protocol.hash, error))
+        self.outcomes[cell.id] = failed(f"{type(error).__name__}: {error}")
+
+    def note_measured(self, cell_plan: CellPlan, result: CellResult):
+        """What measuring `cell_plan` gave, kept: the projector a later cell takes, one line."""
         if result.trained is not None:
             self.projectors[cell_plan.context.keep_as] = result.trained
         record = result.record
-        say(self.progress(), f"{cell.id}: MSE {record.mse_in():.4f} normalised "
+        say(self.progress(), f"{record.cell_id}: MSE {record.mse_in():.4f} normalised "
                              f"({record.run.total_s:.1f} s)")
         return record
 

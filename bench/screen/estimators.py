@@ -31,11 +31,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bench.screen.spectral import (CONSTANT_REL_VAR, ZERO_EIGEN_REL, Spectrum, logme_profile,
-                                   spectrum, standardiser)
+                                   spectrum, standard_parts)
 from bench.stats import Measure, Undefined
 
 RIDGE_GRID = tuple(float(r) for r in np.logspace(-4, 2, 13))
 KNN_GRID = (1, 2, 3, 5, 8, 13, 21, 34, 55)
+KNN_GRAM_MAX = 8192  # training windows up to which k-NN's folds share one N x N product (512 MB)
 
 
 @dataclass
@@ -264,20 +265,20 @@ def ridge_windows(train: np.ndarray, targets: np.ndarray, fold: np.ndarray,
     """ridge_heldout from the windows themselves: train (N, D), targets (N, C), fold (N,) the
     episode fold of each (>= 2), heldout (M, D), (M, C); `spec` the Spectrum of all training
     windows if made already. One decomposition per fitting set, in the cheaper form, serves
-    every penalty; errors are summed from the residuals themselves."""
+    every penalty; each fold's errors at every penalty come from two r x r matrices
+    (Spectrum.squared_errors)."""
     folds = np.unique(fold)
     if len(folds) < 2:
         return Undefined(f"{len(folds)} training episode fold(s): the penalty cannot be chosen "
                          "on training episodes"), None
-    y = np.asarray(targets, float)
+    x, y = np.asarray(train, float), np.asarray(targets, float)  # converted once, not per fold
     errors = np.zeros(len(RIDGE_GRID))
     for f in folds:
         inside = fold == f
-        fit = spectrum(train[~inside], y[~inside])
+        fit = spectrum(x[~inside], y[~inside])
         if isinstance(fit, Undefined):
             return fit, None
-        basis = fit.project(train[inside])
-        errors += [float(((fit.predict(basis, r) - y[inside]) ** 2).sum()) for r in RIDGE_GRID]
+        errors += fit.squared_errors(fit.project(x[inside]), y[inside], RIDGE_GRID)
     best = max(i for i, e in enumerate(errors) if e <= min(errors))  # ties: the larger penalty
     fit = spectrum(train, y) if spec is None else spec
     if isinstance(fit, Undefined):
@@ -289,27 +290,33 @@ def ridge_windows(train: np.ndarray, targets: np.ndarray, fold: np.ndarray,
 
 
 def _standardiser(features: np.ndarray, weights: np.ndarray | None = None):
-    """f(x) -> standardised kept columns (times `weights` (D,) when given), by `features`' own
-    mean and std; or Undefined."""
-    stats = standardiser(features)
+    """(f(x) -> standardised kept columns (times `weights` (D,) when given), f(features)), by
+    `features`' own mean and std; or Undefined. f(features) is scaled from the centred copy the
+    statistics were computed on (the same numbers as calling f)."""
+    stats = standard_parts(features)
     if isinstance(stats, Undefined):
         return stats
-    keep, mean, scale = stats
+    keep, mean, scale, centred = stats
     factor = (np.ones(len(keep)) if weights is None else np.asarray(weights, float))[keep]
-    return lambda x: (np.asarray(x, float)[:, keep] - mean[keep]) / scale[keep] * factor
+    own = (centred if keep.all() else centred[:, keep]) / scale[keep] * factor
+    return lambda x: (np.asarray(x, float)[:, keep] - mean[keep]) / scale[keep] * factor, own
 
 
 def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarray,
-             reference_targets: np.ndarray, ks: tuple[int, ...], chunk: int) -> np.ndarray:
+             reference_targets: np.ndarray, ks: tuple[int, ...], chunk: int,
+             cross: np.ndarray | None = None) -> np.ndarray:
     """(len(ks),) summed squared error of the k-NN mean prediction for each k, distances from
-    chunks of `queries` (q, d) to `reference` (r, d); which of several windows tied at the
-    k-th distance is taken is numpy's argpartition's (deterministic) choice."""
+    chunks of `queries` (q, d) to `reference` (r, d); `cross` (q, r): queries @ reference.T if
+    computed already. Which of several windows tied at the k-th distance is taken is numpy's
+    argpartition's (deterministic) choice."""
     kmax = max(ks)
     ref_sq = (reference ** 2).sum(axis=1)
     sse = np.zeros(len(ks))
     for start in range(0, len(queries), chunk):
         q = queries[start:start + chunk]
-        dist = (q ** 2).sum(axis=1)[:, None] - 2 * q @ reference.T + ref_sq[None, :]
+        dist = ((q ** 2).sum(axis=1)[:, None]
+                - (2 * q @ reference.T if cross is None else 2 * cross[start:start + chunk])
+                + ref_sq[None, :])
         if kmax < dist.shape[1]:  # the kmax nearest, then in order (a full sort is N log N)
             near = np.argpartition(dist, kmax - 1, axis=1)[:, :kmax]
             order = np.argsort(np.take_along_axis(dist, near, axis=1), axis=1, kind="stable")
@@ -340,16 +347,20 @@ def knn_heldout(train_features: np.ndarray, train_targets: np.ndarray, train_fol
                          "training episodes"), None
     if len(heldout_features) == 0:
         return Undefined("no held-out windows"), None
-    scale = _standardiser(train_features, weights)
-    if isinstance(scale, Undefined):
-        return scale, None
-    z, y = scale(train_features), np.asarray(train_targets, float)
+    standard = _standardiser(train_features, weights)
+    if isinstance(standard, Undefined):
+        return standard, None
+    (scale, z), y = standard, np.asarray(train_targets, float)
     smallest = min(int((train_fold != f).sum()) for f in folds)
     ks = tuple(k for k in KNN_GRID if k <= smallest)
     sse = np.zeros(len(ks))
+    # Every fold's distances are a block of one N x N product (one symmetric product instead
+    # of a product per fold: ~1/3 of the multiplications); only k's choice reads them.
+    gram = z @ z.T if len(z) <= KNN_GRAM_MAX else None
     for f in folds:
         inside = train_fold == f
-        sse += _knn_sse(z[inside], y[inside], z[~inside], y[~inside], ks, chunk)
+        cross = None if gram is None else gram[np.ix_(inside, ~inside)]
+        sse += _knn_sse(z[inside], y[inside], z[~inside], y[~inside], ks, chunk, cross)
     k = ks[int(np.argmin(sse))]  # ties: the smaller k (argmin's first)
     heldout_sse = _knn_sse(scale(heldout_features), np.asarray(heldout_targets, float), z, y,
                            (k,), chunk)[0]

@@ -14,8 +14,10 @@ higher is better. k-NN weighs the state and each camera's block equally in its d
 (block_weights): unweighted, hundreds of feature columns drown the 8 state columns. The
 label-free proxies (norm entropy) read the tokens of all cameras' grids (the backbone's native
 grid, as stored) of the held-out windows.
-Memory: the (N_train, D) training and (M, D) held-out inputs as float32, plus one float64
-standardised copy and the cheaper of a D x D or N x N matrix (bench.screen.spectral).
+Memory: the (N_train, D) training and (M, D) held-out inputs as float32, plus float64 centred
+and standardised copies, the cheaper of a D x D or N x N matrix (bench.screen.spectral) and
+k-NN's N x N distances (up to estimators.KNN_GRAM_MAX windows); stored grids are read CHUNK
+windows at a time.
 """
 
 from __future__ import annotations
@@ -33,7 +35,11 @@ from bench.screen.records import (GAIN, ScreenConditions, ScreenFailure, ScreenR
 from bench.suites.windows import action_chunks
 
 FOLDS = 5  # episode folds of the training episodes that choose the ridge penalty and the k
-CHUNK = 2048  # windows read at a time
+# Windows read at a time: each batch is read as float16, widened to float32 and pooled per
+# window, so a small batch stays in the CPU's caches; 2,048 (the whole split) made ~180 MB of
+# float32 per camera of a 1280 x 7 x 7 store and read at a third of the speed (same bits: every
+# step is per window).
+CHUNK = 64
 
 
 @dataclass
@@ -46,25 +52,27 @@ class _Inputs:
     norms: list[np.ndarray]
 
 
-def window_inputs(views: dict, suite, frames: torch.Tensor, normalize_actions, chunk_size: int
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(state (B, S), features (B, cameras*C), targets (B, chunk*7), token norms (B, cameras*T))
-    of windows starting at `frames` (B,); views: {camera: view[frames] -> (B, T, C)}."""
+def window_inputs(views: dict, suite, frames: torch.Tensor, normalize_actions, chunk_size: int,
+                  with_norms: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """(state (B, S), features (B, cameras*C), targets (B, chunk*7), token norms (B, cameras*T),
+    or None without `with_norms`) of windows starting at `frames` (B,); views: {camera:
+    view[frames] -> (B, T, C)}."""
     grids = [views[k][frames].float() for k in sorted(views)]
     features = torch.cat([g.mean(dim=1) for g in grids], dim=1).numpy()
-    norms = torch.cat([g.norm(dim=2) for g in grids], dim=1).numpy()
+    norms = torch.cat([g.norm(dim=2) for g in grids], dim=1).numpy() if with_norms else None
     raw, _ = action_chunks(suite, frames, chunk_size)
     targets = normalize_actions(raw).float()[..., : raw.shape[-1]].reshape(len(frames), -1)
     return (suite.state[frames].float().numpy(), features, targets.numpy(), norms)
 
 
 def _read(views, suite, frames: torch.Tensor, fold_of: np.ndarray, normalize_actions,
-          chunk_size: int) -> _Inputs:
+          chunk_size: int, with_norms: bool) -> _Inputs:
     out = _Inputs({s: [] for s in INPUT_SETS}, [], [], [])
     for start in range(0, len(frames), CHUNK):
         part = frames[start:start + CHUNK]
         state, features, targets, norms = window_inputs(views, suite, part, normalize_actions,
-                                                        chunk_size)
+                                                        chunk_size, with_norms)
         sets = {"state": state, "state+features": np.concatenate([state, features], axis=1)}
         fold = fold_of[start:start + CHUNK]
         for name, x in sets.items():
@@ -99,9 +107,11 @@ def _screen(views: dict, suite, split, normalize_actions, chunk_size: int,
     out = ScreenScores(*names)
     n_folds = min(FOLDS, len(split.train_episodes))
     train_folds = episode_folds(suite, split.train_frames, split.train_episodes, n_folds)
-    train = _read(views, suite, split.train_frames, train_folds, normalize_actions, chunk_size)
+    # The label-free proxies read the held-out windows' token norms only.
+    train = _read(views, suite, split.train_frames, train_folds, normalize_actions, chunk_size,
+                  with_norms=False)
     held = _read(views, suite, split.windows, np.zeros(len(split.windows), int),
-                 normalize_actions, chunk_size)
+                 normalize_actions, chunk_size, with_norms=True)
     out.n_train, out.n_heldout = len(split.train_frames), len(split.windows)
     y_train, y_held = np.concatenate(train.targets), np.concatenate(held.targets)
     folds = np.concatenate(train.folds)
@@ -152,4 +162,8 @@ def measure_screen(ws, encoder: str, backbone: str, suite: str,
     extraction = max((float(b) for b in built if b is not None), default=None)
     scores = screen_features(views, ws.suite(suite), ws.split(suite), bb.normalize_actions,
                              bb.info.chunk_size, (encoder, backbone, suite))
-    return new_screen_record(scores, conditions, feature_seconds, extraction)
+    # What extracted them (bench.run.features.PooledView.runtime; read here by name: bench.run
+    # imports bench.results, which imports bench.screen).
+    runtimes = {getattr(v, "runtime", None) for v in views.values()}
+    return new_screen_record(scores, conditions, feature_seconds, extraction,
+                             runtimes.pop() if len(runtimes) == 1 else None)

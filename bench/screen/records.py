@@ -123,6 +123,8 @@ class ScreenRecord:
     # How long extracting the stored features took, whichever tier did it (the file's build_s):
     # a screen that found the graft's features stored spent ~0 s, yet they were not free.
     extraction_seconds: float | None = None
+    # What extracted them (bench.run.extraction): "torch" or an onnxruntime tag; None before it.
+    extraction_runtime: str | None = None
 
     @property
     def screen_id(self) -> str:
@@ -144,6 +146,7 @@ class ScreenRecord:
             conditions = ScreenConditions(**data["conditions"])
             rest = {f.name: data[f.name] for f in fields(cls)[2:4]}
             rest["extraction_seconds"] = data.get("extraction_seconds")  # absent before it
+            rest["extraction_runtime"] = data.get("extraction_runtime")  # absent before it
         except (KeyError, TypeError, AttributeError) as e:
             raise ValueError(f"{type(e).__name__}: {e}") from None
         for proxy, values in scores.proxies.items():
@@ -153,10 +156,11 @@ class ScreenRecord:
 
 
 def new_screen_record(scores: ScreenScores, conditions: ScreenConditions,
-                      feature_seconds: float,
-                      extraction_seconds: float | None = None) -> ScreenRecord:
+                      feature_seconds: float, extraction_seconds: float | None = None,
+                      extraction_runtime: str | None = None) -> ScreenRecord:
     created = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
-    return ScreenRecord(scores, conditions, feature_seconds, created, extraction_seconds)
+    return ScreenRecord(scores, conditions, feature_seconds, created, extraction_seconds,
+                        extraction_runtime)
 
 
 @dataclass(frozen=True)

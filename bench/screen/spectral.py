@@ -57,34 +57,58 @@ class Spectrum:
         """Ridge's predictions (m, C) at penalty ratio * n for windows already projected."""
         return basis @ (self.z / (self.sigma + ratio * self.n)[:, None]) + self.ymean
 
+    def squared_errors(self, basis: np.ndarray, targets: np.ndarray, ratios) -> np.ndarray:
+        """(len(ratios),) summed squared error of `predict` on windows already projected
+        (`basis` (m, r)) against `targets` (m, C), each ratio from two r x r matrices instead of
+        an (m, r) x (r, C) prediction: with a = 1 / (sigma + ratio n) and Yc = targets - ymean,
+        |B diag(a) z - Yc|^2 = a^T ((B^T B) o (z z^T)) a - 2 a^T rowsum((B^T Yc) o z) + |Yc|^2.
+        The same sums to rounding (~1e-15 relative where the fit leaves most of |Yc|^2, as
+        every fold here does); ridge only compares them, to choose its penalty."""
+        yc = np.asarray(targets, float) - self.ymean
+        quad = (basis.T @ basis) * (self.z @ self.z.T)
+        cross = ((basis.T @ yc) * self.z).sum(axis=1)
+        a = 1.0 / (self.sigma[None, :] + np.asarray(ratios, float)[:, None] * self.n)
+        return ((a @ quad) * a).sum(axis=1) - 2 * (a @ cross) + float((yc * yc).sum())
+
 
 def standardiser(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | Undefined:
     """(keep (D,) bool, mean (D,), scale (D,)) of windows x (n, D) by their own mean and std:
     a column whose variance is at most CONSTANT_REL_VAR of its mean square carries nothing."""
+    parts = standard_parts(x)
+    return parts if isinstance(parts, Undefined) else parts[:3]
+
+
+def standard_parts(x: np.ndarray):
+    """standardiser's (keep, mean, scale) and the centred windows x - mean (n, D) float64 it
+    computed them from: spectrum scales that array instead of converting and centring x again
+    (the same operations on the same numbers, so the same bits)."""
     x = np.asarray(x, float)
     n = len(x)
     if n < 2:
         return Undefined(f"{n} fitting window(s): too few windows")
     mean = x.mean(axis=0)
-    var = ((x - mean) ** 2).mean(axis=0)
-    keep = var > CONSTANT_REL_VAR * np.maximum((x * x).mean(axis=0), 1e-300)
+    centred = x - mean
+    var = (centred ** 2).mean(axis=0)
+    # The mean square as var + mean^2: one pass less than (x * x).mean(), and it only decides
+    # `keep`, at a threshold no real column sits within rounding of.
+    keep = var > CONSTANT_REL_VAR * np.maximum(var + mean * mean, 1e-300)
     if not keep.any():
         return Undefined(f"all {x.shape[1]} feature columns constant over the {n} fitting windows")
-    return keep, mean, np.where(keep, np.sqrt(np.where(keep, var, 1.0)), 1.0)
+    return keep, mean, np.where(keep, np.sqrt(np.where(keep, var, 1.0)), 1.0), centred
 
 
 def spectrum(x: np.ndarray, y: np.ndarray) -> Spectrum | Undefined:
     """The Spectrum of windows x (n, D) with targets y (n, C), in the cheaper form."""
-    stats = standardiser(x)
+    stats = standard_parts(x)
     if isinstance(stats, Undefined):
         return stats
-    keep, mean, scale = stats
+    keep, mean, scale, centred = stats
     mean, scale = mean[keep], scale[keep]
 
     def standard(q: np.ndarray) -> np.ndarray:
         return (np.asarray(q, float)[:, keep] - mean) / scale
 
-    zs = standard(x)
+    zs = (centred if keep.all() else centred[:, keep]) / scale
     y = np.asarray(y, float)
     ymean = y.mean(axis=0)
     yc = y - ymean
@@ -112,9 +136,11 @@ def _profile(lam: np.ndarray, sigma: np.ndarray, w: np.ndarray, unfit: np.ndarra
     the residual plus lam m^T m; ln|A| / 2 - d/2 ln(alpha) as one sum of log1p (no two large
     terms cancel where lam is large)."""
     ratio = sigma[:, None] / lam[None, :]  # (r, C)
-    e = np.maximum(unfit + np.sum(w / (1.0 + ratio), axis=0), 1e-300)
+    # In place, two (r, C) arrays instead of four: golden-section calls this 42 times per fit.
+    share = np.add(1.0, ratio)
+    e = np.maximum(unfit + np.divide(w, share, out=share).sum(axis=0), 1e-300)
     return (n / 2 * np.log(n / e) - n / 2 * (np.log(2 * np.pi) + 1)
-            - 0.5 * np.sum(np.log1p(ratio), axis=0)), e
+            - 0.5 * np.log1p(ratio, out=ratio).sum(axis=0)), e
 
 
 def logme_profile(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int

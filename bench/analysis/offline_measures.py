@@ -1,0 +1,237 @@
+"""Offline measures beside the full-chunk MSE, each against closed-loop success (issue 54).
+
+Every measure is computed from what a cell record keeps (no retraining) and is one entry of
+MEASURES: a name, a one-line definition and a function that turns the rolled-out items of one
+backbone x suite (`Rolled`) into rows to rank: per-window errors (lower is better) and
+per-episode successes, with masks when a row reads only some windows and episodes. A record
+without what a measure reads leaves that measure "not measured" (with the reason), never 0.
+
+Agreement of each measure with success uses the closed loop's statistics and bootstrap
+(bench.analysis.agreement; rollouts.py's -MSE table): predicted = -error, actual = success;
+Kendall tau-b, Spearman, Pearson, MMRV, top-1 regret; each replicate draws the held-out windows
+and, independently, the rollout episodes with replacement, once for all rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from bench.analysis.agreement import (
+    BY_NAME, Interval, Measure, Undefined, bootstrap_two_axes, masked_mean,
+)
+from bench.analysis.rankings import CONFIDENCE, PRIMARY
+
+# The report table's columns, in order (names of bench.analysis.agreement.BY_NAME).
+TABLE_STATISTICS = ("tau_b", "spearman_rho", "pearson_r", "mmrv", "top1_regret")
+
+
+@dataclass(frozen=True)
+class Rolled:
+    """The rolled-out items of one backbone x suite, paired (same windows, same episodes).
+
+    groups: item -> its seeds' records; success: (I, E) per-episode success, mean over seeds;
+    episode_task: (E,) each episode's LIBERO task id."""
+
+    items: list[str]
+    groups: dict[str, list]
+    success: np.ndarray
+    episode_task: np.ndarray
+
+
+@dataclass(frozen=True)
+class Rows:
+    """What a measure ranks: (n, W) errors and (n, E) successes, optional (n, W)/(n, E) masks."""
+
+    labels: list[str]
+    errors: np.ndarray
+    success: np.ndarray
+    masks: tuple[np.ndarray, np.ndarray] | None = None
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class OfflineMeasure:
+    name: str
+    definition: str
+    rows: Callable[[Rolled], Rows | Undefined]
+
+
+def _mean_over_seeds(rolled: Rolled, per_record: Callable) -> np.ndarray | Undefined:
+    """(I, W): each item's per-window values (per_record(record) -> (W,) or Undefined),
+    averaged over its seeds; the first Undefined stops it."""
+    out = []
+    for item in rolled.items:
+        values = [per_record(r) for r in rolled.groups[item]]
+        bad = next((v for v in values if isinstance(v, Undefined)), None)
+        if bad is not None:
+            return bad
+        out.append(np.mean(values, axis=0))
+    return np.array(out)
+
+
+def _full_chunk(rolled: Rolled) -> Rows:
+    errors = _mean_over_seeds(rolled, lambda r: r.scores.per_window_in(PRIMARY))
+    return Rows(rolled.items, errors, rolled.success)
+
+
+def executed_errors(record) -> list[float] | Undefined:
+    """(W,) a record's per-window MSE over the chunk steps its policy executed before replanning:
+    the rollout's own n_action_steps where it ran, else the one scored; per_window when that is
+    the whole chunk."""
+    scores = record.scores
+    ran = record.run.rollout_action_steps
+    n = ran if ran is not None else scores.n_action_steps
+    horizon = scores.per_horizon_in(PRIMARY)
+    chunk = scores.chunk_length or (len(horizon) if horizon else None)
+    if n is None or chunk is None:
+        return Undefined(f"{record.cell_id} keeps no n_action_steps or chunk length (a record "
+                         "from before them: rescore it)")
+    if n >= chunk:
+        return scores.per_window_in(PRIMARY)
+    if scores.per_window_executed is None or scores.n_action_steps != n:
+        return Undefined(f"{record.cell_id}: the closed loop executed {n} of {chunk} steps, the "
+                         "record keeps no per-window error over those steps")
+    return scores.per_window_executed[PRIMARY]
+
+
+def _executed(rolled: Rolled) -> Rows | Undefined:
+    errors = _mean_over_seeds(rolled, executed_errors)
+    if isinstance(errors, Undefined):
+        return errors
+    first = rolled.groups[rolled.items[0]][0]
+    ran = first.run.rollout_action_steps
+    n = ran if ran is not None else first.scores.n_action_steps
+    horizon = first.scores.per_horizon_in(PRIMARY)
+    chunk = first.scores.chunk_length or (len(horizon) if horizon else None)
+    return Rows(rolled.items, errors, rolled.success,
+                note=f"n_action_steps {n} of chunk {chunk}"
+                + (" (the full chunk)" if chunk is not None and n >= chunk else ""))
+
+
+def _critical(rolled: Rolled) -> Rows | Undefined:
+    records = [r for item in rolled.items for r in rolled.groups[item]]
+    flags, rule = records[0].scores.window_critical, records[0].scores.critical_rule
+    for r in records:
+        if r.scores.window_critical is None:
+            return Undefined(f"{r.cell_id} keeps no critical-window flags (a record from "
+                             "before them: rescore it)")
+        if (r.scores.window_critical, r.scores.critical_rule) != (flags, rule):
+            return Undefined(f"{r.cell_id} flags other windows as critical (rule "
+                             f"{r.scores.critical_rule} against {rule}): not paired")
+    keep = np.asarray(flags, dtype=bool)
+    if keep.sum() < 2:
+        return Undefined(f"{int(keep.sum())} critical window(s) of {len(keep)}: nothing to average")
+    errors = _full_chunk(rolled).errors[:, keep]
+    rule_text = ", ".join(f"{k} {v}" for k, v in (rule or {}).items())
+    return Rows(rolled.items, errors, rolled.success,
+                note=f"{int(keep.sum())} of {len(keep)} windows ({rule_text})")
+
+
+def _task_ids(record) -> dict[int, int] | Undefined:
+    """{record task index: rollout task id}, matched by instruction text."""
+    names = (record.run.rollouts or {}).get("task_names")
+    if names is None or record.scores.window_task is None or record.scores.tasks is None:
+        return Undefined(f"{record.cell_id}: its rollouts or scores do not name their tasks (a "
+                         "record from before per-task rollouts)")
+    by_text = {text.strip().lower(): int(t) for t, text in names.items()}
+    return {i: by_text[name.strip().lower()] for i, name in enumerate(record.scores.tasks)
+            if name.strip().lower() in by_text}
+
+
+def _per_task(rolled: Rolled) -> Rows | Undefined:
+    first = rolled.groups[rolled.items[0]][0]
+    mapping = _task_ids(first)
+    if isinstance(mapping, Undefined):
+        return mapping
+    for item in rolled.items:
+        for r in rolled.groups[item]:
+            if _task_ids(r) != mapping or r.scores.window_task != first.scores.window_task:
+                return Undefined(f"{r.cell_id} names or places its tasks otherwise: not paired")
+    errors = _full_chunk(rolled).errors
+    window_task = np.asarray(first.scores.window_task)
+    labels, err_rows, succ_rows, wmask, emask = [], [], [], [], []
+    for task, task_id in sorted(mapping.items()):
+        if not (window_task == task).any() or not (rolled.episode_task == task_id).any():
+            continue  # a task without held-out windows or without episodes pairs nothing
+        for i, item in enumerate(rolled.items):
+            labels.append(f"{item} / task {task_id}")
+            err_rows.append(errors[i])
+            succ_rows.append(rolled.success[i])
+            wmask.append(window_task == task)
+            emask.append(rolled.episode_task == task_id)
+    if not labels:
+        return Undefined("no task has both held-out windows and rollout episodes")
+    return Rows(labels, np.array(err_rows), np.array(succ_rows),
+                (np.array(wmask, dtype=float), np.array(emask, dtype=float)),
+                note=f"{len(labels)} item x task pairs")
+
+
+MEASURES = (
+    OfflineMeasure("full chunk", "MSE over every real step of each predicted chunk (the "
+                   "offline score)", _full_chunk),
+    OfflineMeasure("executed steps", "MSE over only the first n_action_steps steps of each "
+                   "chunk: what the policy executes before it replans", _executed),
+    OfflineMeasure("critical interval", "MSE over the windows whose scored span lies within "
+                   "+-margin frames of a gripper open/close event (bench.suites.critical)",
+                   _critical),
+    OfflineMeasure("per task", "each task's MSE against that task's success, ranked over "
+                   "item x task pairs", _per_task),
+)
+assert len({m.name for m in MEASURES}) == len(MEASURES), "duplicate measure names"
+
+
+@dataclass
+class MeasureAgreement:
+    """One measure's rows, their errors and successes, and its agreement with success."""
+
+    name: str
+    definition: str
+    labels: list[str] = field(default_factory=list)
+    error: list[float] = field(default_factory=list)
+    success: list[float] = field(default_factory=list)
+    note: str = ""
+    value: dict[str, Measure] = field(default_factory=dict)
+    intervals: dict[str, Interval | Undefined] = field(default_factory=dict)
+    missing: str | None = None
+
+    def interval_of(self, name: str) -> tuple[float, float] | None:
+        ci = self.intervals.get(name)
+        return (ci.low, ci.high) if isinstance(ci, Interval) else None
+
+    def to_dict(self) -> dict:
+        def plain(v):
+            if isinstance(v, Undefined):
+                return {"undefined": v.reason}
+            return [v.low, v.high] if isinstance(v, Interval) else v
+
+        return {"name": self.name, "definition": self.definition, "labels": self.labels,
+                "offline_error": self.error, "success": self.success, "note": self.note,
+                "missing": self.missing, "value": {k: plain(v) for k, v in self.value.items()},
+                "intervals": {k: plain(v) for k, v in self.intervals.items()}}
+
+
+def measure_agreement(measure: OfflineMeasure, rolled: Rolled, *, n_resamples: int,
+                      seed: int = 0, confidence: float = CONFIDENCE) -> MeasureAgreement:
+    """One measure's agreement with success over its rows, with paired bootstrap intervals."""
+    out = MeasureAgreement(measure.name, measure.definition)
+    rows = measure.rows(rolled)
+    if isinstance(rows, Undefined):
+        out.missing = rows.reason
+        return out
+    pm, am = rows.masks if rows.masks is not None else (None, None)
+    error, success = masked_mean(rows.errors, pm), masked_mean(rows.success, am)
+    out.labels, out.error, out.success, out.note = (rows.labels, error.tolist(),
+                                                    success.tolist(), rows.note)
+    out.value = {k: BY_NAME[k](-error, success) for k in TABLE_STATISTICS}
+    out.intervals = bootstrap_two_axes(-rows.errors, rows.success, n_resamples=n_resamples,
+                                       seed=seed, confidence=confidence,
+                                       statistics=TABLE_STATISTICS, masks=rows.masks)
+    return out
+
+
+def measure_agreements(rolled: Rolled, **kwargs) -> list[MeasureAgreement]:
+    """Every registered measure's agreement with success (MEASURES' order)."""
+    return [measure_agreement(m, rolled, **kwargs) for m in MEASURES]
