@@ -1,20 +1,37 @@
 #!/usr/bin/env bash
-# The real-encoder study's closed-loop tier, item by item (docs/real/closed_loop.toml says why
-# these items); every item resumes from RESULTS, so a stopped run is continued by running this
-# again. Usage: bash scripts/real_closed_loop.sh [RESULTS] [REPORT]
+# The real-encoder study's closed-loop tier (docs/real/closed_loop.toml says why these items),
+# item by item into one results folder; every item resumes, so a stopped run, or a new sitting,
+# continues by running this again. Two queues hold disjoint items (no encoder in both, so two
+# one-thread jobs never wait on each other's feature extraction); run them side by side:
+#   OMP_NUM_THREADS=1 bash scripts/real_closed_loop.sh a &  OMP_NUM_THREADS=1 bash scripts/real_closed_loop.sh b
+# Usage: bash scripts/real_closed_loop.sh [a|b|all] [RESULTS] [REPORT]
 set -euo pipefail
-results=${1:-.graftbench/results/real_loop}
-report=${2:-docs/real/CLOSED_LOOP.md}
+queue=${1:-all}
+results=${2:-docs/real/records/closed_loop}
+report=${3:-docs/real/CLOSED_LOOP.md}
 py=${PYTHON:-.venv/bin/python}
 common=(--grid docs/real/closed_loop.toml --sim-tasks 0,1 --sim-demos 25 --sim-demo-noise 0.1
-        --sim-demo-speed 0.5 --rollouts 10 --results-dir "$results" -p no:cacheprovider)
-items=("--encoders blind --controls native -k native-seed0"
-       "--encoders effnet_lite2 -k effnet_lite2-seed0"
-       "--encoders effnet_lite0_random -k effnet_lite0_random-seed0"
-       "--encoders effnet_lite0 -k effnet_lite0-seed0")
+        --sim-demo-speed 0.5 --rollouts 20 --results-dir "$results" -p no:cacheprovider)
+a=("--encoders blind --controls native -k native-seed0"
+   "--encoders effnet_lite0 -k effnet_lite0-seed"
+   "--encoders effnet_lite2 -k effnet_lite2-seed"
+   "--encoders dinov2_s_focus -k dinov2_s_focus-seed"
+   "--encoders pixels_p16 -k pixels_p16-seed"
+   "--encoders effnet_lite0_s4 -k effnet_lite0_s4-seed")
+b=("--encoders blind -k spatial-blind-seed"
+   "--encoders effnet_lite0_random -k effnet_lite0_random-seed"
+   "--encoders blind --controls native_wrapped -k native_wrapped-seed"
+   "--encoders effnet_lite1 -k effnet_lite1-seed"
+   "--encoders dinov2_s_focus_random -k dinov2_s_focus_random-seed")
+case $queue in
+    a) items=("${a[@]}") ;;
+    b) items=("${b[@]}") ;;
+    all) items=("${a[@]}" "${b[@]}") ;;
+    *) echo "real_closed_loop.sh: queue $queue is not a, b or all" >&2; exit 4 ;;
+esac
 for item in "${items[@]}"; do
     echo "== $(date -u +%H:%M:%S) $item"
     # shellcheck disable=SC2086
-    "$py" -m pytest bench "${common[@]}" $item
+    "$py" -m pytest bench "${common[@]}" $item || echo "== item failed (its record says why): $item"
 done
 "$py" -m bench.report "$results" --out "$report"

@@ -73,10 +73,12 @@ def test_a_screen_id_spells_the_encoder_as_its_grafts_cell_id_does():
         assert ScreenCase("smolvla", "spatial", encoder).id + "-seed0" == graft
 
 
-def test_staggered_gives_each_backbones_worker_other_encoders_at_the_same_time():
-    """Two workers, one backbone each: at every position of their queues they need different
-    encoders' features (shared per suite: the same order made one worker wait on the other's
-    extraction); one worker, or one backbone: the order is kept."""
+def test_staggered_sends_two_backbones_workers_round_the_encoders_in_opposite_directions():
+    """Two workers, one backbone each: the second goes round the encoders backwards, so the two
+    need the same encoder's features at most once, where their queues cross (features are shared
+    per suite: the same order made one worker wait on the other's extraction, and a rotation
+    made a worker whose half was cheap wait behind the other at every extraction); one worker, or
+    one backbone: the order is kept."""
     from bench.grid.cells import staggered
     from bench.grid.kinds import GRAFT
 
@@ -86,10 +88,12 @@ def test_staggered_gives_each_backbones_worker_other_encoders_at_the_same_time()
     order = staggered(cells, workers=2)
     assert sorted(order, key=lambda c: c.id) == sorted(cells, key=lambda c: c.id)
     queues = {b: [c for c in order if c.backbone == b] for b in ("pi05", "smolvla")}
-    for a, b in zip(*queues.values()):
-        assert a.encoder is None or a.encoder != b.encoder, (a.id, b.id)
-    assert [c.encoder for c in queues["smolvla"] if c.kind == GRAFT] == \
-        ["pixels", "pixels", "blind", "blind", "dinov2_s", "dinov2_s", "siglip", "siglip"]
+    rounds = {b: list(dict.fromkeys(c.encoder for c in q if c.encoder)) for b, q in queues.items()}
+    assert rounds["smolvla"] == rounds["pi05"][::-1] and len(rounds["pi05"]) == 4
+    grafts = {b: [c.encoder for c in q if c.kind == GRAFT] for b, q in queues.items()}
+    assert grafts["pi05"] == ["dinov2_s", "dinov2_s", "siglip", "siglip", "pixels", "pixels",
+                              "blind", "blind"]
+    assert grafts["smolvla"] == grafts["pi05"][::-1]
     assert staggered(cells, workers=1) == cells
     one = [c for c in cells if c.backbone == "pi05"]
     assert staggered(one, workers=2) == one

@@ -5,7 +5,7 @@ bench.suites.custom_world) and a tiny SmolVLA trained natively on it and saved w
 save_pretrained into a folder. The known answers, each with a paired window-bootstrap interval
 that excludes 0: a graft of raw pixels beats a blind graft on held-out episodes (the images reach
 the graft), and the policy's own tower (`native`) beats the pixels graft (its cameras reach the
-slots it was trained on: a swapped camera map breaks this one; measured, README).
+slots it was trained on: a swapped camera map breaks this one; docs/YOUR_OWN.md).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from external.paths import cache_dir
 from tests.test_gridfile import Config
 
 WORLD = dict(tasks=4, episodes_per_task=10)
-NATIVE_STEPS = 600  # native training of the tiny policy on the world (measured: see README)
+NATIVE_STEPS = 600  # native training of the tiny policy on the world
 STEPS = "150"  # projector steps of each graft cell
 GRID = ["--encoders", "pixels,blind", "--seeds", "0", "--controls", "native", "--steps", STEPS]
 

@@ -91,7 +91,7 @@ def why_not_exportable(record: Record) -> str | None:
     if is_user_encoder(record.encoder):
         return (f"its encoder {record.encoder!r} is your own module's (PKG.MODULE:FACTORY), and "
                 "the LeRobot plugin rebuilds encoders from timm by name only; export a graft of "
-                "a registry or timm: encoder (README, Export)")
+                "a registry or timm: encoder (docs/EXPORT.md)")
     try:
         spec = get_spec(record.encoder)
     except Exception as err:  # noqa: BLE001 - a name this checkout no longer knows

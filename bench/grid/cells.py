@@ -138,21 +138,27 @@ def screen_cases(profile: Profile) -> list[ScreenCase]:
 
 def staggered(items: list, workers: int) -> list:
     """`items` (cells or screen cases) ordered for `workers` xdist workers that each hold one
-    backbone: backbone k of B starts its encoders k/B of the way round, so the workers need
-    different encoders' features at the same time. Features are per suite, shared by the
-    backbones: in the same order, one worker extracts while the other waits on the store's lock
-    (seen on docs/real's study: a ViT's 20 minutes with a worker idle). Within a backbone the
-    order is otherwise kept (stable); items without an encoder go first. One worker: unchanged."""
+    backbone, so that the workers need different encoders' features at the same time. Features
+    are per suite, shared by the backbones: in the same order one worker extracts while the other
+    waits on the store's lock (seen on docs/real's study: a ViT's 20 minutes with a worker idle).
+    Backbones go round the encoders in pairs, the second of a pair backwards: two workers then
+    meet once, wherever the extraction times put that, and each finds everything past it already
+    stored (a rotation, tried first, let a worker whose half was cheap catch up with the other and
+    wait behind it at every extraction). Pair j starts j/ceil(B/2) of the way round. Within a
+    backbone the order is otherwise kept (stable); items without an encoder go first. One worker:
+    unchanged."""
     backbones = list(dict.fromkeys(item.backbone for item in items))
     encoders = list(dict.fromkeys(item.encoder for item in items if item.encoder is not None))
     if workers < 2 or len(backbones) < 2 or len(encoders) < 2:
         return list(items)
+    pairs = (len(backbones) + 1) // 2
 
     def place(item) -> int:
         if item.encoder is None:
             return -1
-        shift = backbones.index(item.backbone) * len(encoders) // len(backbones)
-        return (encoders.index(item.encoder) - shift) % len(encoders)
+        k = backbones.index(item.backbone)
+        at = (encoders.index(item.encoder) - (k // 2) * len(encoders) // pairs) % len(encoders)
+        return len(encoders) - 1 - at if k % 2 else at
 
     return sorted(items, key=place)
 

@@ -88,7 +88,7 @@ def measures_table(cl) -> str:
 def closed_loop_section(ctx: ReportContext) -> str:
     if not ctx.closed_loop:
         return ("_No cell was rolled out (run with `--rollouts N` on a simulated suite, see "
-                "docs/LIBERO_SIM.md)._")
+                "docs/CLOSED_LOOP.md)._")
     parts = [CLOSED_LOOP_INTRO, "Tie rule (here the cheaper tier is offline -MSE and the graft "
              f"score is closed-loop success): {TIE_RULE}"]
     if any(cl.measures for cl in ctx.closed_loop):

@@ -204,7 +204,7 @@ def screen_section(ctx) -> str | None:
              "label-free. The short-graft tiers (short_1_8, short_1_4) are the graft trained "
              "for 1/8 and 1/4 of its steps (whole schedule, compressed), ranked by their own "
              "held-out MSE; `--screen-by short` ranks by short_1_4. A screen averages each camera's token grid: what an encoder carries in "
-             "where things are is lost here, not in the graft (README: the tiny ladder).", screen_table(screens) if screens else "_No finished screen._"]
+             "where things are is lost here, not in the graft (docs/SCREENING.md).", screen_table(screens) if screens else "_No finished screen._"]
     if res.screen_failures:
         parts.append("Screens that failed (their grafts are dropped): " + "; ".join(
             f"`{f.screen_id}`: {f.error}" for f in res.screen_failures))
