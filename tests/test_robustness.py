@@ -176,11 +176,16 @@ def test_a_cell_without_record_or_projector_names_the_command(world, tmp_path):
                                                 r"\"test_graft and smolvla-spatial-pixels-seed5\""):
         measure_robust(missing, ws, parse_robustness(["blur:1"], "t"))
     spec, record = cell("graft", "pixels")
+    first, _ = measure_robust(spec, ws, parse_robustness(["blur:1"], "t"))
     (ws.store.root / record.training.projector_file).rename(tmp_path / "kept.safetensors")
     try:
+        # A complete case resumes without its projector (a committed study keeps none) ...
+        again, measured = measure_robust(spec, ws, parse_robustness(["blur:1"], "t"))
+        assert not measured and again.entries == first.entries
+        # ... and one with something left to score names the command that keeps it.
         with pytest.raises(RobustUnavailable, match=r"no stored projector.*is missing: run the "
                                                     r"cell again .*pytest bench -k"):
-            measure_robust(spec, ws, parse_robustness(["blur:1"], "t"))
+            measure_robust(spec, ws, parse_robustness(["blur:2"], "t"))
     finally:
         (tmp_path / "kept.safetensors").rename(ws.store.root / record.training.projector_file)
 

@@ -87,21 +87,27 @@ def rerun_hint(cell: CellSpec, results_dir) -> str:
             f"{results_dir} (with this run's other options), then rerun the robustness case")
 
 
-def stored_cell(cell: CellSpec, ws) -> tuple[Record, dict | None]:
-    """The cell's stored record and its projector's state; RobustUnavailable naming the
-    command that measures them when either is missing."""
+def stored_cell(cell: CellSpec, ws) -> Record:
+    """The cell's stored record; RobustUnavailable naming the command that measures it when it
+    is missing."""
     record = ws.store.load(cell.id)
     if record is None:
         raise RobustUnavailable(f"{cell.id}: no stored record to rescore under perturbations; "
                                 + rerun_hint(cell, ws.store.root))
+    return record
+
+
+def stored_projector(cell: CellSpec, ws, record: Record) -> dict | None:
+    """The cell's projector state (None for a cell that trains none), read only when something
+    is to be rescored: a complete robustness record resumes from a results folder kept without
+    its projectors (a committed study's). RobustUnavailable when it is missing."""
     if not cell.trains_projector:
-        return record, None
+        return None
     try:
-        state = load_projector(ws.store.root, cell.id, record.training.projector_file,
-                               record.training.projector_sha256)
+        return load_projector(ws.store.root, cell.id, record.training.projector_file,
+                              record.training.projector_sha256)
     except ProjectorFileError as e:
         raise RobustUnavailable(f"{cell.id}: no stored projector to rescore: {e}") from None
-    return record, state
 
 
 def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
@@ -112,7 +118,7 @@ def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
     anything). `rollouts` > 0: also rolled out that many episodes per task under each
     perturbation (bench.run.robust_loop; `scenes`: a test's stand-in for LIBERO)."""
     t_start = time.perf_counter()
-    record, state = stored_cell(cell, ws)
+    record = stored_cell(cell, ws)
     root = ws.store.root
     windows = robust_windows(ws.split(cell.suite).windows, window_stride)
     stored = None if rerun else load_robust(root, cell.id)
@@ -125,7 +131,7 @@ def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
                if stored is None or stored.entry(key) is None]
     scorer, fresh = None, {}
     if missing:
-        scorer = _Scorer(cell, ws, record, state, windows)
+        scorer = _Scorer(cell, ws, record, stored_projector(cell, ws, record), windows)
         fresh = dict(zip((a.label for a in missing), scorer.entries(missing)))
     entries = [fresh.get(a.label) or stored.entry(key) for a, key in zip(perturbations, wanted)]
     measured = bool(missing)
@@ -143,7 +149,7 @@ def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
 
         if has_rollouts(out.rollouts.get(applied.label), applied, rollouts):
             continue
-        scorer = scorer or _Scorer(cell, ws, record, state, windows)
+        scorer = scorer or _Scorer(cell, ws, record, stored_projector(cell, ws, record), windows)
         done = rollouts_under(applied, cell, ws, scorer, record, rollouts, scenes=scenes)
         # written after each perturbation: a kill keeps the ones finished before it
         out = stamped(replace(out, rollouts={**out.rollouts, applied.label: done}))

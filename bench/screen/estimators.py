@@ -27,11 +27,12 @@ Rules (stated in the report):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import reduce
 
 import numpy as np
 
-from bench.screen.spectral import (CONSTANT_REL_VAR, ZERO_EIGEN_REL, Spectrum, logme_profile,
-                                   spectrum, standard_parts)
+from bench.screen.spectral import (CONSTANT_REL_VAR, ZERO_EIGEN_REL, Spectrum, fold_errors,
+                                   logme_profile, spectrum, standard_parts)
 from bench.stats import Measure, Undefined
 
 RIDGE_GRID = tuple(float(r) for r in np.logspace(-4, 2, 13))
@@ -241,9 +242,7 @@ def ridge_heldout(folds: list[Moments], heldout: Moments) -> tuple[Measure, floa
     if len(folds) < 2:
         return Undefined(f"{len(folds)} training episode fold(s): the penalty cannot be chosen "
                          "on training episodes"), None
-    total = folds[0]
-    for f in folds[1:]:
-        total = total.plus(f)
+    total = reduce(Moments.plus, folds)  # f0 + f1 + ..., in fold order
     errors = np.zeros(len(RIDGE_GRID))
     for f in folds:
         path = ridge_path(total.plus(f, -1.0), RIDGE_GRID)
@@ -264,23 +263,16 @@ def ridge_windows(train: np.ndarray, targets: np.ndarray, fold: np.ndarray,
                   spec: Spectrum | Undefined | None = None) -> tuple[Measure, float | None]:
     """ridge_heldout from the windows themselves: train (N, D), targets (N, C), fold (N,) the
     episode fold of each (>= 2), heldout (M, D), (M, C); `spec` the Spectrum of all training
-    windows if made already. One decomposition per fitting set, in the cheaper form, serves
-    every penalty; each fold's errors at every penalty come from two r x r matrices
-    (Spectrum.squared_errors)."""
+    windows if made already; the folds' errors at every penalty: spectral.fold_errors."""
     folds = np.unique(fold)
     if len(folds) < 2:
         return Undefined(f"{len(folds)} training episode fold(s): the penalty cannot be chosen "
                          "on training episodes"), None
-    x, y = np.asarray(train, float), np.asarray(targets, float)  # converted once, not per fold
-    errors = np.zeros(len(RIDGE_GRID))
-    for f in folds:
-        inside = fold == f
-        fit = spectrum(x[~inside], y[~inside])
-        if isinstance(fit, Undefined):
-            return fit, None
-        errors += fit.squared_errors(fit.project(x[inside]), y[inside], RIDGE_GRID)
+    errors = fold_errors(train, targets, fold, RIDGE_GRID)
+    if isinstance(errors, Undefined):
+        return errors, None
     best = max(i for i, e in enumerate(errors) if e <= min(errors))  # ties: the larger penalty
-    fit = spectrum(train, y) if spec is None else spec
+    fit = spectrum(train, targets) if spec is None else spec
     if isinstance(fit, Undefined):
         return fit, None
     if len(heldout) == 0:
@@ -291,45 +283,68 @@ def ridge_windows(train: np.ndarray, targets: np.ndarray, fold: np.ndarray,
 
 def _standardiser(features: np.ndarray, weights: np.ndarray | None = None):
     """(f(x) -> standardised kept columns (times `weights` (D,) when given), f(features)), by
-    `features`' own mean and std; or Undefined. f(features) is scaled from the centred copy the
-    statistics were computed on (the same numbers as calling f)."""
+    `features`' own mean and std; or Undefined. f(features) is scaled in place on the centred
+    copy the statistics were computed on (the same numbers and memory order as calling f)."""
     stats = standard_parts(features)
     if isinstance(stats, Undefined):
         return stats
     keep, mean, scale, centred = stats
     factor = (np.ones(len(keep)) if weights is None else np.asarray(weights, float))[keep]
-    own = (centred if keep.all() else centred[:, keep]) / scale[keep] * factor
+    own = centred if keep.all() else centred[:, keep]
+    own /= scale[keep]
+    own *= factor
     return lambda x: (np.asarray(x, float)[:, keep] - mean[keep]) / scale[keep] * factor, own
 
 
 def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarray,
              reference_targets: np.ndarray, ks: tuple[int, ...], chunk: int,
-             cross: np.ndarray | None = None) -> np.ndarray:
-    """(len(ks),) summed squared error of the k-NN mean prediction for each k, distances from
-    chunks of `queries` (q, d) to `reference` (r, d); `cross` (q, r): queries @ reference.T if
-    computed already. Which of several windows tied at the k-th distance is taken is numpy's
-    argpartition's (deterministic) choice."""
-    kmax = max(ks)
-    ref_sq = (reference ** 2).sum(axis=1)
+             ref_sq: np.ndarray | None = None) -> np.ndarray:
+    """(len(ks),) _nearest_sse from chunks of `queries` (q, d) to `reference` (r, d);
+    ref_sq: (reference ** 2).sum(axis=1) if computed already."""
+    ref_sq = (reference ** 2).sum(axis=1) if ref_sq is None else ref_sq
     sse = np.zeros(len(ks))
     for start in range(0, len(queries), chunk):
         q = queries[start:start + chunk]
-        dist = ((q ** 2).sum(axis=1)[:, None]
-                - (2 * q @ reference.T if cross is None else 2 * cross[start:start + chunk])
-                + ref_sq[None, :])
-        if kmax < dist.shape[1]:  # the kmax nearest, then in order (a full sort is N log N)
-            near = np.argpartition(dist, kmax - 1, axis=1)[:, :kmax]
-            order = np.argsort(np.take_along_axis(dist, near, axis=1), axis=1, kind="stable")
-            nearest = np.take_along_axis(near, order, axis=1)
-        else:
-            nearest = np.argsort(dist, axis=1, kind="stable")
-        truth = query_targets[start:start + chunk]
-        running = np.zeros_like(truth)  # the sum of the j nearest targets, in order (no
-        # (b, kmax, C) array: at C = 350 its cumsum was most of the k-NN's time)
-        for j in range(kmax):
-            running += reference_targets[nearest[:, j]]
-            if j + 1 in ks:
-                sse[ks.index(j + 1)] += float(((running / (j + 1) - truth) ** 2).sum())
+        dist = (q ** 2).sum(axis=1)[:, None] - 2 * q @ reference.T + ref_sq[None, :]
+        _nearest_sse(dist, query_targets[start:start + chunk], reference_targets, ks, sse)
+    return sse
+
+
+def _nearest_sse(dist: np.ndarray, truth: np.ndarray, reference_targets: np.ndarray,
+                 ks: tuple[int, ...], sse: np.ndarray) -> None:
+    """Add to sse (len(ks),) the squared error against `truth` (b, C) of each query's mean k
+    nearest reference targets by `dist` (b, r); of windows tied at the k-th distance, numpy's
+    argpartition's (deterministic) choice."""
+    kmax = max(ks)
+    if kmax < dist.shape[1]:  # the kmax nearest, then in order (a full sort is N log N)
+        near = np.argpartition(dist, kmax - 1, axis=1)[:, :kmax]
+        order = np.argsort(np.take_along_axis(dist, near, axis=1), axis=1, kind="stable")
+        nearest = np.take_along_axis(near, order, axis=1)
+    else:
+        nearest = np.argsort(dist, axis=1, kind="stable")
+    running = np.zeros_like(truth)  # no (b, kmax, C) cumsum: most of k-NN's time at C = 350
+    for j in range(kmax):
+        running += reference_targets[nearest[:, j]]
+        if j + 1 in ks:
+            sse[ks.index(j + 1)] += float(((running / (j + 1) - truth) ** 2).sum())
+
+
+def _knn_fold_sse(z: np.ndarray, y: np.ndarray, fold: np.ndarray, ks: tuple[int, ...],
+                  chunk: int, sq: np.ndarray) -> np.ndarray:
+    """(len(ks),) k-NN's squared error, each episode fold predicted from the others; sq (N,):
+    z's squared row norms. Up to KNN_GRAM_MAX windows the distances are blocks of one symmetric
+    N x N product (~1/3 of the multiplications of one per fold) and sq: gathering z's rows per
+    fold (column-major after dropping constant columns) cost more than the neighbour search."""
+    if len(z) > KNN_GRAM_MAX:
+        return sum(_knn_sse(z[fold == f], y[fold == f], z[fold != f], y[fold != f], ks, chunk)
+                   for f in np.unique(fold))
+    sse, gram = np.zeros(len(ks)), z @ z.T
+    for f in np.unique(fold):
+        inside, rest = np.flatnonzero(fold == f), np.flatnonzero(fold != f)
+        for start in range(0, len(inside), chunk):
+            q = inside[start:start + chunk]
+            dist = sq[q][:, None] - 2 * gram[np.ix_(q, rest)] + sq[rest][None, :]
+            _nearest_sse(dist, y[q], y[rest], ks, sse)
     return sse
 
 
@@ -341,7 +356,7 @@ def knn_heldout(train_features: np.ndarray, train_targets: np.ndarray, train_fol
     train_features (N, D), train_targets (N, C), train_fold (N,) int: the episode fold of each
     training window (>= 2 folds; k chosen on them), heldout_* (M, D), (M, C); weights (D,): a
     factor on each standardised column in the distance (default 1)."""
-    folds = np.unique(train_fold)
+    folds, sizes = np.unique(train_fold, return_counts=True)
     if len(folds) < 2:
         return Undefined(f"{len(folds)} training episode fold(s): k cannot be chosen on "
                          "training episodes"), None
@@ -351,19 +366,12 @@ def knn_heldout(train_features: np.ndarray, train_targets: np.ndarray, train_fol
     if isinstance(standard, Undefined):
         return standard, None
     (scale, z), y = standard, np.asarray(train_targets, float)
-    smallest = min(int((train_fold != f).sum()) for f in folds)
-    ks = tuple(k for k in KNN_GRID if k <= smallest)
-    sse = np.zeros(len(ks))
-    # Every fold's distances are a block of one N x N product (one symmetric product instead
-    # of a product per fold: ~1/3 of the multiplications); only k's choice reads them.
-    gram = z @ z.T if len(z) <= KNN_GRAM_MAX else None
-    for f in folds:
-        inside = train_fold == f
-        cross = None if gram is None else gram[np.ix_(inside, ~inside)]
-        sse += _knn_sse(z[inside], y[inside], z[~inside], y[~inside], ks, chunk, cross)
+    ks = tuple(k for k in KNN_GRID if k <= len(train_fold) - sizes.max())  # <= every fit set
+    sq = (z ** 2).sum(axis=1)  # _knn_sse's own expression: the held-out scores' bits
+    sse = _knn_fold_sse(z, y, train_fold, ks, chunk, sq)
     k = ks[int(np.argmin(sse))]  # ties: the smaller k (argmin's first)
     heldout_sse = _knn_sse(scale(heldout_features), np.asarray(heldout_targets, float), z, y,
-                           (k,), chunk)[0]
+                           (k,), chunk, sq)[0]
     return float(heldout_sse / heldout_targets.size), k
 
 
