@@ -11,7 +11,8 @@ results=${2:-docs/real/records/closed_loop}
 report=${3:-docs/real/CLOSED_LOOP.md}
 py=${PYTHON:-.venv/bin/python}
 common=(--grid docs/real/closed_loop.toml --sim-tasks 0,1 --sim-demos 25 --sim-demo-noise 0.1
-        --sim-demo-speed 0.5 --rollouts 20 --results-dir "$results" -p no:cacheprovider)
+        --sim-demo-speed 0.5 --rollouts 20 --results-dir "$results" --report "$report"
+        -p no:cacheprovider)
 a=("--encoders blind --controls native -k native-seed0"
    "--encoders effnet_lite0 -k effnet_lite0-seed"
    "--encoders effnet_lite2 -k effnet_lite2-seed"
