@@ -13,17 +13,24 @@ py=${PYTHON:-.venv/bin/python}
 common=(--grid docs/real/closed_loop.toml --sim-tasks 0,1 --sim-demos 25 --sim-demo-noise 0.1
         --sim-demo-speed 0.5 --rollouts 20 --results-dir "$results" --report "$report"
         -p no:cacheprovider)
+# Seed 0 of every item first, so a sitting that ends early leaves the most items measured.
 a=("--encoders blind --controls native -k native-seed0"
    "--encoders effnet_lite0 -k effnet_lite0-seed"
    "--encoders effnet_lite2 -k effnet_lite2-seed"
-   "--encoders dinov2_s_focus -k dinov2_s_focus-seed"
-   "--encoders pixels_p16 -k pixels_p16-seed"
-   "--encoders effnet_lite0_s4 -k effnet_lite0_s4-seed")
+   "--encoders dinov2_s_focus -k dinov2_s_focus-seed0"
+   "--encoders pixels_p16 -k pixels_p16-seed0"
+   "--encoders effnet_lite0_s4 -k effnet_lite0_s4-seed0"
+   "--encoders dinov2_s_focus -k dinov2_s_focus-seed1"
+   "--encoders pixels_p16 -k pixels_p16-seed1"
+   "--encoders effnet_lite0_s4 -k effnet_lite0_s4-seed1")
 b=("--encoders blind -k spatial-blind-seed"
    "--encoders effnet_lite0_random -k effnet_lite0_random-seed"
-   "--encoders blind --controls native_wrapped -k native_wrapped-seed"
-   "--encoders effnet_lite1 -k effnet_lite1-seed"
-   "--encoders dinov2_s_focus_random -k dinov2_s_focus_random-seed")
+   "--encoders blind --controls native_wrapped -k native_wrapped-seed0"
+   "--encoders effnet_lite1 -k effnet_lite1-seed0"
+   "--encoders dinov2_s_focus_random -k dinov2_s_focus_random-seed0"
+   "--encoders blind --controls native_wrapped -k native_wrapped-seed1"
+   "--encoders effnet_lite1 -k effnet_lite1-seed1"
+   "--encoders dinov2_s_focus_random -k dinov2_s_focus_random-seed1")
 case $queue in
     a) items=("${a[@]}") ;;
     b) items=("${b[@]}") ;;
