@@ -1,12 +1,12 @@
 """The pytest plugin: hooks that hand work on to ONE `GraftSession` (bench.session), built at
-`pytest_configure`: the grid parametrisation, collection, xdist scheduling, the session's end
-(baseline, report) and the terminal summary. Options: bench.options.
+`pytest_configure`: the grid parametrisation, collection, xdist scheduling (bench.scheduling),
+the session's end (baseline, report) and the terminal summary. The hooks decide nothing: what
+a selection starts, what the run's exit status is and what the summary says are the session's
+(`collected`, `finish`, `display`). Options: bench.options.
 """
 
 from __future__ import annotations
 
-import os
-import sys
 from pathlib import Path
 
 import pytest
@@ -14,8 +14,8 @@ import pytest
 from bench.grid.cells import (CellSpec, ScreenCase, control_cells, graft_cells, grid_cells,
                               screen_cases, staggered, tier_cells)
 from bench.options import pytest_addoption  # noqa: F401  (the hook, found here by name)
+from bench.scheduling import backbone_scheduler, configure_scale
 from bench.session import GraftSession, Selection
-from bench.startup import check_writable
 from bench.summary import cell_id_of
 
 SESSION_KEY = pytest.StashKey[GraftSession]()
@@ -24,7 +24,7 @@ GRID_MODULE = Path(__file__).with_name("test_grid.py")
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    _configure_scale(config)
+    configure_scale(config)
     session = GraftSession(config)  # the start-up check: a bad option is a UsageError here
     config.stash[SESSION_KEY] = session
     config.pluginmanager.register(session, "graftbench-session")  # its hook methods below
@@ -47,67 +47,11 @@ def _write_lines(config: pytest.Config, lines: list[str]) -> None:
         reporter.write_line(line)
 
 
-def _configure_scale(config: pytest.Config) -> None:
-    """`-n N` implies `--dist loadgroup` (one backbone per worker: a 3.3B model loads once per
-    worker); an xdist worker takes GPU (worker index mod GPU count) when GPUs exist."""
-    numprocesses = getattr(config.option, "numprocesses", None)
-    if numprocesses and config.getoption("--executor") != "local":
-        executor = config.getoption("--executor")
-        raise pytest.UsageError(f"-n {numprocesses} with --executor {executor}: "
-                                "pick one (drop -n or the executor)")
-    if numprocesses and getattr(config.option, "dist", "no") in ("no", "load"):
-        config.option.dist = "loadgroup"
-    workerinput = getattr(config, "workerinput", {})
-    worker = workerinput.get("workerid")  # "gw0", "gw1", ...
-    if worker:
-        import torch
-
-        if torch.cuda.is_available():
-            torch.cuda.set_device(int(worker[2:]) % torch.cuda.device_count())
-        torch.set_num_threads(worker_threads(workerinput.get("workercount", 1)))
-
-
-def worker_threads(workers: int) -> int:
-    """Torch threads for one of `workers` xdist workers: the CPUs split between them, unless
-    OMP_NUM_THREADS says otherwise. Each worker keeping torch's default (all CPUs) made `-n 2` on
-    2 cores 4.6x SLOWER than one process (18 tiny cells: 180 s alone, 828 s with -n 2)."""
-    if os.environ.get("OMP_NUM_THREADS"):
-        return max(1, int(os.environ["OMP_NUM_THREADS"]))
-    return max(1, len(os.sched_getaffinity(0)) // max(1, workers))
-
-
 @pytest.hookimpl(tryfirst=True, optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log):
-    """loadgroup by backbone, read from the cell id: each worker holds ONE backbone. With more
-    workers than backbones, a backbone's cells are dealt round-robin into N // B groups so all
-    N workers work. (xdist's own loadgroup reads a nodeid suffix that pytest 9.2 no longer lets
-    it add, pytest-dev/pytest-xdist#1386: it silently spread every backbone over all workers.)"""
     if config.getvalue("dist") != "loadgroup":
         return None
-    from xdist.scheduler import LoadScopeScheduling
-
-    gs: GraftSession = config.stash[SESSION_KEY]
-    backbone_of = {c.id: c.backbone
-                   for c in grid_cells(gs.profile, gs.screen_options is not None)}
-    if gs.screen_options is not None:
-        # A screen loads its backbone (normaliser, native grid), and the backbone's selection
-        # reads every screen: screens go with the backbone's first group, ahead of its cells.
-        backbone_of |= {c.id: c.backbone for c in screen_cases(gs.profile)}
-
-    class BackboneScheduling(LoadScopeScheduling):
-        def _split_scope(self, nodeid: str) -> str:
-            cell_id = cell_id_of(nodeid)
-            if cell_id not in backbone_of:
-                return nodeid
-            # the cells the workers collected (pytest_xdist_node_collection_finished)
-            selected = gs.selection.cells
-            mine = [c for c in selected if backbone_of.get(c) == backbone_of[cell_id]]
-            backbones = {backbone_of[c] for c in selected if c in backbone_of}
-            groups = max(1, self.numnodes // max(1, len(backbones)))
-            position = mine.index(cell_id) if cell_id in mine else 0
-            return f"{backbone_of[cell_id]}:{position % groups}"
-
-    return BackboneScheduling(config, log)
+    return backbone_scheduler(config, log, config.stash[SESSION_KEY])
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -121,14 +65,12 @@ def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
     known = {c.id: c for c in grid_cells(gs.profile, gs.screen_options is not None)}
     screens = {c.id for c in screen_cases(gs.profile)} if gs.screen_options else set()
     case_ids = list(map(cell_id_of, ids))
-    gs.collected(Selection(cells=tuple(c for c in case_ids if c in known),
-                           screens=tuple(c for c in case_ids if c in screens)))
-    if gs.selection.cells:
-        try:  # the paper preflight of the selection, here where -k has been applied
-            gs.preflight([known[c] for c in gs.selection.cells])
-        except pytest.UsageError as e:  # raised inside xdist's loop: an exit, not an INTERNALERROR
-            pytest.exit(f"ERROR: {e}", returncode=pytest.ExitCode.USAGE_ERROR)
-        gs.store.write_grid(list(gs.selection.cells), gs.profile.name)
+    try:  # the start of the run's ends, here where -k has been applied
+        gs.collected(Selection(cells=tuple(c for c in case_ids if c in known),
+                               screens=tuple(c for c in case_ids if c in screens)),
+                     [known[c] for c in case_ids if c in known])
+    except pytest.UsageError as e:  # raised inside xdist's loop: an exit, not an INTERNALERROR
+        pytest.exit(f"ERROR: {e}", returncode=pytest.ExitCode.USAGE_ERROR)
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -200,13 +142,7 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
             robust.append(params["robust_cell"].id)
     if not items and not hasattr(config, "workerinput"):
         _refuse_empty_selection(config)
-    gs.collected(Selection(tuple(c.id for c in cells), tuple(screens), tuple(robust)))
-    if (cells or screens) and not hasattr(config, "workerinput"):
-        gs.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
-        check_writable("--report", gs.report_path.parent)
-        gs.preflight(cells)  # the selected cells' artifacts (after -k)
-    if cells and not hasattr(config, "workerinput"):
-        gs.store.write_grid([c.id for c in cells], gs.profile.name)
+    gs.collected(Selection(tuple(c.id for c in cells), tuple(screens), tuple(robust)), cells)
 
 
 def pytest_deselected(items) -> None:
@@ -237,38 +173,12 @@ def graft_session(request: pytest.FixtureRequest) -> GraftSession:
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
-    if hasattr(session.config, "workerinput"):
-        return  # xdist worker: the controller compares and reports from the shared store
-    gs: GraftSession = session.config.stash.get(SESSION_KEY, None)
-    if gs is None or not gs.selection:
-        return
-    try:
-        sections = gs.finish_baseline()
-    except Exception as e:  # a comparison that could not be made must not pass silently
-        sys.stderr.write(f"\n[graftbench] baseline compare/save failed: {type(e).__name__}: {e}\n")
-        session.exitstatus = pytest.ExitCode.INTERNAL_ERROR
-        sections = []
-    if gs.baseline.rank_flipped and session.exitstatus == 0:
-        session.exitstatus = pytest.ExitCode.TESTS_FAILED
-    gs.finish(sections)
-    if gs.report_error is not None and session.exitstatus == 0:  # never passes as a success
-        session.exitstatus = pytest.ExitCode.INTERNAL_ERROR
+    gs: GraftSession | None = session.config.stash.get(SESSION_KEY, None)
+    if gs is not None:
+        session.exitstatus = gs.finish(session.exitstatus)
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
-    from bench.summary import screen_summary_lines, summary_lines
-
     gs: GraftSession | None = config.stash.get(SESSION_KEY, None)
-    selection = gs.selection if gs is not None else None
-    if not (selection and (selection.cells or selection.screens)) or hasattr(config, "workerinput"):
-        return
-    terminalreporter.write_sep("-", "graftbench")
-    lines = summary_lines(gs.profile.name, gs.profile.protocol.hash, gs.outcomes,
-                          len(gs.selection.cells), gs.results_dir, gs.report_path,
-                          gs.report_written is not None, gs.report_error)
-    if gs.screening is not None:
-        lines[2:2] = screen_summary_lines(gs.screening.outcomes, gs.screening.dropped)
-    lines += [f"set aside: {line}" for line in gs.set_aside_lines]
-    for line in lines:
-        terminalreporter.write_line(line)
-    gs.baseline.summary(terminalreporter)
+    if gs is not None:
+        gs.display(terminalreporter)

@@ -5,7 +5,7 @@ workspace, the cell service (bench.run.service: every cell goes through it), the
 bench.plugin's hooks only hand work on to it, through its methods: `collected` freezes the
 selection once collection ends. Its seams are one frozen `Seams` value, replaced before the first
 cell runs through `use_seams` (tests do): `cell_runner(cell, workspace, context) -> CellResult`
-(bench.run.runner.measure, with the context the cell's plan gave: bench.run.plan),
+(None: the service's own, bench.run.runner.measure, with the context the cell's plan gave),
 `workspace_factory(session) -> workspace`, `report_builder(results_dir, path, extra_sections=)`
 (bench.report.build_report).
 """
@@ -37,12 +37,6 @@ def _unavailable_errors() -> tuple[type, ...]:
     return (BackboneUnavailable, SuiteUnavailable, EncoderUnavailable)
 
 
-def _run_cell(cell, ws, context):
-    from bench.run.service import measure_here
-
-    return measure_here(cell, ws, context)
-
-
 def _build_report(results_dir, path, extra_sections=()):
     from bench.report.build import build_report
 
@@ -53,7 +47,7 @@ def _build_report(results_dir, path, extra_sections=()):
 class Seams:
     """What tests replace (module docstring); the defaults are the real ones."""
 
-    cell_runner: Callable = _run_cell
+    cell_runner: Callable | None = None  # None: the service's own (bench.run.runner.measure)
     workspace_factory: Callable = field(default=lambda session: _default_workspace(session))
     report_builder: Callable = _build_report
 
@@ -107,10 +101,23 @@ class GraftSession:
             raise RuntimeError("use_seams after the first cell: set seams at pytest_configure")
         self.seams = replace(self.seams, **changes)
 
-    def collected(self, selection: Selection) -> None:
+    def collected(self, selection: Selection, cells: list[CellSpec] = ()) -> None:
         """Collection's selection (bench.plugin, after -k / -m; an xdist controller: what its
-        workers collected)."""
+        workers collected), `cells` its grid cells. Where the run's ends run (not an xdist
+        worker): the results dir opened and --report's folder checked, the paper preflight of
+        the cells, and grid.json written, its one writer (`_write_grid`)."""
         self.selection = selection
+        if hasattr(self.config, "workerinput") or not (selection.cells or selection.screens):
+            return
+        self.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
+        check_writable("--report", self.report_path.parent)
+        self.preflight(list(cells))
+        if selection.cells and self.screen_options is None:
+            self._write_grid()  # with --screen: at the end, once the screen's drops are known
+
+    def _write_grid(self) -> None:
+        """grid.json: the cells this run meant to measure (the report lists those missing)."""
+        self.store.write_grid(self.ran_cells, self.profile.name)
 
     def check_names_once(self) -> list[str]:
         """The start-up check of names and paths, when no earlier hook ran it (a grid module
@@ -179,7 +186,7 @@ class GraftSession:
         """The run's one cell service (bench.run.service): every cell case, the screen's short
         grafts and, with --executor, the job array's tasks measure through it."""
         if self._cells is None:
-            from bench.run.service import CellService, RunSettings
+            from bench.run.service import CellService, RunSettings, measure_here
 
             o = self.options
             settings = RunSettings(rerun=o.rerun, features_mode=o.features_mode,
@@ -187,7 +194,7 @@ class GraftSession:
                                    pack_grafts=o.pack_grafts)
             self._cells = CellService(
                 self.profile, self.store, self.workspace, settings,
-                runner=self.seams.cell_runner,
+                runner=self.seams.cell_runner or measure_here,
                 measure_with=self._measure_submitted if o.executor != "local" else None,
                 feature_transform=lambda cell: self.baseline.feature_transform(
                     cell, self.workspace),
@@ -260,17 +267,16 @@ class GraftSession:
         if self._cell_array is None:
             self._cell_array = CellArray(self.options.executor, self.results_dir / "submitit",
                                          self.options.slurm)
-            items = self.config.pluginmanager.get_plugin("session").items  # after -k / -m
-            params = [getattr(getattr(i, "callspec", None), "params", {}) for i in items]
-            cells = [p.get("graft_cell", p.get("control_cell", p.get("tier_cell")))
-                     for p in params]
-            todo = [c for c in cells if isinstance(c, CellSpec)
-                    and self.cells.plan(c).resume is None
+            from bench.grid.cells import grid_cells
+
+            specs = {c.id: c for c in grid_cells(self.profile, self.screen_options is not None)}
+            cells = [specs[i] for i in self.selection.cells if i in specs]  # after -k / -m
+            todo = [c for c in cells if self.cells.plan(c).resume is None
                     and not (self.screening and self.screening.dropped_reason(c))]
             paths = (str(self.results_dir), str(cache_dir()))
             self._cell_array.submit([CellJob(c, self.profile, *paths, self.cells.settings,
                                              self.rollout_batching) for c in todo])
-        return CellResult(self._cell_array.result(cell_plan.cell.id))
+        return CellResult(self._cell_array.result(cell_plan.cell.id), stored=True)
 
     # --- the session's ends -----------------------------------------------------------------
     def preflight(self, cells: list[CellSpec]) -> None:
@@ -296,33 +302,66 @@ class GraftSession:
         dropped = self.screening.dropped if self.screening is not None else {}
         return [c for c in self.selection.cells if c not in dropped]
 
-    def finish_baseline(self) -> list[tuple[str, str]]:
-        """The baseline's save / compare over the stored records; the report sections it adds."""
-        records = {cid: r for cid in self.ran_cells if (r := self.store.load(cid)) is not None}
-        return self.baseline.finish(self.ran_cells, records)
+    def finish(self, exitstatus: int) -> int:
+        """The session's end, where it runs (not an xdist worker: the controller compares and
+        reports from the shared store): the baseline's save / compare, grid.json under --screen,
+        REPORT.md; returns the run's exit status: a failed comparison or report is an internal
+        error and a rank flip a failure, never a success."""
+        if hasattr(self.config, "workerinput") or not self.selection:
+            return exitstatus
+        try:
+            records = {c: r for c in self.ran_cells if (r := self.store.load(c)) is not None}
+            sections = self.baseline.finish(self.ran_cells, records)
+        except Exception as e:  # a comparison that could not be made must not pass silently
+            sys.stderr.write(f"\n[graftbench] baseline compare/save failed: "
+                             f"{type(e).__name__}: {e}\n")
+            exitstatus, sections = pytest.ExitCode.INTERNAL_ERROR, []
+        if self.baseline.rank_flipped and exitstatus == 0:
+            exitstatus = pytest.ExitCode.TESTS_FAILED
+        if self.screening is not None and self.selection.cells:
+            self._write_grid()
+        self._report(sections)
+        if self.report_error is not None and exitstatus == 0:
+            exitstatus = pytest.ExitCode.INTERNAL_ERROR
+        return exitstatus
 
-    def finish(self, sections: list[tuple[str, str]] = ()) -> Path | None:
-        """REPORT.md (with the baseline's sections) when a cell finished in this run; None when
-        nothing new finished (an existing report is left as it is), or when writing it failed
-        (`report_error` says why)."""
+    def _report(self, sections: list[tuple[str, str]]) -> None:
+        """REPORT.md (with the baseline's sections) when a cell finished in this run; nothing
+        when nothing new finished (an existing report is left as it is) or when writing it
+        failed (`report_error` says why)."""
         outcomes = list(self.outcomes.values())
         if self._robustness is not None:
             outcomes += list(self._robustness.outcomes.values())
         if self.screening is not None:
             outcomes += list(self.screening.outcomes.values())
-            if self.selection.cells and self.screening.dropped:  # grid.json: what was meant to run
-                self.store.write_grid(self.ran_cells, self.profile.name)
         statuses = {o.status for o in outcomes}
-        if not self.selection or not (Status.MEASURED in statuses or (
+        if not (Status.MEASURED in statuses or (
                 Status.RESUMED in statuses and not self.report_path.exists())):
-            return None
+            return
         try:
             self.report_written = self.seams.report_builder(self.results_dir, self.report_path,
                                                             extra_sections=sections)
         except Exception as e:  # a report bug must not hide the cell results: said, kept
             self.report_error = f"{type(e).__name__}: {e}"
             sys.stderr.write(f"\n[graftbench] REPORT.md not written: {self.report_error}\n")
-        return self.report_written
+
+    def display(self, reporter) -> None:
+        """The run's summary at the end of pytest's (bench.summary's lines, the baseline's)."""
+        selection = self.selection
+        if not (selection.cells or selection.screens) or hasattr(self.config, "workerinput"):
+            return
+        from bench.summary import screen_summary_lines, summary_lines
+
+        reporter.write_sep("-", "graftbench")
+        lines = summary_lines(self.profile.name, self.profile.protocol.hash, self.outcomes,
+                              len(selection.cells), self.results_dir, self.report_path,
+                              self.report_written is not None, self.report_error)
+        if self.screening is not None:
+            lines[2:2] = screen_summary_lines(self.screening.outcomes, self.screening.dropped)
+        lines += [f"set aside: {line}" for line in self.set_aside_lines]
+        for line in lines:
+            reporter.write_line(line)
+        self.baseline.summary(reporter)
 
 
 def _default_workspace(session: GraftSession):

@@ -16,7 +16,9 @@ def pytest_configure(config: pytest.Config) -> None:
     from bench.plugin import SESSION_KEY
 
     session = config.stash[SESSION_KEY]
-    measure = session.seams.cell_runner
+    from bench.run.service import measure_here
+
+    measure = session.seams.cell_runner or measure_here
     marks = Path(os.environ["GRAFTBENCH_TEST_MARKS"])
     delay = float(os.environ.get("GRAFTBENCH_TEST_CELL_DELAY", "0"))
 

@@ -128,8 +128,8 @@ def test_a_record_of_another_release_is_not_resumed_and_the_report_names_both(tm
     cell = CellSpec(GRAFT, "pi05", "spatial", 0, "pixels")
     run = RunConditions(protocol_hash=TINY.protocol.hash)
     on = lambda revision: lambda r: dataclasses.replace(r, revision=revision)  # noqa: E731
-    assert plan(cell, store, run, weights=on(ours)).resume is None
-    assert plan(cell, store, run, weights=on(theirs)).resume is not None
+    assert plan(cell, store.load(cell.id), run, weights=on(ours)).resume is None
+    assert plan(cell, store.load(cell.id), run, weights=on(theirs)).resume is not None
     # Another item measured on this machine's release: the folder now holds both.
     store.write(make_record(backbone="pi05", encoder="blind",
                             checkpoint={"repo_id": "tiny:pi05", "revision": ours}))

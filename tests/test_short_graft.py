@@ -43,10 +43,10 @@ def test_a_stored_short_graft_resumes_and_another_fraction_does_not(tmp_path):
     store.write(stored)
     run = RunConditions(protocol_hash=TINY.protocol.hash)
     quarter = CellSpec(SHORT_GRAFT, "smolvla", "spatial", 0, "pixels", "1_4")
-    resumed = plan(quarter, store, run).resume
+    resumed = plan(quarter, store.load(quarter.id), run).resume
     assert resumed is not None and resumed.training.train_steps == 3
     eighth = CellSpec(SHORT_GRAFT, "smolvla", "spatial", 0, "pixels", "1_8")
-    assert plan(eighth, store, run).resume is None
+    assert plan(eighth, store.load(eighth.id), run).resume is None
     assert load_results(tmp_path).records[0].reference == "smolvla-spatial-pixels-seed0"
 
 

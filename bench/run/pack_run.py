@@ -10,8 +10,8 @@ each cell keeps its own seed, data order, noise and schedule in the pack, so a s
 to keep cells apart, and more cells fill a pack. Each mate is claimed on the results store
 WITHOUT waiting: one another process holds is left to it; one with a current record (its plan:
 resume) is left out and resumed by its own case. The pack trains (train_pack), then every cell is
-scored and written as it is alone (runner.score_and_write), mates first, the lead last, the
-claims held until all are written. A mate that fails gets its failure record, and its case fails
+scored as it is alone (runner.score_cell) and written by the service, mates first, the lead last
+(returned to the service like a runner's result), the claims held until all are written. A mate that fails gets its failure record, and its case fails
 with that error when reached; the others go on. The mates' records and outcomes go into the
 service's caches, so their cases take them without measuring again and report "measured" (this
 process measured them; an xdist worker that waited on a mate's claim resumes it: "resumed").
@@ -104,27 +104,22 @@ def _train_and_write(service, plans: list[CellPlan]) -> CellResult:
         return service.runner(lead, ws, plans[0].context)
     for plan, item in list(zip(plans, items))[1:]:
         try:
-            result = _score_and_write(ws, plan, item)
+            record = service.write(plan, _score(ws, plan, item))
         except Exception as e:  # this mate alone fails; the pack's others go on
             service.note_failure(plan.cell, e)
             service.pack_failures[plan.cell.id] = e
             continue
-        service.records[plan.cell.id] = service.note_measured(plan, result)
-        service.outcomes[plan.cell.id] = MEASURED
-    return _score_and_write(ws, plans[0], items[0])
+        service.records[plan.cell.id], service.outcomes[plan.cell.id] = record, MEASURED
+    return _score(ws, plans[0], items[0])
 
 
-def _score_and_write(ws, plan: CellPlan, item) -> CellResult:
-    """One packed cell scored and written as runner.measure does alone (its training's error
-    raised here), its projector kept when a later cell takes it."""
-    from bench.run.runner import keep_projector, score_and_write
+def _score(ws, plan: CellPlan, item) -> CellResult:
+    """One packed cell scored as runner.measure does alone (its training's error raised here)."""
+    from bench.run.runner import score_cell
 
     if item.error is not None:
         raise item.error
     cell, graft = plan.cell, item.graft
-    record = score_and_write(cell, ws, plan.context, ws.backbone(cell.backbone, cell.suite),
-                             graft.inputs, graft, item.fitted, dict(item.timings),
-                             spent=sum(item.timings.values()))
-    kept = (keep_projector(cell, ws, graft, item.fitted.curve, item.fitted.probe_losses)
-            if plan.context.keep_as is not None else None)
-    return CellResult(record, kept)
+    return score_cell(cell, ws, plan.context, ws.backbone(cell.backbone, cell.suite),
+                      graft.inputs, graft, item.fitted, dict(item.timings),
+                      spent=sum(item.timings.values()))

@@ -3,9 +3,10 @@
 `plan(cell, store, run, ...)` is pure (it reads the store, writes nothing): it says whether the
 stored record stands for this run (resume) or the cell is measured, and with what `CellContext`:
 the features mode, a planted feature transform (--degrade-encoder), and the trained projector of
-its graft the cell takes instead of training the same one again. The runner measures with that
-context and hands back what it trained (`CellResult`); the session keeps it for later plans. No
-cell state lives on the workspace (its resources only: policies, suites, encoders, features).
+its graft the cell takes instead of training the same one again. It is handed the stored record
+(the service reads it once). The runner measures with that context and returns what it measured
+(`CellResult`); the service writes it and keeps the projector for later plans. No cell state
+lives on the workspace (its resources only: policies, suites, encoders, features).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Callable, Mapping
 
 from bench.grid.cells import CellSpec
 from bench.grid.kinds import GRAFT
-from bench.results.current import RunConditions
+from bench.results.current import RunConditions, is_current
 from bench.results.record import Record
 
 FEATURES_MODES = ("cache", "loop")
@@ -60,11 +61,14 @@ class CellContext:
 
 @dataclass(frozen=True)
 class CellResult:
-    """What measuring a cell gave: its record, and the projector it trained when a later cell
-    of the session may take it (under `CellContext.keep_as`)."""
+    """What measuring a cell gave: its record, not yet written, and its graft's projector (a
+    torch module: the service saves it beside the record, and keeps it for a later cell of the
+    session under `CellContext.keep_as`); `stored`: the record is already in the store (a job
+    array's task wrote it)."""
 
     record: Record
-    trained: TrainedProjector | None = None
+    projector: object | None = None
+    stored: bool = False
 
 
 def cell_context(cell: CellSpec, features_mode: str = "cache", *,
@@ -101,22 +105,22 @@ class CellPlan:
         return f"{self.cell.spec.scaled_steps(steps, self.cell.variant)} {trained} steps, then"
 
 
-def plan(cell: CellSpec, store, run: RunConditions, *,
+def plan(cell: CellSpec, stored: Record | None, run: RunConditions, *,
          weights: Callable[[RunConditions], RunConditions] | None = None,
          rerun: bool = False, features_mode: str = "cache",
          projectors: Mapping[tuple, TrainedProjector] | None = None,
          feature_transform: Callable | None = None) -> CellPlan:
-    """Resume or measure `cell`. `run`: the conditions a stored record must match
-    (bench.results.current); `weights(run)`: `run` with the conditions that need the policy
-    looked up (revision, normalizer_fingerprint), asked only when a stored record passes `run`."""
+    """Resume or measure `cell`, whose stored record is `stored` (None: none readable). `run`:
+    the conditions a stored record must match (bench.results.current); `weights(run)`: `run`
+    with the conditions that need the policy looked up (revision, normalizer_fingerprint),
+    asked only when the stored record passes `run`."""
     context = cell_context(cell, features_mode, projectors=projectors,
                            feature_transform=feature_transform)
-    stored = store.load(cell.id)
     degraded = stored is not None and (feature_transform is not None
                                        or stored.measured.feature_transform is not None)
     if rerun or stored is None or degraded:
         return CellPlan(cell, context, discard=degraded)
-    if store.current(cell.id, run) is None:
+    if not is_current(stored, run):
         return CellPlan(cell, context)
     full = weights(run) if weights is not None else run
-    return CellPlan(cell, context, resume=store.current(cell.id, full))
+    return CellPlan(cell, context, resume=stored if is_current(stored, full) else None)

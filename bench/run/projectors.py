@@ -52,6 +52,17 @@ def save_projector(results_dir: str | os.PathLike, cell_id: str,
     return path.relative_to(results_dir).as_posix(), sha
 
 
+def keep_for_session(folder: Path, record, projector: torch.nn.Module):
+    """`record`'s trained projector saved in the session's folder, for a later cell of the run
+    that takes it (bench.run.plan `CellContext.keep_as`), with what its training recorded."""
+    from bench.run.plan import TrainedProjector
+
+    path = Path(folder) / f"projector-{record.cell_id}.safetensors"
+    save_file({k: v.detach().cpu().contiguous() for k, v in projector.state_dict().items()}, path)
+    return TrainedProjector(path, record.training.loss_curve, record.training.probe_loss,
+                            record.cell_id)
+
+
 def load_projector(results_dir: str | os.PathLike, cell_id: str, relative: str | None,
                    sha256: str | None) -> dict[str, torch.Tensor]:
     """The state dict a record names, checked against its sha256; ProjectorFileError else."""

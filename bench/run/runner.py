@@ -1,4 +1,6 @@
-"""One cell, top to bottom: build the graft -> train its projector -> score -> record.
+"""One cell, top to bottom: build the graft -> train its projector -> score -> its record,
+returned (bench.run.service writes it, with the projector file, and keeps the projector a later
+cell takes).
 
 What a kind of cell does differently is read from its entry in bench.grid.kinds; no branch here
 names a kind."""
@@ -10,16 +12,15 @@ import time
 from dataclasses import asdict, dataclass
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 
 from bench.grid.cells import CellSpec
 from bench.run.evaluate import derangement, score
 from bench.run.features import feature_runtime
 from bench.run.graft import assert_only_trainable, trainable_parameters, tunable_copy
-from bench.run.projectors import save_projector
 from graftcore.graft import GraftFeed, Projector
 from bench.run.inputs import CellInputs
-from bench.run.plan import CellContext, CellResult, TrainedProjector
+from bench.run.plan import CellContext, CellResult
 from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
@@ -98,7 +99,8 @@ class Fitted:
 
 def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
     """One cell, top to bottom, with the context its plan gave: build the graft -> train its
-    projector (or take its graft's) -> score -> write the record."""
+    projector (or take its graft's) -> score -> the record and the trained projector, returned
+    for the service to write and keep."""
     p, kind = ws.profile.protocol, cell.spec
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
@@ -110,27 +112,27 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
     inputs = cell_inputs(cell, p, suite, split, backbone, device)
     timings["build"] = time.perf_counter() - t_start
 
-    graft, training, trained = None, Fitted(curve=[]), None
+    graft, training = None, Fitted(curve=[])
     if cell.trains_projector:
         t0 = time.perf_counter()
         graft = build_graft(cell, ws, backbone, inputs, context)
         timings["features"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        training, trained = train_graft(cell, ws, backbone, graft, context)
+        training = train_graft(cell, ws, backbone, graft, context)
         timings["train"] = time.perf_counter() - t0
     else:
         timings["features"] = timings["train"] = 0.0
-    record = score_and_write(cell, ws, context, backbone, inputs, graft, training, timings,
-                             spent=time.perf_counter() - t_start)
-    return CellResult(record, trained)
+    return score_cell(cell, ws, context, backbone, inputs, graft, training, timings,
+                      spent=time.perf_counter() - t_start)
 
 
-def score_and_write(cell: CellSpec, ws: Workspace, context: CellContext, backbone,
-                    inputs: CellInputs, graft: Graft | None, training: Fitted,
-                    timings: dict[str, float], spent: float):
+def score_cell(cell: CellSpec, ws: Workspace, context: CellContext, backbone,
+               inputs: CellInputs, graft: Graft | None, training: Fitted,
+               timings: dict[str, float], spent: float) -> CellResult:
     """The cell's trained graft (or none) scored on the held-out windows, rolled out when the run
-    asks, and its record written (returned). `timings`: the phases so far (seconds); `spent`:
-    the seconds they took in all (a packed cell: its share of the pack, bench.run.pack_run)."""
+    asks: its record (no projector file yet: the service writes both) and the trained projector.
+    `timings`: the phases so far (seconds); `spent`: the seconds they took in all (a packed
+    cell: its share of the pack, bench.run.pack_run)."""
     p, kind = ws.profile.protocol, cell.spec
     suite, split = ws.suite(cell.suite), ws.split(cell.suite)
     device = next(backbone.policy.parameters()).device
@@ -158,15 +160,12 @@ def score_and_write(cell: CellSpec, ws: Workspace, context: CellContext, backbon
         cell,
         measured=measured,
         scores=scores,
-        training=training_fields(backbone, graft, training, inputs.encoder,
-                                 save_projector(ws.store.root, cell.id, graft.projector)
-                                 if graft else (None, None)),
+        training=training_fields(backbone, graft, training, inputs.encoder),
         run=RunInfo(timings_s={k: round(v, 3) for k, v in timings.items()},
                     peak_memory_mb=peak_memory_mb(device), device=str(device),
                     hardware=hardware(), versions=versions(), git_commit=git_commit(),
                     rollouts=rollouts))
-    ws.store.write(record)
-    return record
+    return CellResult(record, projector=graft.projector if graft else None)
 
 
 def cell_inputs(cell: CellSpec, p, suite, split, backbone, device) -> CellInputs:
@@ -224,9 +223,9 @@ def graft_fit_config(cell: CellSpec, p) -> FitConfig:
 
 
 def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
-                context: CellContext) -> tuple[Fitted, TrainedProjector | None]:
+                context: CellContext) -> Fitted:
     """Fit the projector, or take the identical one its graft trained this session (the plan's
-    `context.reuse`); the trained projector is handed back when `context.keep_as` asks."""
+    `context.reuse`)."""
     p, split = ws.profile.protocol, ws.split(cell.suite)
     device = graft.inputs.device
     next_batch = graft.inputs.train_batches(cell.spec.train_rule(cell.variant))
@@ -234,7 +233,7 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
     if reused is not None:
         graft.projector.load_state_dict(load_file(reused.path, device=str(device)))
         graft.projector.eval()
-        return Fitted(reused.curve, reused.probe_losses, reused.cell_id, p.steps), None
+        return Fitted(reused.curve, reused.probe_losses, reused.cell_id, p.steps)
     probe = probe_frames(split.train_frames)
     before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
     params = list(graft.projector.parameters()) + [
@@ -246,20 +245,8 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
                 feed=graft.feed, label=cell.id, progress=ws.progress, other_lrs=tuned)
     probe_losses = {"before": before,
                     "after": probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)}
-    kept = (keep_projector(cell, ws, graft, curve, probe_losses)
-            if context.keep_as is not None else None)
     graft.projector.eval()
-    return Fitted(curve, probe_losses, steps=fit_cfg.steps), kept
-
-
-def keep_projector(cell: CellSpec, ws: Workspace, graft: Graft, curve: list,
-                   probe_losses: dict) -> TrainedProjector:
-    """The trained projector saved for the session, for a later cell that takes it (the plan's
-    `CellContext.keep_as`)."""
-    path = ws.session_dir() / f"projector-{cell.id}.safetensors"
-    save_file({k: v.detach().cpu().contiguous()
-               for k, v in graft.projector.state_dict().items()}, path)
-    return TrainedProjector(path, curve, probe_losses, cell.id)
+    return Fitted(curve, probe_losses, steps=fit_cfg.steps)
 
 
 def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
@@ -300,9 +287,8 @@ def user_world_fields(cell: CellSpec, ws: Workspace, backbone) -> tuple[dict | N
     return camera_map, dataset
 
 
-def training_fields(backbone, graft: Graft | None, training: Fitted, encoder,
-                    projector_kept: tuple[str | None, str | None]) -> TrainingPart:
-    """projector_kept: (file relative to the results dir, sha256) of the trained projector."""
+def training_fields(backbone, graft: Graft | None, training: Fitted, encoder) -> TrainingPart:
+    """What trained (the projector's file and sha256 are the service's to add: it writes it)."""
     projector = graft.projector if graft else None
     # The encoder counts only when it trained (a tuned encoder); a frozen one adds 0.
     modules = [projector, backbone.policy] + ([encoder] if encoder is not None else [])
@@ -315,7 +301,6 @@ def training_fields(backbone, graft: Graft | None, training: Fitted, encoder,
         probe_loss=training.probe_losses,
         encoder_weights=getattr(encoder, "weights_id", None),
         encoder_input_size=_input_size(encoder),
-        projector_file=projector_kept[0], projector_sha256=projector_kept[1],
         train_steps=training.steps,
     )
 

@@ -4,10 +4,11 @@ For every cell kind (graft, control, short graft) and every executor: the pytest
 or an xdist worker), a submitit / Slurm array task (bench.run.executors.run_cell_job) and a
 script outside pytest (`run_cell`) all call `CellService.run`. It claims the cell on the results
 store (another process measuring it makes this one wait, then resume), sets an unreadable
-record aside, plans (bench.run.plan: resume the stored record or measure, with what), measures
-through its `measure_with` (here, or in an array task), writes a failure record when that
-raises, keeps the projector a later cell takes, and returns the record with a typed outcome
-(bench.run.outcome). The screen's measurements go through `screen` alike (bench.run.screen_run
+record aside, reads the stored record once and plans (bench.run.plan: resume it or measure, with
+what), measures through its runner (bench.run.runner, which returns and writes nothing) or
+`measure_with` (an array task), then alone writes what came of it: the record with its
+projector file, or the failure record when measuring raised; it keeps the projector a later cell
+takes, and returns the record with a typed outcome (bench.run.outcome). The screen's measurements go through `screen` alike (bench.run.screen_run
 keeps only the selection), and its short grafts through `run`. With `pack_grafts` > 1 a measured
 cell may lead a pack of graft cells trained together (bench.run.pack_run), each still claimed,
 written, failed and reported one by one.
@@ -101,7 +102,8 @@ class CellService:
         s = self.settings
         run = RunConditions(protocol_hash=self.profile.protocol.hash,
                             feature_dtype=s.feature_dtype, rollouts=s.rollouts)
-        return plan(cell, self.store, run, weights=lambda wanted: self._weights(cell, wanted),
+        return plan(cell, self.store.load(cell.id), run,
+                    weights=lambda wanted: self._weights(cell, wanted),
                     rerun=s.rerun, features_mode=s.features_mode, projectors=self.projectors,
                     feature_transform=self.feature_transform(cell))
 
@@ -172,10 +174,10 @@ class CellService:
                 result = measure_packed(self, cell_plan)  # with mates, when it finds them
             else:
                 result = self.runner(cell, self.workspace(), cell_plan.context)
+            return self.write(cell_plan, result)
         except Exception as e:
             self.note_failure(cell, e)
             raise
-        return self.note_measured(cell_plan, result)
 
     def note_failure(self, cell: CellSpec, error: Exception) -> None:
         """`cell`'s failure record written and its outcome set (the error is the caller's)."""
@@ -184,11 +186,21 @@ class CellService:
         self.store.write_failure(Failure.of(cell, self.profile.protocol.hash, error))
         self.outcomes[cell.id] = failed(f"{type(error).__name__}: {error}")
 
-    def note_measured(self, cell_plan: CellPlan, result: CellResult):
-        """What measuring `cell_plan` gave, kept: the projector a later cell takes, one line."""
-        if result.trained is not None:
-            self.projectors[cell_plan.context.keep_as] = result.trained
-        record = result.record
+    def write(self, cell_plan: CellPlan, result: CellResult):
+        """What measuring `cell_plan` gave, written (its projector file, then the record naming
+        it; not when a job array's task wrote it) and kept: the projector a later cell takes
+        (`CellContext.keep_as`), one line. Returns the record as written."""
+        from bench.run.projectors import keep_for_session, save_projector
+
+        record, cell = result.record, cell_plan.cell
+        if not result.stored:
+            if result.projector is not None:
+                file, sha = save_projector(self.store.root, cell.id, result.projector)
+                record = record.replace(projector_file=file, projector_sha256=sha)
+            self.store.write(record)
+        if cell_plan.context.keep_as is not None and result.projector is not None:
+            self.projectors[cell_plan.context.keep_as] = keep_for_session(
+                self.workspace().session_dir(), record, result.projector)
         say(self.progress(), f"{record.cell_id}: MSE {record.mse_in():.4f} normalised "
                              f"({record.run.total_s:.1f} s)")
         return record
