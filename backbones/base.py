@@ -25,7 +25,7 @@ import torch
 from lerobot_policy_graft.families import GraftFamily, ImageEmbedder  # noqa: F401
 from torch import Tensor
 
-from external.libero_format import ACTION_KEY, STATE_KEY
+from ondisk.libero_format import ACTION_KEY, STATE_KEY
 
 # ImageEmbedder: fn(image) -> (B, N_tokens, lm_width), called once per camera, in `camera_keys`
 # order, with the image tensor the policy itself would feed its vision tower (already

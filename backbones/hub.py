@@ -1,6 +1,6 @@
 """What the adapters need from the Hugging Face cache and LeRobot's saved processors.
 
-Cache look-ups and fix lines: external.hubcache (read from there). One owner here for: the overrides that make a
+Cache look-ups and fix lines: ondisk.hubcache (read from there). One owner here for: the overrides that make a
 checkpoint's SAVED processor pipeline fit the policy we built (LeRobot's own lerobot_train.py
 ~356-377 passes the same ones), and the check that the resulting normaliser covers the state and
 action it will see (a hub `policy_preprocessor.json` may carry `"features": {}`, which makes the
@@ -16,8 +16,8 @@ from typing import Callable, Iterator
 import torch
 
 from backbones.base import BackboneUnavailable
-from external.hubcache import cached_file, download_command, hub_offline
-from external.libero_format import ACTION_KEY, STATE_KEY
+from ondisk.hubcache import cached_file, download_command, hub_offline
+from ondisk.libero_format import ACTION_KEY, STATE_KEY
 
 
 def default_device() -> str:

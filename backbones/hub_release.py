@@ -1,6 +1,6 @@
 """The base releases at tiny size, shaped as the hub's: each adapter module's
 `write_hub_release` (backbones.seam.AdapterModule) writes its release here into a Hugging Face
-cache; bench/hubworld.py builds the whole offline world (docstring there: what is real, what tiny).
+cache; bench/offline_hub.py builds the whole offline world (docstring there: what is real, what tiny).
 
 Takes the adapter module as an argument (it imports no adapter), so the adapters may import it.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from external.hubcache import snapshot_dir
+from ondisk.hubcache import snapshot_dir
 
 # Commits of repos graftbench does not pin (the cache's main points at them).
 VLM_FAKE_SHA = "7b375e1b73b11138ff12fe22c8f2822d8fe03467"  # smolvla's VLM_REPO_ID

@@ -42,7 +42,7 @@ from backbones.tiny_paligemma import (
     tiny_paligemma_patches,
     tiny_vocabulary,
 )
-from external.paths import cache_dir
+from ondisk.paths import cache_dir
 
 PALIGEMMA_TOKENIZER_REPO = "google/paligemma-3b-pt-224"  # processor_pi05.py:141, processor_pi0.py:141
 TOKENIZER_SUBDIR = "tokenizer"  # the tiny tokenizer travels inside a saved tiny checkpoint

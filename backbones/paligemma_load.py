@@ -28,7 +28,7 @@ from backbones.paligemma import (
     PaliGemmaBackbone,
 )
 from backbones.tiny_paligemma import TinyPaliGemmaArch, require_pinned_lerobot, tiny_paligemma_patches
-from external.hubcache import cached_file, hub_artifact
+from ondisk.hubcache import cached_file, hub_artifact
 
 
 def load_policy(backbone_cls: type[PaliGemmaBackbone], path_or_repo_id: str,

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Protocol, Sequence
 
 if TYPE_CHECKING:
     from backbones.base import Backbone, BackboneInfo
-    from external.artifacts import Artifact
+    from ondisk.artifacts import Artifact
 
 
 class AdapterModule(Protocol):
@@ -46,7 +46,7 @@ class AdapterModule(Protocol):
 
     def write_hub_release(self, hub_cache: Path, repo_id: str, revision: str | None) -> None:
         """The base release `repo_id`@`revision` at tiny size, shaped as the hub's, into the HF
-        cache folder `hub_cache` (the offline hub world, bench/hubworld.py)."""
+        cache folder `hub_cache` (the offline hub world, bench/offline_hub.py)."""
 
 
 ADAPTER_MEMBERS = tuple(AdapterModule.__annotations__) + tuple(

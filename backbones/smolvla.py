@@ -29,7 +29,7 @@ from backbones import hub_release, smolvla_load
 from backbones.base import Backbone, BackboneInfo, only_step
 from backbones.smolvla_load import VENDORED_VLM_DIR, VLM_REPO_ID, artifacts  # noqa: F401
 from backbones.tiny_smolvla import REAL_VLM, real_shape_forward, tiny_config, tokens_per_camera
-from external.libero_format import (
+from ondisk.libero_format import (
     ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
 )
 

@@ -10,8 +10,8 @@ from lerobot_policy_graft.configuration_graft import config_from_pretrained
 
 from backbones import hub
 from backbones.base import only_step
-from external.hubcache import hub_artifact
-from external.libero_format import (
+from ondisk.hubcache import hub_artifact
+from ondisk.libero_format import (
     ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
 )
 

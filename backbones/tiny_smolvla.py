@@ -24,8 +24,8 @@ from pathlib import Path
 
 import torch
 
-from external.paths import cache_dir
-from external.libero_format import (
+from ondisk.paths import cache_dir
+from ondisk.libero_format import (
     ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, STATE_KEY,
 )
 

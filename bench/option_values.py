@@ -12,7 +12,7 @@ from typing import NoReturn
 import pytest
 
 # Bad input exits with this code from every entry point: `pytest bench` (pytest's usage error),
-# `python -m bench.report`, `bench.export`, `bench.hubworld`, `bench.sim.demos`.
+# `python -m bench.report`, `bench.export`, `bench.offline_hub`, `bench.sim.demos`.
 USAGE_ERROR = int(pytest.ExitCode.USAGE_ERROR)  # 4
 
 
@@ -67,7 +67,7 @@ def refuse_empty(config: pytest.Config) -> None:
     for option in REPEATED:
         for value in config.getoption(option) or ():
             _check_not_blank(option, value)
-    try:  # the robustness list is read by bench.run.robust_run, where `,,,` meant "off"
+    try:  # the robustness list is read by bench.robust.cases, where `,,,` meant "off"
         listed("--robustness", config.getoption("--robustness"))
     except ValueError as e:
         raise pytest.UsageError(str(e)) from None
@@ -165,7 +165,7 @@ def choice(option: str, value: str, choices: tuple[str, ...]) -> str:
 
 
 def pack_grafts(given: int | None, grid_file, executor: str) -> int:
-    """Graft cells trained per backbone pass (bench.run.pack_run): --pack-grafts, else the grid
+    """Graft cells trained per backbone pass (bench.cell.pack_run): --pack-grafts, else the grid
     file's `pack_grafts` (checked when the file was read), else 1. A run setting: the protocol
     and every record's identity stay as they are. K > 1 needs cells measured in this process."""
     where = f"--pack-grafts {given}"

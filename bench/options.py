@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 
 from bench.grid.gridfile import read_grid_file
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 from bench.grid.kinds import control_kinds
 from bench.grid.protocol import Profile, get_profile, with_overrides
-from bench.run.robust_run import add_robustness_option, with_robustness
+from bench.robust.cases import add_robustness_option, with_robustness
 from bench.screen.proxies import PROXIES, proxy_names
 from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
                                     parse_screen_by, parse_screen_keep)
@@ -68,7 +68,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      "encoder's numbers bit for bit, twice the disk)")
     _add_sim_options(g)
     _add_screen_options(g)
-    add_robustness_option(g)  # the robustness tier (bench.run.robust_run)
+    add_robustness_option(g)  # the robustness tier (bench.robust.cases)
     _add_executor_options(g)
     from bench.regression.run import add_baseline_options
 
@@ -188,7 +188,7 @@ def _calibration(value: str) -> str:
 
 
 def _add_executor_options(g) -> None:
-    """Where cells run (bench.run.executors): here, or as one submitit job array."""
+    """Where cells run (bench.cell.executors): here, or as one submitit job array."""
     g.addoption("--executor", default="local", metavar="local|slurm|submitit-local",
                 help="local (default): in this process; slurm: the selected cells as ONE Slurm "
                      "job array via submitit; submitit-local: the same on this machine")
@@ -272,7 +272,7 @@ def _sim_demos(profile, opt) -> dict:
 
 def _user_world(profile, opt):
     """--policy / --dataset / --camera-map on top of the grid file's (each replaces its table)."""
-    from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
+    from bench.grid.user_specs import parse_camera_map, parse_named, with_user_world
 
     given = {key: opt(option) for key, option in (("policies", "--policy"), ("datasets", "--dataset"))}
     return with_user_world(
@@ -351,17 +351,17 @@ class RunOptions:
     # --rollout-batch (envs per task at once), --rollout-envs (gym sync or async vector env)
     rollout_batching: Batching = IN_PROCESS
     executor: str = "local"
-    slurm: object = None  # bench.run.executors.SlurmOptions
+    slurm: object = None  # bench.cell.executors.SlurmOptions
     baseline: object = None  # bench.regression.run.BaselineOptions
     screen: object = None  # bench.screen.selection.ScreenOptions; None without --screen
-    pack_grafts: int = 1  # graft cells per backbone pass (bench.run.pack_run); 1: unpacked
+    pack_grafts: int = 1  # graft cells per backbone pass (bench.cell.pack_run); 1: unpacked
 
 
 def parse_options(config: pytest.Config) -> RunOptions:
     """Every option of the grid, parsed and checked: a bad one is a UsageError (exit 4). Names
     and user paths are checked after (check_startup: only when the grid is collected)."""
     from bench.regression.run import BaselineOptions
-    from bench.run.executors import SlurmOptions
+    from bench.cell.executors import SlurmOptions
 
     opt = config.getoption
     refuse_empty(config)

@@ -107,7 +107,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
             for c in staggered(tier_cells(session.profile), workers)])
         return
     if "robust_cell" in names:  # --robustness: after every cell, in bench/test_grid.py's order
-        from bench.run.robust_run import robust_cells
+        from bench.robust.cases import robust_cells
 
         metafunc.parametrize("robust_cell", [
             pytest.param(c, id=c.id, marks=pytest.mark.xdist_group(c.backbone))

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Iterable, Sequence
 
-from external.artifacts import Artifact
+from ondisk.artifacts import Artifact
 
 def grid_artifacts(backbones: Iterable[str], encoders: Iterable[str],
                    suites: Iterable[str]) -> list[Artifact]:

@@ -1,11 +1,11 @@
 """One pytest run of the grid: `GraftSession` holds the profile, the results store, the
-workspace, the cell service (bench.run.service: every cell goes through it), the baseline work
+workspace, the cell service (bench.cell.service: every cell goes through it), the baseline work
 (save / compare / fail, bench.regression.run) and what collection selected.
 
 bench.plugin's hooks only hand work on to it, through its methods: `collected` freezes the
 selection once collection ends. Its seams are one frozen `Seams` value, replaced before the first
 cell runs through `use_seams` (tests do): `cell_runner(cell, workspace, context) -> CellResult`
-(None: the service's own, bench.run.runner.measure, with the context the cell's plan gave),
+(None: the service's own, bench.cell.runner.measure, with the context the cell's plan gave),
 `workspace_factory(session) -> workspace`, `report_builder(results_dir, path, extra_sections=)`
 (bench.report.build_report).
 """
@@ -24,7 +24,7 @@ from bench.grid.cells import CellSpec
 from bench.options import parse_options
 from bench.startup import check_startup, check_writable, collects_grid, offline_env
 from bench.progress import QUIET, TerminalSink, WorkerSink, say
-from bench.run.outcome import MEASURED, OUTCOME_PROPERTY, Outcome, Status, failed
+from bench.cell.outcome import MEASURED, OUTCOME_PROPERTY, Outcome, Status, failed
 from bench.regression.run import BaselineRun
 
 
@@ -47,7 +47,7 @@ def _build_report(results_dir, path, extra_sections=()):
 class Seams:
     """What tests replace (module docstring); the defaults are the real ones."""
 
-    cell_runner: Callable | None = None  # None: the service's own (bench.run.runner.measure)
+    cell_runner: Callable | None = None  # None: the service's own (bench.cell.runner.measure)
     workspace_factory: Callable = field(default=lambda session: _default_workspace(session))
     report_builder: Callable = _build_report
 
@@ -79,13 +79,13 @@ class GraftSession:
         self.baseline = BaselineRun(options.baseline, self.profile.protocol.hash)
         self._workspace = None
         self._store = None
-        self._cells = None  # the cell service (bench.run.service), built on first use
+        self._cells = None  # the cell service (bench.cell.service), built on first use
         self.selection = Selection()  # what collection selected: frozen, set by `collected`
         self._robustness = None
         self._screening = None
         self.report_written: Path | None = None
         self.report_error: str | None = None  # why REPORT.md could not be written, if it failed
-        self._cell_array = None  # bench.run.executors.CellArray, when --executor is not local
+        self._cell_array = None  # bench.cell.executors.CellArray, when --executor is not local
         # Names, user paths, output folders: checked here when this run collects the grid (an
         # xdist worker's controller checked them); else at collection (bench.plugin).
         self._names_checked = collects_grid(config) and not hasattr(config, "workerinput")
@@ -164,18 +164,18 @@ class GraftSession:
 
     @property
     def screening(self):
-        """The run's screens and graft selections (bench.run.screen_run); None without --screen."""
+        """The run's screens and graft selections (bench.cell.screening); None without --screen."""
         if self._screening is None and self.screen_options is not None:
-            from bench.run.screen_run import ScreenRun
+            from bench.cell.screening import ScreenRun
 
             self._screening = ScreenRun(self.screen_options, self.cells)
         return self._screening
 
     @property
     def robustness(self):
-        """The run's robustness cases (bench.run.robust_run); --robustness only."""
+        """The run's robustness cases (bench.robust.cases); --robustness only."""
         if self._robustness is None:
-            from bench.run.robust_run import RobustRun
+            from bench.robust.cases import RobustRun
 
             self._robustness = RobustRun(self.profile, self.workspace, rerun=self.rerun)
         return self._robustness
@@ -183,10 +183,10 @@ class GraftSession:
     # --- one cell: through the cell service --------------------------------------------------
     @property
     def cells(self):
-        """The run's one cell service (bench.run.service): every cell case, the screen's short
+        """The run's one cell service (bench.cell.service): every cell case, the screen's short
         grafts and, with --executor, the job array's tasks measure through it."""
         if self._cells is None:
-            from bench.run.service import CellService, RunSettings, measure_here
+            from bench.cell.service import CellService, RunSettings, measure_here
 
             o = self.options
             settings = RunSettings(rerun=o.rerun, features_mode=o.features_mode,
@@ -225,7 +225,7 @@ class GraftSession:
         fails this case in one line). Under --screen, a cell of an encoder the screen dropped
         is skipped, saying why, before anything trains; a missing artifact fails in its line."""
         if self.screening is not None and (why := self.screening.dropped_reason(cell)):
-            from bench.run.screen_run import DROPPED
+            from bench.cell.screening import DROPPED
 
             pytest.skip(DROPPED + why)
         try:
@@ -259,10 +259,10 @@ class GraftSession:
     def _measure_submitted(self, cell_plan):
         """--executor slurm|submitit-local, the cell service's `measure_with`: the first cell
         submits every selected cell that has no current record as ONE job array (each task runs
-        the cell service in its own process: bench.run.executors); each waits for its task."""
-        from bench.run.executors import CellArray, CellJob
-        from bench.run.plan import CellResult
-        from external.paths import cache_dir
+        the cell service in its own process: bench.cell.executors); each waits for its task."""
+        from bench.cell.executors import CellArray, CellJob
+        from bench.cell.plan import CellResult
+        from ondisk.paths import cache_dir
 
         if self._cell_array is None:
             self._cell_array = CellArray(self.options.executor, self.results_dir / "submitit",
@@ -369,7 +369,7 @@ def _default_workspace(session: GraftSession):
     sink = session.progress_sink()
     # The first import of LeRobot: 33 s without a line on 2 busy cores (issue 53).
     say(sink, "importing torch and LeRobot (once per process)")
-    from bench.run.workspace import Workspace
+    from bench.resources.workspace import Workspace
 
     if not hasattr(session.config, "workerinput"):  # workers: bench.plugin split the CPUs
         import torch

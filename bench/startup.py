@@ -94,7 +94,7 @@ def check_user_world(profile) -> list[str]:
     if not profile.policies and not profile.datasets:
         return []
     # Only here: the user world's checks load LeRobot (~4 s), which a plain grid's start-up skips.
-    from bench.run.userworld import check_world
+    from bench.resources.user_policies import check_world
     from bench.suites.base import SuiteUnavailable
 
     try:

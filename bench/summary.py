@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bench.results.store import CELLS
-from bench.run.outcome import Outcome, tally
+from bench.cell.outcome import Outcome, tally
 
 
 

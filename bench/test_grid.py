@@ -1,10 +1,10 @@
 """The grid. One parametrised case per cell; ids read as the cell, so
 `pytest bench -k "pi05 and spatial"` selects exactly that slice.
 
-Under --screen, `test_screen[backbone-suite-encoder]` cases come first (bench.run.screen_run),
+Under --screen, `test_screen[backbone-suite-encoder]` cases come first (bench.cell.screening),
 then the short grafts `test_short_graft[...-short_1_8-seed0]` (a tier of the ladder).
 Under --robustness, `test_robust[cell id]` cases come last: each rescores a stored cell on
-perturbed held-out windows (bench.run.robust).
+perturbed held-out windows (bench.robust.rescore).
 A case asserts what must hold of any cell (finite loss that went down, the freeze, a finite
 recorded MSE); it never asserts a ranking: rankings are the report's business.
 """
@@ -12,11 +12,11 @@ recorded MSE); it never asserts a ranking: rankings are the report's business.
 import pytest
 
 from bench.results.record import Record, validate_record
-from bench.run.outcome import OUTCOME_PROPERTY
+from bench.cell.outcome import OUTCOME_PROPERTY
 
 
 def _tell(record_property, outcome) -> None:
-    """The case's outcome (bench.run.outcome) as a report property: how an xdist worker tells
+    """The case's outcome (bench.cell.outcome) as a report property: how an xdist worker tells
     the controller what became of it."""
     record_property(OUTCOME_PROPERTY, outcome.text if outcome is not None else None)
 
@@ -68,7 +68,7 @@ def test_control(control_cell, graft_session, record_property):
 
 def test_robust(robust_cell, graft_session, record_property):
     """--robustness only, after every cell: the cell's stored projector rescored on perturbed
-    held-out windows (bench.run.robust); every perturbation asked for is in the record."""
+    held-out windows (bench.robust.rescore); every perturbation asked for is in the record."""
     record = graft_session.robustness.run(robust_cell)
     wanted = set(graft_session.profile.robustness)
     assert wanted <= {f"{e.kind}:{e.severity}" for e in record.entries}

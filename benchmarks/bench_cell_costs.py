@@ -1,12 +1,12 @@
 """What one cell costs, phase by phase, on the tiny profile (the offline world).
 
-- step_cached: one projector training step as the runner takes it (bench.run.train.fit), pooled
+- step_cached: one projector training step as the runner takes it (bench.loops.train.fit), pooled
   features gathered from the cache;
 - step_naive_<encoder>: the same step with the encoder in the loop (pixels -> encoder -> pool);
 - floor: the frozen backbone's own forward + backward on pre-projected inputs (the image
   embedder returns a fixed tensor that requires grad; batches prepared beforehand);
 - features:<encoder>: feature extraction (image load + encoder + pooling) per frame;
-- eval_*: offline scoring (bench.run.evaluate.score) of the held-out windows, batched, and one
+- eval_*: offline scoring (bench.loops.evaluate.score) of the held-out windows, batched, and one
   window per sampler call for contrast.
 """
 
@@ -18,14 +18,14 @@ from bench.progress import QUIET
 import pytest
 import torch
 
-from bench.run.evaluate import score
-from bench.run.features import encode_pooled
-from bench.run.graft import GraftFeed, Projector
+from bench.loops.evaluate import score
+from bench.loops.encode import encode_pooled
+from bench.cell.freeze import GraftFeed, Projector
 from bench.grid.protocol import TINY, with_overrides
 from bench.results.store import ResultStore
 from bench.suites.windows import raw_batch
-from bench.run.train import FitConfig, batch_order, fit
-from bench.run.workspace import Workspace
+from bench.loops.train import FitConfig, batch_order, fit
+from bench.resources.workspace import Workspace
 
 BACKBONES = ("pi05", "smolvla")
 STEPS = 5  # training steps per timed call (fit's own set-up is amortised over them)
@@ -70,7 +70,7 @@ def _placeholders(world: World, raw: dict, n: int) -> dict:
 
 
 def _train_projector(world: World, channels: int, next_batch, steps: int = STEPS) -> None:
-    """`steps` projector steps through bench.run.train.fit, as bench.run.service.run_cell runs them."""
+    """`steps` projector steps through bench.loops.train.fit, as bench.cell.service.run_cell runs them."""
     torch.manual_seed(0)
     projector = Projector(channels, world.backbone.info.lm_width)
     feed = GraftFeed(projector, world.backbone.camera_keys, world.grid)

@@ -13,7 +13,7 @@ threads, in these runtimes (each call: [0,1] pixels -> normalised -> the model's
   GRAFTBENCH_BENCH_COMPILE=1: its first call compiled Lite0 for 262 s on the loaded 2-core machine
   (e.g. `GRAFTBENCH_BENCH_COMPILE=1 ... -k "not compile or lite0 or vit"`);
 - onnxruntime: the model exported by torch.onnx and run by an onnxruntime session;
-- graftbench: what FeatureStore's build calls now (bench.run.extraction, runtime "auto":
+- graftbench: what FeatureStore's build calls now (bench.resources.extraction, runtime "auto":
   onnxruntime for the EfficientNets, torch eager for the ViT).
 
 The session ends with a table: ms an image (min of ROUNDS rounds), and graftbench's over the best.
@@ -80,8 +80,8 @@ def _once(key: tuple, make):
 
 def _runner(runtime: str, encoder, images: torch.Tensor):
     """A call extracting `images` in `runtime` (set up, exported or compiled here, untimed)."""
-    from bench.run import extraction
-    from bench.run.features import encode_grid
+    from bench.resources import extraction
+    from bench.loops.encode import encode_grid
 
     if runtime == "eager":
         return lambda: encoder(images)

@@ -3,11 +3,11 @@ and grids (no encoder runs), stores of N, 4N and 16N frames, two subprocesses pe
 
     .venv/bin/pytest benchmarks/bench_feature_store.py --benchmark-only -p no:randomly
 
-The "build" subprocess builds one store through bench.run.feature_file.build (fp16, the chunking,
+The "build" subprocess builds one store through bench.resources.feature_file.build (fp16, the chunking,
 crc32 and fsync of a real build; making the synthetic chunks is timed apart and left out of the
 write rate), then reads it back; its ru_maxrss is the peak RSS ("growth": minus its RSS after
 imports). The "read" subprocess opens the finished store and times random training batches of
-32 frames through bench.run.features.PooledView, the object the runner indexes, both cameras, pooled
+32 frames through bench.resources.features.PooledView, the object the runner indexes, both cameras, pooled
 to pi0.5's 16x16 and to SmolVLA's 8x8. "cold" reads follow posix_fadvise(DONTNEED) on the file
 (disk, not page cache: at paper scale a file does not fit in RAM), "warm" ones repeat the same
 batches from the page cache.
@@ -53,7 +53,7 @@ def _rss_mb() -> float:
 
 
 def _layout(shape: str, frames: int):
-    from bench.run import feature_file as fs
+    from bench.resources import feature_file as fs
 
     grid, channels, memory_format = SHAPES[shape]
     return fs.Layout(f"bench-{shape}-{frames}", CAMERAS, frames, grid, channels, "fp16",
@@ -66,7 +66,7 @@ def _read_batches(stored, path: Path, frames: int) -> dict:
     import numpy as np
     import torch
 
-    from bench.run.features import PooledView
+    from bench.resources.features import PooledView
 
     gen = np.random.default_rng(0)
     batches = [torch.from_numpy(gen.integers(0, frames, BATCH)) for _ in range(BATCHES)]
@@ -97,8 +97,8 @@ def child(mode: str, shape: str, frames: int, folder: str) -> dict:
     and time the reads. Runs in its own process; the figures as a dict."""
     import torch
 
-    from bench.run import feature_file as fs
-    from bench.run.features import CHUNK_FRAMES
+    from bench.resources import feature_file as fs
+    from bench.resources.features import CHUNK_FRAMES
 
     torch.set_num_threads(1)
     after_imports = _rss_mb()

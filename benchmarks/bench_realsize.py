@@ -18,13 +18,13 @@ from bench.progress import QUIET
 import pytest
 import torch
 
-from bench.run.evaluate import score
-from bench.run.graft import GraftFeed, Projector
+from bench.loops.evaluate import score
+from bench.cell.freeze import GraftFeed, Projector
 from bench.grid.protocol import PAPER, TINY, with_overrides
 from bench.results.store import ResultStore
 from bench.suites.windows import raw_batch
-from bench.run.train import FitConfig, fit, frozen_autocast
-from bench.run.workspace import Workspace
+from bench.loops.train import FitConfig, fit, frozen_autocast
+from bench.resources.workspace import Workspace
 
 CUDA = torch.cuda.is_available()
 pytestmark = pytest.mark.skipif(
@@ -42,7 +42,7 @@ def real(tmp_path_factory):
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
-    from bench.run.releases import union_stats
+    from bench.resources.releases import union_stats
     from backbones.smolvla import SmolVLABackbone
     from backbones.tiny_smolvla import libero_smolvla_config, real_shape_vlm_folder
 

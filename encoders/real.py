@@ -27,10 +27,10 @@ import torch
 from torch import Tensor
 
 from encoders.base import EncoderSpec
-from external.artifacts import Artifact
+from ondisk.artifacts import Artifact
 from encoders.registry import EncoderUnavailable, register
 from encoders.timm_encoders import TINY_SEED, TimmEncoder, build_timm_encoder
-from external.hubcache import file_sha256
+from ondisk.hubcache import file_sha256
 
 PRETRAINED_MEAN = (0.5, 0.5, 0.5)  # timm's pretrained cfg of tf_efficientnet_liteN (and the wheels')
 PRETRAINED_STD = (0.5, 0.5, 0.5)

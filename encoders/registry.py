@@ -12,7 +12,7 @@ import difflib
 from typing import Callable
 
 from encoders import user_encoders
-from external.artifacts import Artifact
+from ondisk.artifacts import Artifact
 from encoders.base import Encoder, EncoderSpec, UnknownEncoder
 
 SOURCES = ("tiny", "hub")

@@ -18,8 +18,8 @@ from huggingface_hub import try_to_load_from_cache
 from graftcore.encoder import TimmEncoder  # the plugin's: an export rebuilds it
 from timm.models._hub import HF_WEIGHTS_NAME, _get_safe_alternatives, check_cached_file
 
-from external.artifacts import Artifact
-from external.hubcache import file_sha256
+from ondisk.artifacts import Artifact
+from ondisk.hubcache import file_sha256
 from encoders.base import EncoderSpec, UnknownEncoder
 from encoders.registry import (EncoderUnavailable, get_spec, is_user_encoder, own_weights,
                                register, register_prefix)
@@ -70,7 +70,7 @@ def _cached_weight_file(repo_id: str, revision: str | None, files: tuple[str, ..
 
 def fetch_command(repo_id: str, revision: str | None, filename: str) -> str:
     """The shell command that puts one weight file of `repo_id` in the HF hub cache."""
-    from external.hubcache import download_command
+    from ondisk.hubcache import download_command
 
     return download_command(repo_id, revision, files=(filename,))
 
@@ -119,7 +119,7 @@ def weight_artifacts(name: str) -> list[Artifact]:
 
 def _hub_model_args(timm_name: str) -> tuple[dict, int] | None:
     """(model_args, input size) when the cached weight repo's config.json declares a smaller
-    architecture (`model_args`, written by bench.hubworld); None for real weight repos, which
+    architecture (`model_args`, written by bench.offline_hub); None for real weight repos, which
     timm builds from its own registry. The one construction patch tiny hub weights need."""
     import json
 
@@ -145,7 +145,7 @@ def build_timm_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
     else:
         input_size = spec.input_size
         tiny_world = _hub_model_args(spec.timm_name)
-        if tiny_world is not None:  # the offline hub-cache world (bench.hubworld): tiny weights
+        if tiny_world is not None:  # the offline hub-cache world (bench.offline_hub): tiny weights
             kwargs.update(tiny_world[0])
             input_size = tiny_world[1]
     native = timm.models.get_pretrained_cfg(spec.timm_name)

@@ -4,7 +4,7 @@
         [--dtypes float32,fp16,bf16] [--cells pi05:pixels,pi05:dinov2_s,smolvla:siglip,...]
 
 Each cell (graft, spatial, seed 0; "BACKBONE:ENCODER" or "BACKBONE:ENCODER:pool_VARIANT") runs
-through bench.run.service.run_cell once per dtype, each dtype with its own fresh feature store and
+through bench.cell.service.run_cell once per dtype, each dtype with its own fresh feature store and
 results store in a temporary folder (released checkpoints and suites come from the usual cache).
 Prints per cell the relative change of the normalised and raw MSE of each dtype against the
 first, then the maxima; docs/PERFORMANCE.md ("The feature store") has the measured figures.
@@ -21,11 +21,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.progress import QUIET
 from bench.grid.cells import CellSpec  # noqa: E402
-from bench.run.features import FeatureStore  # noqa: E402
+from bench.resources.features import FeatureStore  # noqa: E402
 from bench.grid.protocol import TINY  # noqa: E402
-from bench.run.service import run_cell  # noqa: E402
+from bench.cell.service import run_cell  # noqa: E402
 from bench.results.store import ResultStore  # noqa: E402
-from bench.run.workspace import Workspace  # noqa: E402
+from bench.resources.workspace import Workspace  # noqa: E402
 
 DEFAULT_CELLS = ("pi05:pixels,pi05:blind,pi05:dinov2_s,pi05:siglip,pi05:fastvit,"
                  "pi05:dinov2_s:pool_double,pi05:pixels:pool_half,"

@@ -1,10 +1,10 @@
 """GPU smoke of a graft on real-size, randomly initialised SmolVLA and pi0.5 (issue 14).
 
 Per backbone: build the architecture offline (no weights, no hub), then a few projector steps of
-a graft and one evaluation batch, in bf16 autocast on CUDA (bench.run.train.frozen_autocast), through
+a graft and one evaluation batch, in bf16 autocast on CUDA (bench.loops.train.frozen_autocast), through
 the harness's own pieces: the adapter's `preprocess`, `sample_time`, `image_embedder`, `loss` and
-`sample_actions` (via bench.run.evaluate.sample_grafted), bench.run.graft's Projector and GraftFeed, and
-bench.run.features.pool_grid. Prints one JSON line and one human line per backbone.
+`sample_actions` (via bench.loops.evaluate.sample_grafted), bench.cell.freeze's Projector and GraftFeed, and
+bench.resources.features.pool_grid. Prints one JSON line and one human line per backbone.
 
 - Architectures: SmolVLA from SmolVLM2-500M's config numbers (backbones.tiny_smolvla.REAL_VLM,
   16 of 32 text layers as smolvla_base: 450M parameters); pi0.5 from LeRobot's default
@@ -19,9 +19,9 @@ bench.run.features.pool_grid. Prints one JSON line and one human line per backbo
 - Encoder: a random (B, C, 2h, 2w) grid on the device (C=768, SigLIP-B's width) stands in for
   an encoder's output and is pooled to the backbone's native grid (8x8 SmolVLA, 16x16 pi0.5).
 - Devices: raw batches start on the CPU and flow-matching noise/time are drawn from a CPU
-  generator, exactly as bench.run.train.fit does; moving them is the adapters' and processors'
+  generator, exactly as bench.loops.train.fit does; moving them is the adapters' and processors'
   job, so a device bug there fails this smoke. Sampling noise is moved here, as
-  bench.run.evaluate.score does.
+  bench.loops.evaluate.score does.
 
 `--dry-run` runs the same code on the CPU with the tiny builds (build_tiny_policy).
 """
@@ -115,9 +115,9 @@ def smoke_one(name: str, size: str, device, args: argparse.Namespace) -> dict:
     """Build, `args.steps` projector steps, one sampled batch; the JSON record of it."""
     import torch
 
-    from bench.run.evaluate import sample_grafted
-    from bench.run.graft import GraftFeed, Projector, assert_only_trainable, trainable_parameters
-    from bench.run.train import frozen_autocast
+    from bench.loops.evaluate import sample_grafted
+    from bench.cell.freeze import GraftFeed, Projector, assert_only_trainable, trainable_parameters
+    from bench.loops.train import frozen_autocast
 
     torch.manual_seed(0)
     if device.type == "cuda":
@@ -141,7 +141,7 @@ def smoke_one(name: str, size: str, device, args: argparse.Namespace) -> dict:
     projector.register_forward_hook(lambda _m, _i, out: out_dtypes.add(str(out.dtype)))
     optimizer = torch.optim.AdamW(projector.parameters(), lr=1e-3)
     before = projector.linear.weight.detach().clone()
-    noise_gen = torch.Generator().manual_seed(0)  # CPU, as bench.run.train.fit draws noise and time
+    noise_gen = torch.Generator().manual_seed(0)  # CPU, as bench.loops.train.fit draws noise and time
     raw = raw_batch(batch_size, info.chunk_size, RAW_IMAGE_SIDE[size], seed=0)
     noise_shape = (batch_size, info.chunk_size, info.max_action_dim)
 
@@ -280,7 +280,7 @@ def build_real_pi05(stats: dict, device):
 
     from backbones.pi05 import PI05Backbone
     from backbones.tiny_paligemma import TOKENIZER_DIRNAME, ensure_tiny_tokenizer, local_tokenizer
-    from external.paths import cache_dir
+    from ondisk.paths import cache_dir
 
     side = RAW_IMAGE_SIDE["real"]
     inputs = {key: PolicyFeature(FeatureType.VISUAL, (3, side, side)) for key in CAMERAS}
@@ -331,10 +331,10 @@ def raw_batch(batch_size: int, chunk: int, side: int, seed: int) -> dict:
 
 def random_features(cameras, batch_size: int, channels: int, grid, device, seed: int) -> dict:
     """{camera: (B, rows*cols, C) float32 on `device`}: a random (B, C, 2*rows, 2*cols) encoder
-    grid pooled to the native grid by bench.run.features.pool_grid, as an in-loop encoder gives."""
+    grid pooled to the native grid by bench.resources.features.pool_grid, as an in-loop encoder gives."""
     import torch
 
-    from bench.run.features import pool_grid
+    from bench.resources.features import pool_grid
 
     gen = torch.Generator(device=device).manual_seed(seed)
     rows, cols = grid

@@ -45,7 +45,7 @@ def frames() -> None:
     GL renderer that drew them: a slow rasteriser's check in seconds instead of minutes."""
     from bench.sim import env as sim_env
     from bench.sim.expert import ExpertParams, ScriptedExpert, episode_seed
-    from external.libero_format import IMAGE_KEYS
+    from ondisk.libero_format import IMAGE_KEYS
 
     env = sim_env.make_env("spatial", 0, max_steps=280)
     obs = sim_env.reset_to(env, 0, episode_seed(0, 0, 0))
@@ -68,7 +68,7 @@ def train(name: str, steps: int) -> None:
     from bench.grid.protocol import TINY
     from bench.progress import STDERR
     from bench.results.store import ResultStore
-    from bench.run.workspace import Workspace
+    from bench.resources.workspace import Workspace
 
     profile = dataclasses.replace(TINY, protocol=TINY.protocol.replace(native_steps=steps))
     cache = os.environ["GRAFTBENCH_CACHE"]

@@ -20,10 +20,10 @@ from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY
 from bench.progress import QUIET
 from bench.results.store import ResultStore
-from bench.run import robust
-from bench.run.perturbations import parse_robustness
-from bench.run.service import run_cell
-from bench.run.workspace import Workspace
+from bench.robust import rescore as robust
+from bench.robust.perturbations import parse_robustness
+from bench.cell.service import run_cell
+from bench.resources.workspace import Workspace
 
 
 def main(backbone: str) -> None:

@@ -37,7 +37,7 @@ def main() -> None:
         act = lambda raw: torch.zeros(len(raw["task"]), 10, 7)  # noqa: E731
     else:
         from backbones import adapter_module
-        from bench.run.closed_loop import make_act
+        from bench.cell.rollouts import make_act
 
         name = json.load(open(f"{a.release}/graftbench_release.json"))["backbone"]
         act = make_act(adapter_module(name).load_policy(a.release), noise_seed=0)

@@ -18,7 +18,7 @@ import time
 import torch
 
 from backbones import adapter_module
-from bench.run.closed_loop import make_act
+from bench.cell.rollouts import make_act
 from bench.sim import demos
 from bench.sim import env as sim_env
 from bench.sim.rollout import run_episode

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from backbones import adapter_module
-from bench.run.closed_loop import make_act
+from bench.cell.rollouts import make_act
 from bench.sim import demos
 from bench.sim import env as sim_env
 from bench.sim.expert import episode_seed

@@ -22,7 +22,7 @@ import pytest
 import torch
 
 from bench.plugin import SESSION_KEY
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 from tests.worlds import lent_workspace
 
 

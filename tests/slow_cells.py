@@ -16,7 +16,7 @@ def pytest_configure(config: pytest.Config) -> None:
     from bench.plugin import SESSION_KEY
 
     session = config.stash[SESSION_KEY]
-    from bench.run.service import measure_here
+    from bench.cell.service import measure_here
 
     measure = session.seams.cell_runner or measure_here
     marks = Path(os.environ["GRAFTBENCH_TEST_MARKS"])

@@ -13,7 +13,7 @@ import pytest
 import backbones
 from backbones import BACKBONES, BackboneEntry, adapter_for_policy_type, study_backbone
 from backbones.seam import ADAPTER_MEMBERS
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 
 @pytest.fixture
@@ -67,7 +67,7 @@ def test_the_study_tables_per_backbone_keys_are_the_registry_study_entries():
 
 
 PLUGIN = REPO_ROOT / "plugins" / "lerobot_policy_graft"
-PACKAGES = ("bench", "backbones", "encoders", "external")
+PACKAGES = ("bench", "backbones", "encoders", "ondisk")
 
 
 def _words(name: str) -> set[str]:

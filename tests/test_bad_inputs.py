@@ -1,5 +1,5 @@
 """Bad input to every entry point (issue 52): `pytest bench`, `python -m bench.report`,
-`bench.export`, `bench.hubworld`, `bench.sim.demos` each stop before measuring or writing
+`bench.export`, `bench.offline_hub`, `bench.sim.demos` each stop before measuring or writing
 anything, in one short screen naming the option (or variable), the value and the fix, with ONE
 exit code for bad input: 4, pytest's usage error (a literal here, not the code's constant, which
 could drift with its callers). The probe classes (docs/TESTING.md, "Bad-input probes"): number
@@ -229,7 +229,7 @@ def test_a_report_that_skipped_files_says_how_many_in_the_terminal(tmp_path, cap
     assert "skipped 1 unreadable file(s), not in the report: cells/junk.json" in err, err
 
 
-# --- python -m bench.export, bench.hubworld, bench.sim.demos: one exit code ---------------------
+# --- python -m bench.export, bench.offline_hub, bench.sim.demos: one exit code ---------------------
 def run_main(main, argv, capsys) -> tuple[int, str]:
     try:
         code = main(argv)
@@ -245,7 +245,7 @@ def _export_main(argv):
 
 
 def _hubworld_main(argv):
-    from bench.hubworld import main
+    from bench.offline_hub import main
 
     return main(argv)
 

@@ -232,7 +232,7 @@ import pytest
 
 from bench.plugin import SESSION_KEY
 from bench.progress import QUIET
-from bench.run.plan import CellResult
+from bench.cell.plan import CellResult
 from tests.factories import make_record
 
 pytest_plugins = ["bench.plugin"]
@@ -241,7 +241,7 @@ pytest_plugins = ["bench.plugin"]
 @pytest.hookimpl(trylast=True)
 def pytest_configure(config):
     """The session's seams: a workspace with no models, a cell runner writing hand-made records
-    (marked with an installed feature transform, as bench.run.runner marks them), and a report
+    (marked with an installed feature transform, as bench.cell.runner marks them), and a report
     builder that keeps the sections it is handed (REPORT.md itself: bench.report.build's tests)."""
     gs = config.stash[SESSION_KEY]
     levels = json.loads(Path("levels.json").read_text())

@@ -1,4 +1,4 @@
-"""One way to measure a cell (bench.run.service): the session, every executor and the screen go
+"""One way to measure a cell (bench.cell.service): the session, every executor and the screen go
 through `CellService`, and nothing outside the session writes into it. Read from the code (AST),
 then checked by a spy on the array task's entry point."""
 
@@ -9,14 +9,14 @@ import os
 
 import pytest
 
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
-SERVICE = "bench/run/service.py"
+SERVICE = "bench/cell/service.py"
 
 
 def _sources() -> dict[str, ast.Module]:
     """The code that runs cells (benchmarks/ times the parts on their own, so is left out)."""
-    paths = [p for pkg in ("bench", "backbones", "encoders", "external", "scripts", "plugins")
+    paths = [p for pkg in ("bench", "backbones", "encoders", "ondisk", "scripts", "plugins")
              for p in (REPO_ROOT / pkg).rglob("*.py")]
     return {p.relative_to(REPO_ROOT).as_posix(): ast.parse(p.read_text()) for p in paths}
 
@@ -33,7 +33,7 @@ def _importers(name: str, module: str) -> set[str]:
 
 
 @pytest.mark.parametrize("name, module", [
-    ("measure", "bench.run.runner"),  # a cell measured in this process
+    ("measure", "bench.cell.runner"),  # a cell measured in this process
     ("measure_screen", "bench.screen.measure"),  # a screen measured
 ])
 def test_only_the_service_calls_the_measurements(name, module):
@@ -42,8 +42,8 @@ def test_only_the_service_calls_the_measurements(name, module):
 
 @pytest.mark.parametrize("path, calls", [
     ("bench/session.py", {"CellService"}),  # serial runs and xdist workers
-    ("bench/run/executors.py", {"CellService"}),  # each submitit / Slurm array task
-    ("bench/run/screen_run.py", {"screen", "run"}),  # the screens and the short grafts
+    ("bench/cell/executors.py", {"CellService"}),  # each submitit / Slurm array task
+    ("bench/cell/screening.py", {"screen", "run"}),  # the screens and the short grafts
 ])
 def test_every_executor_and_the_screen_go_through_the_service(path, calls):
     tree = _sources()[path]
@@ -51,7 +51,7 @@ def test_every_executor_and_the_screen_go_through_the_service(path, calls):
               for node in ast.walk(tree) if isinstance(node, ast.Call)
               and isinstance(node.func, (ast.Attribute, ast.Name))}
     assert calls <= called
-    if path == "bench/run/screen_run.py":  # through `self.cells`, the service it was given
+    if path == "bench/cell/screening.py":  # through `self.cells`, the service it was given
         through = {node.func.attr for node in ast.walk(tree) if isinstance(node, ast.Call)
                    and isinstance(node.func, ast.Attribute)
                    and isinstance(node.func.value, ast.Attribute)
@@ -98,7 +98,7 @@ def test_the_array_task_measures_through_the_service(tmp_path, monkeypatch):
     from bench.grid.cells import CellSpec
     from bench.grid.kinds import GRAFT
     from bench.grid.protocol import TINY
-    from bench.run import executors, service
+    from bench.cell import executors, service
 
     seen = []
 

@@ -19,7 +19,7 @@ import time
 import pytest
 
 from bench.results.store import ResultStore
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 # Two evaluation-only cells of the tiny world (no projector trained): ~0.5 s each.
 TWO_CELLS = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels", "--seeds",

@@ -13,13 +13,13 @@ import pytest
 import torch
 
 from bench.grid.cells import CellSpec
-from bench.run.closed_loop import (
+from bench.cell.rollouts import (
     NO_CLOSED_LOOP, LoopGraft, cell_act, make_act, observation_noise,
 )
-from bench.run.features import encode_pooled
-from bench.run.graft import GraftFeed, Projector
+from bench.loops.encode import encode_pooled
+from bench.cell.freeze import GraftFeed, Projector
 from bench.suites.windows import raw_batch
-from bench.run.train import frozen_autocast
+from bench.loops.train import frozen_autocast
 from tests.factories import make_record
 
 
@@ -30,7 +30,7 @@ def observations(ws, n=6):
 
 
 def offline_actions(backbone, obs, noise, feed=None, features=None):
-    """What bench.run.evaluate.score computes for these windows, in raw units."""
+    """What bench.loops.evaluate.score computes for these windows, in raw units."""
     info = backbone.info
     raw = {**obs, "action": torch.zeros((len(obs["task"]), info.chunk_size, 7)),
            "action_is_pad": torch.zeros((len(obs["task"]), info.chunk_size), dtype=torch.bool)}
@@ -153,7 +153,7 @@ def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path, monkeypatch
     """Killed during its 4th episode, a cell keeps the 3 finished ones (atomically, in the
     store's episode log) and a rerun rolls out only the rest: same episodes as one sitting."""
     from bench.results.store import ResultStore
-    from bench.run.closed_loop import cell_rollouts
+    from bench.cell.rollouts import cell_rollouts
 
     store = ResultStore(tmp_path / "res")
     cell, backbone = CellSpec("native", "pi05", "spatial", 0), tiny_ws.backbone("pi05")
@@ -196,7 +196,7 @@ def test_rollouts_resume_per_episode_after_a_kill(tiny_ws, tmp_path, monkeypatch
 def test_a_crashed_env_fails_its_cell_with_the_reason_and_the_next_cell_runs(tiny_ws, tmp_path):
     from bench.results.record import Failure
     from bench.results.store import ResultStore
-    from bench.run.closed_loop import cell_rollouts
+    from bench.cell.rollouts import cell_rollouts
     from bench.sim.rollout import RolloutCrashed
 
     store, suite = ResultStore(tmp_path / "res"), tiny_ws.suite("spatial")

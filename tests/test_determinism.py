@@ -7,7 +7,7 @@ import torch
 
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
-from bench.run.service import run_cell
+from bench.cell.service import run_cell
 from bench.results.store import ResultStore
 from tests.worlds import lent_workspace
 

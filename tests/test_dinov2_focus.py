@@ -22,7 +22,7 @@ import bench.screen.measure  # noqa: F401
 import encoders
 from encoders import dinov2_focus as focus
 from encoders.real import WeightConversionError
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 pytest_plugins = ["pytester"]
 

@@ -10,7 +10,7 @@ import torch
 
 import encoders
 from encoders import timm_encoders
-from external.hubcache import file_sha256
+from ondisk.hubcache import file_sha256
 from encoders import EncoderSpec, EncoderUnavailable, UnknownEncoder, build_encoder, get_spec
 
 # (registry name, real forward_features channels, tiny channels, tiny grid side at 64 px input)

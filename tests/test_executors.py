@@ -1,4 +1,4 @@
-"""bench.run.executors: the selected cells as ONE submitit job array, collected per cell.
+"""bench.cell.executors: the selected cells as ONE submitit job array, collected per cell.
 
 (a) submitit's LocalExecutor end to end through `pytest bench --executor submitit-local`: the
     records equal those of the default local executor, number for number;
@@ -19,7 +19,7 @@ from unittest.mock import patch
 import pytest
 
 from bench.grid.cells import CellSpec
-from bench.run.executors import CellArray, CellJob, SlurmOptions
+from bench.cell.executors import CellArray, CellJob, SlurmOptions
 from bench.grid.protocol import TINY, with_overrides
 
 SLICE = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "pixels,blind",

@@ -21,10 +21,10 @@ from bench.export import ExportError, export_cell
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.results.store import ResultStore
-from bench.run.evaluate import score
-from bench.run.service import run_cell
+from bench.loops.evaluate import score
+from bench.cell.service import run_cell
 from bench.sim.env import libero_available
-from external.paths import REPO_ROOT, cache_dir
+from ondisk.paths import REPO_ROOT, cache_dir
 from tests.factories import make_failed, make_record, save_record
 from tests.worlds import lent_workspace
 
@@ -260,7 +260,7 @@ def test_plugin_is_light_and_below_the_harness():
         every = {n.module if isinstance(n, ast.ImportFrom) else a.name
                  for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
                  for a in getattr(n, "names", [])}
-        harness = ("bench", "encoders", "backbones", "external")
+        harness = ("bench", "encoders", "backbones", "ondisk")
         assert not [m for m in every if m and m.split(".")[0] in harness], path
         if path in core:
             assert not [m for m in every if m and m.startswith("lerobot")], path

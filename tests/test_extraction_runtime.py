@@ -1,4 +1,4 @@
-"""The feature store's extraction runtime (bench.run.extraction, issue 51): torch's features and
+"""The feature store's extraction runtime (bench.resources.extraction, issue 51): torch's features and
 keys exactly today's; onnxruntime's keyed apart, close to torch's and the same bits run to run;
 every failure of the onnxruntime path falls back to torch, keyed as torch's, with its reason."""
 
@@ -10,8 +10,9 @@ import sys
 import pytest
 import torch
 
-from bench.run import extraction
-from bench.run.features import FeatureStore, encode_grid, encode_pooled, feature_key
+from bench.resources import extraction
+from bench.resources.features import FeatureStore, feature_key
+from bench.loops.encode import encode_grid, encode_pooled
 from encoders import build_encoder
 from tests.test_features import CAMERAS, FakeSuite, everything
 

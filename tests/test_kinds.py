@@ -13,7 +13,7 @@ from bench.grid import kinds
 from bench.grid.cells import CellSpec, control_cells, graft_cells, tier_cells
 from bench.grid.kinds import (CELL_KINDS, CellKind, control_kinds, register_kind, tier_kinds,
                               unregister_kind)
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 from bench.grid.protocol import TINY_FULL, with_overrides
 from bench.results.record import validate_record
 from tests.factories import make_record, save_record
@@ -80,7 +80,7 @@ def test_a_new_control_kind_runs_records_and_reports(twin_kind, tmp_path):
     """Round trip: the runner writes the records, load_results reads them, the report shows
     the new kind; nothing but the table entry was added."""
     from bench.report.build import build_report
-    from bench.run.service import run_cell
+    from bench.cell.service import run_cell
     from bench.results.store import ResultStore
     from tests.worlds import lent_workspace
 

@@ -20,8 +20,8 @@ from scipy.stats import wilcoxon
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.results.record import Record, Scores
-from bench.run.service import run_cell
-from bench.run.train import NonFiniteLoss
+from bench.cell.service import run_cell
+from bench.loops.train import NonFiniteLoss
 
 BACKBONES = ("smolvla", "pi05", "pi0")
 FEW_STEPS = with_overrides(TINY, steps=12)  # for the checks that are not about a margin
@@ -123,8 +123,8 @@ def test_one_token_pooling_is_worse_than_the_native_grid(measured, backbone):
 def test_released_tiny_policy_beats_an_untrained_one(tiny_ws):
     """The native training produced a real policy: clearly better than the same class untrained."""
     from backbones import adapter_module
-    from bench.run.releases import union_stats
-    from bench.run.evaluate import score
+    from bench.resources.releases import union_stats
+    from bench.loops.evaluate import score
 
     for name in BACKBONES:
         released = tiny_ws.backbone(name)

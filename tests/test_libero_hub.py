@@ -12,7 +12,7 @@ import torch
 
 from bench.progress import QUIET
 from bench.suites import libero, load_suite
-from external.libero_format import IMAGE_KEYS
+from ondisk.libero_format import IMAGE_KEYS
 from bench.suites.base import SuiteUnavailable
 
 REPO = "lerobot/libero_spatial_image"

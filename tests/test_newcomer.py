@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 ONE_CELL = ["--backbones", "pi05", "--suites", "spatial", "--encoders", "blind", "--seeds", "0",
             "--controls", "none", "--steps", "5"]

@@ -14,7 +14,7 @@ from bench.analysis.agreement import Undefined, spearman_rho
 from bench.analysis.offline_measures import MEASURES, executed_errors
 from bench.analysis.rollouts import rollout_agreement
 from bench.report.closed_loop import measures_table
-from bench.run.evaluate import masked_sq_error, prefix_window_error
+from bench.loops.evaluate import masked_sq_error, prefix_window_error
 from bench.suites.critical import critical_rule, critical_windows
 from tests.factories import make_record
 

@@ -1,4 +1,4 @@
-"""Your own policy and data (`--policy NAME=PATH`, `--dataset NAME=PATH`, bench.run.userworld),
+"""Your own policy and data (`--policy NAME=PATH`, `--dataset NAME=PATH`, bench.resources.user_policies),
 end to end on a non-LIBERO world: a LeRobotDataset with another robot's layout (6-D state and
 action, cameras front and wrist, 30 fps, the tiny suites' planted visual signal;
 bench.suites.custom_world) and a tiny SmolVLA trained natively on it and saved with
@@ -22,7 +22,7 @@ from bench.progress import QUIET
 import pytest
 
 from bench.analysis.rankings import paired_window_bootstrap
-from external.paths import cache_dir
+from ondisk.paths import cache_dir
 from tests.test_gridfile import Config
 
 WORLD = dict(tasks=4, episodes_per_task=10)
@@ -37,7 +37,7 @@ def build_world(folder: Path) -> None:
 
     from backbones import smolvla
     from bench.grid.protocol import TINY
-    from bench.run.releases import train_tiny_release, union_stats
+    from bench.resources.releases import train_tiny_release, union_stats
     from bench.suites.custom_world import ACTION_DIM, CAMERAS, STATE_DIM, generate_world
     from bench.suites.user import load_user_suite
     from bench.suites.windows import episode_frames, heldout_split

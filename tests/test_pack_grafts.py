@@ -1,4 +1,4 @@
-"""`--pack-grafts K` (bench.run.pack_run): a run's graft cells trained K at a time through one
+"""`--pack-grafts K` (bench.cell.pack_run): a run's graft cells trained K at a time through one
 frozen-backbone pass write the records the unpacked run writes, deterministically; a mate with a
 current record is resumed, not retrained; the grid file's `pack_grafts` packs too and the command
 line wins over it; a bad K, or K > 1 with a job-array executor, stops at start-up (exit 4).
@@ -19,9 +19,9 @@ from bench.grid.cells import CellSpec
 from bench.grid.kinds import GRAFT
 from bench.grid.protocol import TINY
 from bench.option_values import pack_grafts
-from bench.run.outcome import MEASURED
-from bench.run.service import CellService, RunSettings
-from bench.run.train import NonFiniteLoss
+from bench.cell.outcome import MEASURED
+from bench.cell.service import CellService, RunSettings
+from bench.loops.train import NonFiniteLoss
 from bench.results.store import read_record
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 PLUGIN = REPO_ROOT / "plugins" / "lerobot_policy_graft"
 # (project folder, its top-level packages): every .py under them must be in its wheel.
-PROJECTS = {"graftbench": (REPO_ROOT, ("bench", "backbones", "encoders", "external")),
+PROJECTS = {"graftbench": (REPO_ROOT, ("bench", "backbones", "encoders", "ondisk")),
             "lerobot_policy_graft": (PLUGIN, ("lerobot_policy_graft", "graftcore"))}
 
 

@@ -1,4 +1,4 @@
-"""Packed grafts (bench.run.packed): K graft cells trained through one frozen-backbone pass a step
+"""Packed grafts (bench.cell.packed): K graft cells trained through one frozen-backbone pass a step
 are the cells they would be alone (loss curves and trained projectors), deterministic per
 packing, each follows its own draws, and a cell that fails fails alone.
 
@@ -14,10 +14,10 @@ import torch
 from bench.grid.cells import CellSpec
 from bench.progress import QUIET
 from bench.grid.protocol import TINY, with_overrides
-from bench.run.packed import PackedCell, PackedFeed, fit_packed, stack_raw, train_pack
-from bench.run.plan import CellContext
-from bench.run.runner import build_graft, cell_inputs, train_graft
-from bench.run.train import FitConfig, NonFiniteLoss, fit
+from bench.cell.packed import PackedCell, PackedFeed, fit_packed, stack_raw, train_pack
+from bench.cell.plan import CellContext
+from bench.cell.runner import build_graft, cell_inputs, train_graft
+from bench.loops.train import FitConfig, NonFiniteLoss, fit
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -22,8 +22,8 @@ from bench.report import build
 from bench.report.sections import mixed_releases
 from bench.results.current import RunConditions
 from bench.results.store import ResultStore
-from bench.run.plan import plan
-from bench.run.workspace import Workspace
+from bench.cell.plan import plan
+from bench.resources.workspace import Workspace
 from tests.factories import make_record
 from tests.test_gridfile import Config
 from tests.test_report import write_grid

@@ -1,5 +1,5 @@
 """The exported plugin stands alone: a tiny graft of each family, exported by graftbench, then in a
-fresh interpreter where graftbench's packages (bench, encoders, backbones, external) cannot be
+fresh interpreter where graftbench's packages (bench, encoders, backbones, ondisk) cannot be
 imported: loaded through LeRobot's own factory (strict keys), scored on the held-out windows of
 its record to the record's MSE, and trained one optimizer step, as on a machine that has LeRobot
 and the plugin only."""
@@ -19,15 +19,15 @@ from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
 from bench.results.parts import NORMALIZED, RAW
 from bench.results.store import ResultStore
-from bench.run.evaluate import window_noise
-from bench.run.service import run_cell
+from bench.loops.evaluate import window_noise
+from bench.cell.service import run_cell
 from bench.suites.windows import raw_batch
 from tests.worlds import lent_workspace
 
 pytest.importorskip("lerobot_policy_graft", reason="install the plugin: scripts/install.sh")
 
 FAMILIES = ("smolvla", "pi05", "pi0")
-HARNESS = ("bench", "encoders", "backbones", "external")  # graftbench's packages
+HARNESS = ("bench", "encoders", "backbones", "ondisk")  # graftbench's packages
 PROFILE = with_overrides(TINY, steps=2)
 ENCODER = "dinov2_s"
 CLASSES = {"smolvla": "GraftSmolVLAPolicy", "pi05": "GraftPI05Policy", "pi0": "GraftPI0Policy"}
@@ -123,7 +123,7 @@ open(JOB["out"], "w").write(json.dumps(out))
 
 def heldout_batches(ws, family: str) -> list:
     """(raw batch, noise) per evaluation batch of the cell's held-out windows, as graftbench's
-    scorer (bench.run.evaluate.score) builds them."""
+    scorer (bench.loops.evaluate.score) builds them."""
     p, suite = ws.profile.protocol, ws.suite("spatial")
     info = ws.backbone(family, "spatial").info
     windows = ws.split("spatial").windows

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import pytest
 
 from bench.progress import LogSink, WorkerSink, countdown, say
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 # Defaults that mean "report to stderr", captured by pytest until the test ends.
 STDERR_DEFAULTS = ("STDERR", "StderrSink()", "True")
@@ -79,7 +79,7 @@ def test_a_job_array_task_reports_to_its_log(tmp_path, monkeypatch, capsys):
     from bench.grid.cells import CellSpec
     from bench.grid.kinds import GRAFT
     from bench.grid.protocol import TINY
-    from bench.run import executors, service
+    from bench.cell import executors, service
 
     def spy(self, cell):
         say(self.workspace().progress, f"cell {cell.id}: measuring")

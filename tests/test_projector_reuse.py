@@ -7,8 +7,8 @@ import pytest
 
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
-from bench.run.plan import shared_projector_key
-from bench.run.service import run_cell
+from bench.cell.plan import shared_projector_key
+from bench.cell.service import run_cell
 from bench.results.store import ResultStore
 from tests.worlds import lent_workspace
 

@@ -14,14 +14,14 @@ import pytest
 from bench.grid.protocol import TINY
 from bench.report.format import num
 from bench.results.store import ResultStore
-from bench.run.outcome import MEASURED
-from bench.run.screen_run import ScreenRun
-from bench.run.service import CellService, RunSettings
+from bench.cell.outcome import MEASURED
+from bench.cell.screening import ScreenRun
+from bench.cell.service import CellService, RunSettings
 from bench.screen.proxies import (HIGHER, LOWER, PROXIES, TOKEN_NORMS, WINDOWS, FitInputs, Proxy,
                                   get_proxy, proxy_names, register_proxy, unregister_proxy)
 from bench.screen.records import ScreenScores, new_screen_record
 from bench.screen.selection import ScreenOptions, parse_screen_by, screen_by_choices
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 BACKBONE, SUITE = "smolvla", "spatial"
 

@@ -22,7 +22,7 @@ import backbones  # noqa: F401
 import bench.screen.measure  # noqa: F401
 import encoders
 from encoders import real
-from external.hubcache import file_sha256
+from ondisk.hubcache import file_sha256
 from tests.bench_inprocess import bench_run  # noqa: F401  (the fixture)
 
 pytest_plugins = ["pytester"]
@@ -130,7 +130,7 @@ def test_the_stage_tap_is_lite0_cut_after_its_stride_16_level(grace_hopper):
 def test_the_hub_worlds_pretrained_load_returns_the_wheels_tensors(tmp_path, monkeypatch):
     from huggingface_hub import constants
 
-    from bench import hubworld
+    from bench import offline_hub as hubworld
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)

@@ -16,7 +16,7 @@ from bench.results.record import (
     snapshot_json,
 )
 from bench.results.store import ResultStore, load_results
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 from tests.factories import make_failed, make_record
 
 RECORD_MODULES = {"bench/results/record.py", "bench/results/parts.py"}
@@ -24,12 +24,12 @@ RECORD_MODULES = {"bench/results/record.py", "bench/results/parts.py"}
 NOT_RECORDS = {
     "bench/grid/gridfile.py": {"camera_map", "profile", "protocol"},  # a grid file's own fields
     "bench/grid/protocol.py": {"protocol"},  # a profile's own dict
-    "bench/grid/userworld.py": {"camera_map"},  # a --policy's config
-    "bench/run/releases.py": {"backbone", "loss_curve", "revision"},  # release metadata, checkpoint id
+    "bench/grid/user_specs.py": {"camera_map"},  # a --policy's config
+    "bench/resources/releases.py": {"backbone", "loss_curve", "revision"},  # release metadata, checkpoint id
     "bench/grid/pinned_release.py": {"backbone"},  # a pinned release's metadata
-    "bench/run/userworld.py": {"revision"},  # a --policy's checkpoint id
-    "bench/run/features.py": {"encoder", "grid", "suite"},  # the feature store's manifest
-    "bench/run/feature_file.py": {"grid"},  # the feature file's manifest
+    "bench/resources/user_policies.py": {"revision"},  # a --policy's checkpoint id
+    "bench/resources/features.py": {"encoder", "grid", "suite"},  # the feature store's manifest
+    "bench/resources/feature_file.py": {"grid"},  # the feature file's manifest
     "bench/sim/rollout.py": {"per_task"},  # the rollouts' own summary
     "bench/suites/synthetic.py": {"seed"},  # a suite's generation parameters
     "bench/analysis/transfer.py": {"suite"},  # a rank-transfer comparison row
@@ -38,8 +38,8 @@ NOT_RECORDS = {
     # store key of perturbed windows, and the robustness record's `base` (what it rescored).
     "bench/analysis/robustness.py": {"backbone", "suite", "n_windows"},
     "bench/report/robustness.py": {"suite"},
-    "bench/run/perturbations.py": {"kind", "seed"},
-    "bench/run/robust.py": {"suite"},
+    "bench/robust/perturbations.py": {"kind", "seed"},
+    "bench/robust/rescore.py": {"suite"},
     "bench/results/robust.py": {"protocol_hash", "created", "projector_sha256", "kind"},
 }
 

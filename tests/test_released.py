@@ -12,15 +12,15 @@ import pytest
 import torch
 
 from bench.results.store import ResultStore
-from bench.run.workspace import Workspace
+from bench.resources.workspace import Workspace
 from tests.worlds import lent_workspace
-from bench.run import releases
-from bench.run.releases import drop_states, release_key
+from bench.resources import releases
+from bench.resources.releases import drop_states, release_key
 from bench.grid.kinds import SAME, ZERO
 from bench.grid.protocol import SIM, TINY
-from bench.run.augment import shift_images
-from bench.run.features import encode_pooled
-from bench.run.inputs import CellInputs
+from bench.loops.augment import shift_images
+from bench.loops.encode import encode_pooled
+from bench.cell.inputs import CellInputs
 from encoders.registry import build_encoder
 
 BASELINE = Path(__file__).resolve().parents[1] / ".graftbench" / "baselines" / "ci-tiny.json"

@@ -1,4 +1,4 @@
-"""The robustness tier in closed loop (bench.run.robust_loop): known answers through the real
+"""The robustness tier in closed loop (bench.robust.closed_loop): known answers through the real
 rollout loop and the cells' real policies, LIBERO replaced by tests/test_closed_loop.py's
 stand-in scenes (tiny-suite frames; an episode succeeds at its 3rd step), so no simulator.
 
@@ -19,9 +19,9 @@ import torch
 
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
-from bench.run.perturbations import parse_robustness
-from bench.run.robust import measure_robust
-from bench.run.service import run_cell
+from bench.robust.perturbations import parse_robustness
+from bench.robust.rescore import measure_robust
+from bench.cell.service import run_cell
 from tests.test_closed_loop import fake_scenes
 
 FEW_STEPS = with_overrides(TINY, steps=12)
@@ -136,7 +136,7 @@ def test_the_report_puts_the_perturbed_success_beside_the_clean(loop_world):
 
 def test_native_and_the_best_graft_roll_out(tmp_path):
     from bench.results.store import ResultStore
-    from bench.run.robust_loop import best_graft_encoder, rolls_out
+    from bench.robust.closed_loop import best_graft_encoder, rolls_out
     from tests.factories import make_record
 
     profile = dataclasses.replace(FEW_STEPS, backbones=(BACKBONE,), suites=("spatial",),

@@ -19,9 +19,9 @@ import torch
 from bench.analysis.robustness import robustness_table
 from bench.grid.cells import CellSpec
 from bench.grid.protocol import TINY, with_overrides
-from bench.run.perturbations import PERTURBATIONS, Applied, parse_robustness
-from bench.run.robust import RobustUnavailable, measure_robust
-from bench.run.service import run_cell
+from bench.robust.perturbations import PERTURBATIONS, Applied, parse_robustness
+from bench.robust.rescore import RobustUnavailable, measure_robust
+from bench.cell.service import run_cell
 
 FEW_STEPS = with_overrides(TINY, steps=12)
 BACKBONE = "smolvla"
@@ -221,7 +221,7 @@ def test_robust_cases_run_resume_and_report(bench_cli, tmp_path):
 
 
 def test_one_pass_gives_each_perturbation_the_bits_it_gets_alone(world):
-    """A case scores all its perturbations in one pass of repeated windows (bench.run.robust:
+    """A case scores all its perturbations in one pass of repeated windows (bench.robust.rescore:
     full sampler batches); each entry must be what that perturbation alone gives."""
     ws, cell = world
     labels = ["brightness:3", "noise:2", "brightness:0", "occlusion:1"]

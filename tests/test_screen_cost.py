@@ -72,8 +72,9 @@ def test_the_store_names_the_runtime_that_extracted_it(tmp_path, monkeypatch):
     fallback). Arrays in memory say nothing. The export itself: tests/test_extraction_runtime."""
     import torch
 
-    from bench.run import extraction
-    from bench.run.features import FeatureStore, encode_grid, feature_runtime
+    from bench.resources import extraction
+    from bench.resources.features import FeatureStore, feature_runtime
+    from bench.loops.encode import encode_grid
     from encoders import build_encoder
     from tests.test_features import FakeSuite
 
@@ -133,7 +134,7 @@ def test_provenance_lists_the_runtime_per_encoder():
     screens = [new_screen_record(ScreenScores("fastvit", "smolvla", "spatial"), CONDITIONS, 0.1,
                                  extraction_runtime="torch")]
     assert extraction_runtimes(records, screens) == (
-        "Feature extraction runtime per encoder (bench.run.extraction): dinov2_s: torch; "
+        "Feature extraction runtime per encoder (bench.resources.extraction): dinov2_s: torch; "
         f"effnet_lite0: {tag}; fastvit: torch; pixels: not recorded")
     assert extraction_runtimes(records[3:], []) is None  # no record names one: no line
 
@@ -145,7 +146,7 @@ def _small_world(tmp_path):
 
     import torch
 
-    from bench.run import feature_file as fs
+    from bench.resources import feature_file as fs
 
     frames, cameras = 60, ("cam0", "cam1")
     layout = fs.Layout("k", cameras, frames, (2, 2), 3, "fp16")
@@ -167,7 +168,7 @@ def test_a_screen_names_the_runtime_of_the_store_it_read(tmp_path):
     seconds (a fake workspace: the screen's own numbers are not checked here)."""
     from types import SimpleNamespace
 
-    from bench.run.features import PooledView
+    from bench.resources.features import PooledView
     from bench.screen.measure import measure_screen
 
     stored, suite, split, backbone = _small_world(tmp_path)
@@ -185,7 +186,7 @@ def test_a_screens_bits_do_not_depend_on_how_many_windows_it_reads_at_once(tmp_p
                                                                            monkeypatch):
     """measure.CHUNK (64: a batch that stays in the caches) against the whole split at once:
     every step from the stored grid to the proxies is per window, so the same bits."""
-    from bench.run.features import PooledView
+    from bench.resources.features import PooledView
     from bench.screen import measure
 
     stored, suite, split, backbone = _small_world(tmp_path)

@@ -1,4 +1,4 @@
-"""`pytest bench --screen` (bench.run.screen_run, bench.plugin, the report's screen section) on the
+"""`pytest bench --screen` (bench.cell.screening, bench.plugin, the report's screen section) on the
 tiny world: screens stored before the grafts and resumed by a rerun, only the best K grafted
 beside the pixels/blind references, the dropped cells skipped saying why, REPORT.md's section;
 an encoder whose extraction fails is a failed screen and the screen goes on."""
@@ -13,11 +13,11 @@ from bench.grid.cells import CellSpec
 from bench.grid.kinds import GRAFT
 from bench.grid.protocol import TINY
 from bench.results.store import ResultStore, load_results
-from bench.run.screen_run import ScreenRun
-from bench.run.service import CellService, RunSettings
+from bench.cell.screening import ScreenRun
+from bench.cell.service import CellService, RunSettings
 from bench.screen.records import ScreenFailure, ScreenRecord
 from bench.screen.selection import ScreenOptions
-from bench.run.outcome import MEASURED, RESUMED
+from bench.cell.outcome import MEASURED, RESUMED
 
 SCREENED = ("dinov2_s", "fastvit", "repvit")  # ranked by the screen; pixels, blind: references
 # Steps kept small: no margin between encoders is read here, only which cells ran.

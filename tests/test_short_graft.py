@@ -12,7 +12,7 @@ from bench.grid.kinds import SHORT_BY_VARIANT, SHORT_GRAFT, control_kinds, get_k
 from bench.grid.protocol import TINY, with_overrides
 from bench.results.current import RunConditions
 from bench.results.store import ResultStore, load_results
-from bench.run.plan import plan, shared_projector_key
+from bench.cell.plan import plan, shared_projector_key
 from tests.factories import make_record
 
 STEPS = 12  # 1/8 -> 2 steps, 1/4 -> 3 (rounded up)
@@ -145,10 +145,10 @@ def test_a_short_graft_another_worker_is_running_is_waited_for(tmp_path):
 
     from bench.progress import QUIET
     from bench.screen.selection import ScreenOptions
-    from bench.run.screen_run import ScreenRun
+    from bench.cell.screening import ScreenRun
 
-    from bench.run.plan import CellResult
-    from bench.run.service import CellService, RunSettings
+    from bench.cell.plan import CellResult
+    from bench.cell.service import CellService, RunSettings
     from tests.factories import make_record
 
     store = ResultStore(tmp_path)

@@ -16,7 +16,7 @@ if not sim_env.libero_available():
 
 from bench.sim import demos  # noqa: E402
 from bench.suites import libero, suite_from_dataset  # noqa: E402
-from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY  # noqa: E402
+from ondisk.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY  # noqa: E402
 
 pytestmark = pytest.mark.slow  # demonstrations generated in the LIBERO simulator
 

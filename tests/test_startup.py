@@ -22,11 +22,11 @@ import pytest
 # torchvision ops would fail) and pay no import time.
 import backbones  # noqa: F401
 import bench.screen.measure  # noqa: F401  (--screen: the screen's modules, torch's too)
-import bench.run.userworld  # noqa: F401
+import bench.resources.user_policies  # noqa: F401
 import bench.sim.env  # noqa: F401  (its libero_available is replaced by tests below)
 import bench.suites.user  # noqa: F401
 import encoders  # noqa: F401
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 pytest_plugins = ["pytester"]
 
@@ -227,7 +227,7 @@ def test_a_report_naming_a_folder_is_refused_at_start(bench_run):
 def test_a_report_that_could_not_be_written_is_said_not_left_as_it_was(tmp_path):
     """The summary after a report that failed to write (were --report's start-up check
     bypassed, or the disk full): it was "left as it was (this run finished no new cell)"."""
-    from bench.run.outcome import MEASURED
+    from bench.cell.outcome import MEASURED
     from bench.summary import summary_lines
 
     lines = summary_lines("tiny", "h", {"pi05-spatial-pixels-seed0": MEASURED}, 1, tmp_path,
@@ -365,7 +365,7 @@ def test_the_readme_fetch_commands_parse_without_warnings(monkeypatch):
 
 
 def test_download_command_takes_files_or_patterns_not_both():
-    from external.hubcache import download_command
+    from ondisk.hubcache import download_command
 
     assert download_command("o/r", "abc", include=("*.json", "*.txt")) == (
         'hf download o/r --revision abc --include "*.json" --include "*.txt"')

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
-PACKAGES = ("bench", "backbones", "encoders", "external")
+PACKAGES = ("bench", "backbones", "encoders", "ondisk")
 # The LeRobot plugin's packages sit under their own project folder: the import graph reads them
 # too (a cycle there went unseen while only PACKAGES were scanned).
 PLUGIN_ROOT = REPO_ROOT / "plugins" / "lerobot_policy_graft"
@@ -55,11 +55,11 @@ def _imports(path: Path) -> set[str]:
 
 @pytest.mark.parametrize("package, forbidden", [
     # Adapters and encoders are below the harness: they know LeRobot, timm, the hub and
-    # external/, never anything of bench/ (what they need lives in external/ or is passed in).
+    # ondisk/, never anything of bench/ (what they need lives in ondisk/ or is passed in).
     ("backbones", ("bench",)),
     ("encoders", ("bench", "backbones")),
-    # external/ is the floor: the hub cache, cache paths, artifacts, LIBERO's feature format.
-    ("external", ("bench", "backbones", "encoders")),
+    # ondisk/ is the floor: the hub cache, cache paths, artifacts, LIBERO's feature format.
+    ("ondisk", ("bench", "backbones", "encoders")),
 ])
 def test_lower_layers_do_not_import_upper_ones(package, forbidden):
     """Every import counts, those inside functions included (the whole AST is walked)."""
@@ -137,7 +137,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def _sub_package(module: str) -> str:
-    """bench.run.graft -> bench.run; bench.session -> bench.session; backbones.pi05 -> backbones."""
+    """bench.cell.freeze -> bench.run; bench.session -> bench.session; backbones.pi05 -> backbones."""
     parts = module.split(".")
     if parts[0] == "bench" and len(parts) > 2:
         return ".".join(parts[:2])
@@ -164,7 +164,7 @@ KNOWN_PACKAGE_CYCLES: set[tuple[str, ...]] = set()  # none (the last, grid <-> r
 
 
 def test_no_import_cycle_between_sub_packages():
-    """bench's sub-packages (and backbones, encoders, external as wholes) import one way."""
+    """bench's sub-packages (and backbones, encoders, ondisk as wholes) import one way."""
     graph: dict[str, set[str]] = {}
     for module, deps in _import_graph().items():
         graph.setdefault(_sub_package(module), set()).update(

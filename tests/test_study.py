@@ -131,13 +131,13 @@ def test_as_text():
 
 
 def _fitted_weight(optimiser_steps: int, weight_decay: float):
-    """One weight w fitted by bench.run.train.fit on loss w * 1 (gradient 1 every step), and the
+    """One weight w fitted by bench.loops.train.fit on loss w * 1 (gradient 1 every step), and the
     same weight after AdamW with fit's schedule, one optimiser step per batch."""
     from types import SimpleNamespace
 
     import torch
 
-    from bench.run.train import FitConfig, fit, lr_factor
+    from bench.loops.train import FitConfig, fit, lr_factor
 
     cfg = FitConfig(steps=optimiser_steps, batch_size=2, lr=0.1, weight_decay=weight_decay,
                     warmup_steps=1, grad_clip=0.0, log_every=1)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from external.paths import cache_dir
+from ondisk.paths import cache_dir
 from bench.progress import QUIET
 from bench.suites import SUITES, libero, load_suite, suite_from_dataset, synthetic
-from external.libero_format import IMAGE_KEYS, STATE_KEY
+from ondisk.libero_format import IMAGE_KEYS, STATE_KEY
 from bench.suites.base import Suite, SuiteUnavailable
 from bench.suites.windows import (
     action_chunks,
@@ -301,7 +301,7 @@ def test_an_unselected_suite_the_tiny_release_needs_says_why_it_loads(tmp_path, 
     """--suites spatial still loads (on a fresh clone: generates) the object suite: the tiny
     release trains on both, so the numbers do not depend on the selection. It used to load
     without a word of why."""
-    import bench.run.workspace as workspace
+    import bench.resources.workspace as workspace
     from bench.grid.protocol import TINY, with_overrides
     from bench.results.store import ResultStore
 

@@ -1,7 +1,7 @@
 import torch
 
-from bench.run.evaluate import derangement, masked_sq_error, window_noise
-from bench.run.train import FitConfig, batch_order, lr_factor
+from bench.loops.evaluate import derangement, masked_sq_error, window_noise
+from bench.loops.train import FitConfig, batch_order, lr_factor
 
 CFG = FitConfig(steps=10, batch_size=4, lr=1e-3, weight_decay=0.0, warmup_steps=2,
                 grad_clip=1.0, log_every=1)

@@ -16,8 +16,8 @@ from bench.grid.cells import CellSpec, control_cells, tunable_encoders
 from bench.grid.kinds import CELL_KINDS, GRAFT, SAME, control_kinds
 from bench.grid.protocol import PROFILES, TINY, with_overrides
 from bench.results.store import ResultStore
-from bench.run.features import encode_pooled
-from bench.run.plan import cell_context
+from bench.loops.encode import encode_pooled
+from bench.cell.plan import cell_context
 from encoders import build_encoder
 from tests.factories import make_record
 from tests.worlds import lent_workspace
@@ -70,7 +70,7 @@ def test_start_up_refuses_a_misspelt_kind_and_a_tuned_control_without_encoder_we
 
 def _trained(tmp_path, backbone: str):
     """A tuned cell built and trained by the runner's own steps; (cell, ws, graft)."""
-    from bench.run.runner import build_graft, cell_inputs, train_graft
+    from bench.cell.runner import build_graft, cell_inputs, train_graft
 
     ws = lent_workspace(PROFILE, ResultStore(tmp_path / "results"))
     cell = CellSpec(TUNED, backbone, "spatial", 0, "dinov2_s")
@@ -126,7 +126,7 @@ def test_tuned_cell_trains_exactly_projector_and_encoder(tmp_path, monkeypatch):
 
 
 def test_tuned_cell_twice_gives_the_same_bits_and_records_its_parameters(tmp_path):
-    from bench.run.service import run_cell
+    from bench.cell.service import run_cell
 
     cell = CellSpec(TUNED, "smolvla", "spatial", 0, "dinov2_s")
     runs = [run_cell(cell, lent_workspace(PROFILE, ResultStore(tmp_path / f"r{i}")))

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from bench.grid.cells import CellSpec
-from bench.run.features import feature_key
+from bench.resources.features import feature_key
 from bench.startup import validate_names
 from bench.grid.protocol import TINY, with_overrides
 from encoders import UnknownEncoder, build_encoder, get_spec, user_encoders

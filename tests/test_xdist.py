@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 pytestmark = pytest.mark.slow  # fresh interpreters (docs/TESTING.md: tiers)
 

@@ -6,7 +6,7 @@ own (another step count, a private results store) get one that lends the loaded 
 first workspace of the same world, so each is loaded once per process (once per xdist worker;
 the disk caches below them are shared and locked across processes).
 
-Lent parts are read-only by contract (bench.run.workspace: the LoRA control copies its
+Lent parts are read-only by contract (bench.resources.workspace: the LoRA control copies its
 backbone); each workspace keeps its own profile, store and progress.
 """
 
@@ -15,8 +15,8 @@ from __future__ import annotations
 import dataclasses
 
 from bench.progress import QUIET
-from bench.run.workspace import Workspace
-from external.paths import cache_dir
+from bench.resources.workspace import Workspace
+from ondisk.paths import cache_dir
 
 _WORLDS: dict[tuple, Workspace] = {}  # world key -> the workspace whose loaded parts are lent
 

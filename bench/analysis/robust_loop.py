@@ -1,6 +1,6 @@
 """The robustness tier in closed loop: each rolled-out cell's success under every perturbation
 beside its clean success, with Wilson 95% intervals, and the episodes the perturbation lost and
-gained (the same episodes, paired by task and episode index: bench.run.robust_loop). Pure
+gained (the same episodes, paired by task and episode index: bench.robust.closed_loop). Pure
 functions of stored records."""
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from bench.export.locate import ExportError, find_record, why_not_exportable
 from bench.grid.protocol import Protocol, get_profile
 from bench.results.record import Record, checkpoint_revision
 from bench.results.store import ResultStore
-from bench.run.projectors import ProjectorFileError, load_projector
+from bench.cell.projectors import ProjectorFileError, load_projector
 
 BUNDLED_VLM = "smolvlm"  # a local VLM folder (the tiny SmolVLM) travels under this name
 
@@ -64,7 +64,7 @@ def rebuild_cell(results_dir: str | Path, record: Record, progress: bool = False
                  lend_from=None):
     """(backbone adapter normalising the cell's suite, encoder) as the cell had them, checked
     against the record's checkpoint revision and normaliser fingerprint."""
-    from bench.run.workspace import Workspace
+    from bench.resources.workspace import Workspace
 
     measured = record.measured
     try:

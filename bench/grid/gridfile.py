@@ -13,7 +13,7 @@ Schema (every key optional; lists are TOML arrays):
     steps = 60                       # projector steps (the same as [protocol] steps: give one)
     robustness = ["brightness", "blur:1,3"]  # the robustness tier: perturbation kinds (all: every one)
     pack_grafts = 4                  # graft cells trained per backbone pass (a run setting, not the
-                                     #   protocol: no record changes identity; bench.run.pack_run)
+                                     #   protocol: no record changes identity; bench.cell.pack_run)
 
     [protocol]                       # any bench.grid.protocol.Protocol field by name, its type kept:
     lr = 0.003                       #   int, float (an int is taken), str, list of str
@@ -25,7 +25,7 @@ replaces the file's base profile and the file's other keys still apply on top of
 file's value. Names (backbones, suites, encoders) are checked at collection, as on the command
 line; everything else here, each error one line naming the file, the key and the valid choices.
 
-Your own policy and data (bench.grid.userworld; `--policy`, `--dataset`, `--camera-map` each
+Your own policy and data (bench.grid.user_specs; `--policy`, `--dataset`, `--camera-map` each
 replace the file's table):
 
     [policies]                       # NAME = "REPO_ID_OR_PATH[@REVISION]": backbones of the grid
@@ -57,7 +57,7 @@ from typing import Any, Callable
 from bench.grid.kinds import NATIVE, control_kinds
 from bench.grid.protocol import (PROFILES, GridFileInfo, Profile, Protocol, range_error,
                                  with_overrides)
-from bench.grid.userworld import parse_camera_map, parse_named, with_user_world
+from bench.grid.user_specs import parse_camera_map, parse_named, with_user_world
 
 
 class GridFileError(ValueError):

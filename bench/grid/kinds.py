@@ -2,7 +2,7 @@
 the report know about it. Adding a control kind is one `register_kind(CellKind(...))`.
 
 What a cell feeds the frozen policy is declared as an *input rule* for training and one for
-evaluation, each one of `INPUT_RULES` (implemented once, in bench.run.inputs):
+evaluation, each one of `INPUT_RULES` (implemented once, in bench.cell.inputs):
 
 - "same": the cell's own frames (pooled encoder features, the native tower's grid, or the images
   as recorded);

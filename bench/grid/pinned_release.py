@@ -31,7 +31,7 @@ import shutil
 import sys
 from pathlib import Path
 
-RELEASE_FILE = "graftbench_release.json"  # written by bench.run.releases with the weights
+RELEASE_FILE = "graftbench_release.json"  # written by bench.resources.releases with the weights
 HASH_CHARS = 16
 _NAME = re.compile(rf"^(?P<backbone>.+)-(?P<hash>[0-9a-f]{{{HASH_CHARS}}})$")
 

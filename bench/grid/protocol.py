@@ -180,7 +180,7 @@ class Profile:
     # The study file (`--grid`) this profile was read from: provenance for every record. Not part
     # of `protocol`, so not of its hash: the file's [protocol] values are, through `protocol`.
     grid_file: GridFileInfo | None = None
-    # Your own policies and datasets (bench.grid.userworld): (NAME, PATH_OR_REPO_ID[@REV]) pairs,
+    # Your own policies and datasets (bench.grid.user_specs): (NAME, PATH_OR_REPO_ID[@REV]) pairs,
     # and the camera map, (POLICY_CAMERA, DATASET_CAMERA) pairs. Not part of `protocol`: the
     # records carry the checkpoint's id and revision and the dataset's fingerprint instead.
     policies: tuple[tuple[str, str], ...] = ()
@@ -194,7 +194,7 @@ class Profile:
     sim_demo_noise: float = 0.0  # --sim-demo-noise: DemoSpec.action_noise (DART-style)
     sim_demo_speed: float = 1.0  # --sim-demo-speed: DemoSpec.expert_speed (1: the original)
     # The robustness tier (--robustness, the grid file's `robustness`): perturbations as
-    # "kind:severity" (bench.run.perturbations), () = off. Not part of `protocol`: it adds cases
+    # "kind:severity" (bench.robust.perturbations), () = off. Not part of `protocol`: it adds cases
     # (test_robust) and their own records; the cells' numbers do not depend on it.
     robustness: tuple[str, ...] = ()
     # Pinned tiny releases (the grid file's [releases], bench.grid.pinned_release): (BACKBONE,
@@ -258,7 +258,7 @@ PAPER = Profile(
     offline=False,
     # The study's settings where its summaries give them (bench/report/study.py; REPORT.md marks which
     # constants are the study's and which are ours): 2,000 steps, AdamW lr 1e-4, effective batch
-    # 8, bf16 on CUDA (bench.run.train.frozen_autocast). Warm-up, cosine decay, grad clip, split and
+    # 8, bf16 on CUDA (bench.loops.train.frozen_autocast). Warm-up, cosine decay, grad clip, split and
     # window stride are ours.
     protocol=Protocol(steps=2000, batch_size=8, lr=1e-4),
     backbones=STUDY_BACKBONES,

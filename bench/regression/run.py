@@ -22,7 +22,7 @@ from typing import Callable
 import pytest
 
 from bench.regression import baseline as B
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 DEFAULT_BASELINE_DIR = REPO_ROOT / ".graftbench" / "baselines"
 
@@ -149,7 +149,7 @@ class BaselineRun:
 
     def feature_transform(self, cell, workspace: Callable):
         """With --degrade-encoder, the degradation a cell of that encoder is measured under
-        (its plan's CellContext: bench.run.plan; such a record is never resumed), else None."""
+        (its plan's CellContext: bench.cell.plan; such a record is never resumed), else None."""
         if not self.degrades(cell):
             return None
         name, factor = self.degrade

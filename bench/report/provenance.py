@@ -184,7 +184,7 @@ def extraction_runtimes(records, screens) -> str | None:
         seen[s.scores.encoder].add(s.extraction_runtime or NOT_RECORDED_RUNTIME)
     if not any(v - {NOT_RECORDED_RUNTIME} for v in seen.values()):
         return None
-    return ("Feature extraction runtime per encoder (bench.run.extraction): "
+    return ("Feature extraction runtime per encoder (bench.resources.extraction): "
             + "; ".join(f"{e}: {', '.join(sorted(v))}" for e, v in sorted(seen.items())))
 
 

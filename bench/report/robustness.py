@@ -25,7 +25,7 @@ PLOT_NAME = "robustness.png"
 METHOD = (
     "Each trained cell's stored projector (native: the released policy as is) rescored, without "
     "retraining, on perturbed copies of every 4th held-out window (the same windows and the same "
-    "perturbed frames for every cell of a suite: bench/run/perturbations.py, drawn per window "
+    "perturbed frames for every cell of a suite: bench/robust/perturbations.py, drawn per window "
     "from a fixed seed). **Degradation** = (perturbed - clean) / clean normalised MSE on those "
     "windows, mean over seeds; its "
     f"{CONFIDENCE:.0%} interval is the rankings' paired window bootstrap (windows resampled once "
@@ -127,7 +127,7 @@ def _closed_loop_text(rows: list[LoopRow]) -> str | None:
             + [f"{_rate(r.perturbed[label])}, -{r.lost[label]}/+{r.gained[label]}"
                if label in r.perturbed else "n/a" for label in labels] for r in rows]
     return ("Native and the best graft (lowest clean MSE) rolled out again with every rendered "
-            "frame perturbed as offline (bench/run/robust_loop.py): the same episodes (init "
+            "frame perturbed as offline (bench/robust/closed_loop.py): the same episodes (init "
             "states, env seeds) as the clean rollouts. Cell: successes/episodes, rate [Wilson "
             "95%], then -lost/+gained: episodes that succeeded clean and failed perturbed, and "
             "the reverse (paired by episode).\n\n"

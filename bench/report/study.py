@@ -32,8 +32,8 @@ NOT_RECORDED = "not recorded"  # the study gives it; the records do not say what
 
 # Facts of our code that no record carries (tests/test_study.py checks each against the code).
 OUR_CODE = {
-    "optimiser": "AdamW",  # bench/run/train.py: torch.optim.AdamW
-    "gradient accumulation": False,  # bench/run/train.py: one optimiser step per batch
+    "optimiser": "AdamW",  # bench/loops/train.py: torch.optim.AdamW
+    "gradient accumulation": False,  # bench/loops/train.py: one optimiser step per batch
     # encoders/timm_encoders.py: one bilinear resize to the encoder's own input size, then its
     # own mean/std. The paper encoders' sizes: the study's one 224 px path (timm's pretrained
     # size, except fastvit_sa12's, 256):
@@ -87,12 +87,12 @@ class StudyConstant:
 
 STUDY_CONSTANTS: tuple[StudyConstant, ...] = (
     StudyConstant("projector steps", 2000, "steps", "per run"),
-    StudyConstant("optimiser", "AdamW", None, "ours: bench/run/train.py, not a Protocol field"),
+    StudyConstant("optimiser", "AdamW", None, "ours: bench/loops/train.py, not a Protocol field"),
     StudyConstant("learning rate", 1e-4, "lr", "schedule not given by the summaries"),
     StudyConstant("effective batch", 8, "batch_size",
                   "we accumulate no gradients: batch_size is the effective batch"),
     StudyConstant("precision", "bf16", None,
-                  "ours: bf16 autocast on CUDA, fp32 on CPU (bench/run/train.py); from the "
+                  "ours: bf16 autocast on CUDA, fp32 on CPU (bench/loops/train.py); from the "
                   "records' device"),
     StudyConstant("preprocessing: input px", 224, None,
                   "the study: one 224 px path for every encoder; ours: each encoder resized to "

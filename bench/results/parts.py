@@ -61,7 +61,7 @@ class MeasuredUnder:
     grid: list | None = None  # the pooled token grid (rows, cols)
     features_mode: str | None = None  # "cache" | "loop" | None (no encoder)
     feature_dtype: str | None = None  # how cached features were stored (absent: float32)
-    # What extracted the stored features (bench.run.extraction): "torch" or an onnxruntime tag
+    # What extracted the stored features (bench.resources.extraction): "torch" or an onnxruntime tag
     # such as "onnxruntime==1.31.1/opset17"; absent: no store read, or a record from before it.
     feature_runtime: str | None = None
     feature_transform: str | None = None  # a planted degradation: never resumed, never a baseline
@@ -87,7 +87,7 @@ class MeasuredUnder:
 
 @dataclass(frozen=True)
 class Scores:
-    """Offline action MSE (bench.run.evaluate): per window, per task, per horizon step, in both
+    """Offline action MSE (bench.loops.evaluate): per window, per task, per horizon step, in both
     action spaces. per_window[space]: (n_windows,) aligned with window_ids."""
 
     mse: dict[str, float]
@@ -130,12 +130,12 @@ def task_score(mse: dict[str, float], n: int) -> dict:
 
 
 def checkpoint_revision(checkpoint: dict | None) -> str | None:
-    """The weights' revision in a checkpoint dict (bench.run.releases.checkpoint_id's)."""
+    """The weights' revision in a checkpoint dict (bench.resources.releases.checkpoint_id's)."""
     return (checkpoint or {}).get("revision")
 
 
 def checkpoint_of(checkpoint: dict, normalizer: str, normalizer_fingerprint: str) -> dict:
-    """`MeasuredUnder.checkpoint`: the policy's {repo_id, revision} (bench.run.releases) and the
+    """`MeasuredUnder.checkpoint`: the policy's {repo_id, revision} (bench.resources.releases) and the
     normaliser's source and fingerprint."""
     return {**checkpoint, "normalizer": normalizer, "normalizer_fingerprint": normalizer_fingerprint}
 
@@ -154,7 +154,7 @@ class Training:
     # The side (px) the encoder's input was resized to: its own (a pretrained encoder's, e.g.
     # 224), not the profile's; None: no encoder, or a record from before this field.
     encoder_input_size: int | None = None
-    # The trained projector, kept for bench.export (bench.run.projectors): its file relative to
+    # The trained projector, kept for bench.export (bench.cell.projectors): its file relative to
     # the results dir and the file's sha256.
     projector_file: str | None = None
     projector_sha256: str | None = None

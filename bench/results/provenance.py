@@ -11,7 +11,7 @@ import sys
 
 import torch
 
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 
 
 def stable_seed(*parts: object) -> int:

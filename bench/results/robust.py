@@ -1,5 +1,5 @@
 """The robustness record of a cell (the robustness tier): its stored projector rescored on
-perturbed held-out windows, one entry per perturbation (bench.run.perturbations). One JSON file
+perturbed held-out windows, one entry per perturbation (bench.robust.perturbations). One JSON file
 per cell, written atomically, beside the cell records:
 
     RESULTS_DIR/robust/<cell_id>.json
@@ -35,7 +35,7 @@ def base_of(record: Record) -> dict:
 class RobustEntry:
     """One perturbation's scores: per_window[space] aligned with the record's window_ids."""
 
-    perturbation: dict  # bench.run.perturbations.Applied.to_json(): kind, severity, params, ...
+    perturbation: dict  # bench.robust.perturbations.Applied.to_json(): kind, severity, params, ...
     mse: dict[str, float]
     per_window: dict[str, list[float]]
     eval_s: float = 0.0
@@ -66,7 +66,7 @@ class RobustRecord:
     timings_s: dict = field(default_factory=dict)
     created: str | None = None
     # Closed loop (--rollouts N too; native and the best graft): "kind:severity" -> the
-    # rollouts under it (bench.run.robust_loop.rollouts_under), paired with the cell record's
+    # rollouts under it (bench.robust.closed_loop.rollouts_under), paired with the cell record's
     # run.rollouts episode by episode.
     rollouts: dict[str, dict] = field(default_factory=dict)
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.grid.kinds import GRAFT
-from external.filelock import exclusive, try_exclusive
+from ondisk.filelock import exclusive, try_exclusive
 from bench.results.current import RunConditions, is_current
 from bench.results.record import Failure, Record
 from bench.screen.records import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
@@ -323,7 +323,7 @@ class ResultStore:
 
     @contextlib.contextmanager
     def try_cell_lock(self, cell_id: str):
-        """`cell_lock` without waiting (a packed graft's mates, bench.run.pack_run): yields True
+        """`cell_lock` without waiting (a packed graft's mates, bench.cell.pack_run): yields True
         holding the claim, False at once when another process holds it (the cell is left to it).
         Within this thread a claim already held counts as held."""
         path = self.claim_path(cell_id)

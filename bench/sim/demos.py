@@ -27,10 +27,10 @@ import numpy as np
 
 from bench.progress import STDERR, Progress, ProgressSink, countdown, say
 from bench.sim.expert import ExpertParams, ScriptedExpert, check_solvable, episode_seed
-from external.filelock import exclusive
-from external.paths import build_dataset_dir, cache_dir
-from external.lerobot_dataset import write_dataset
-from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
+from ondisk.filelock import exclusive
+from ondisk.paths import build_dataset_dir, cache_dir
+from ondisk.lerobot_dataset import write_dataset
+from ondisk.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
 
 GENERATOR_VERSION = "4"  # bump when a change here (or in the expert) changes generated data
 EXPERT_SUCCESS_FILE = "expert_success.json"
@@ -266,7 +266,7 @@ def expert_success(spec: DemoSpec, attempts: dict[tuple[int, int], dict]) -> dic
 def write_suite(spec: DemoSpec, work: _Work, attempts: dict, root: Path,
                 progress: ProgressSink) -> Path:
     """The kept episodes of `spec` as a LeRobotDataset at `root` (must not exist), written by the
-    one writer (external.lerobot_dataset), then the suite's own files: how it was generated and
+    one writer (ondisk.lerobot_dataset), then the suite's own files: how it was generated and
     the expert's measured success."""
     from bench.sim import env as sim_env
 

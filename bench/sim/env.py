@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from external.paths import cache_dir
-from external import libero_format
-from external.libero_format import IMAGE_KEYS, STATE_KEY
+from ondisk.paths import cache_dir
+from ondisk import libero_format
+from ondisk.libero_format import IMAGE_KEYS, STATE_KEY
 
 # graftbench suite name -> LIBERO benchmark name, for the suites the scripted expert and demos
 # cover (bench.sim.expert): the others' scenes are not exercised here.

@@ -12,7 +12,7 @@ the end), while the demonstrations use them from the start (0, 1, ...): the two 
 disjoint as long as demos + rollouts per task <= 50.
 
 Resumable per episode: `finished` episodes (from a killed run) are kept, not rerun, and
-`on_episode` is handed each new one as it ends (bench.run.closed_loop persists it through the
+`on_episode` is handed each new one as it ends (bench.cell.rollouts persists it through the
 results store). An exception inside an episode (the env, or the policy) becomes RolloutCrashed
 naming the task, episode and init state: that cell fails with it, the run goes on.
 """

@@ -18,7 +18,7 @@ import torch
 
 from bench.progress import ProgressSink
 from bench.suites import libero, synthetic
-from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
+from ondisk.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 from bench.suites.base import Suite, SuiteUnavailable
 
 SOURCES = ("tiny", "hub", "sim")

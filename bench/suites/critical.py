@@ -20,7 +20,7 @@ from torch import Tensor
 from bench.suites.windows import episode_last_frame
 
 # LIBERO's action is (dx, dy, dz, dax, day, daz, gripper): the gripper command is the last
-# dimension (external.libero_format's action names).
+# dimension (ondisk.libero_format's action names).
 GRIPPER_DIM = 6
 # Frames either side of an event that still count as the event: 5 frames is 0.25 s at LIBERO's
 # 20 Hz, about the time the fingers take to close or open, so the approach just before contact

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.suites import synthetic
-from external.lerobot_dataset import write_dataset
-from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
+from ondisk.lerobot_dataset import write_dataset
+from ondisk.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 
 FRONT, WRIST = "observation.images.front", "observation.images.wrist"
 CAMERAS = (FRONT, WRIST)

@@ -15,9 +15,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from external.hubcache import hub_offline
-from external.artifacts import Artifact
-from external.libero_format import (
+from ondisk.hubcache import hub_offline
+from ondisk.artifacts import Artifact
+from ondisk.libero_format import (
     ACTION_KEY, IMAGE_KEYS, LIBERO_ACTION_DIM, LIBERO_STATE_DIM, LIBERO_SUITES, STATE_KEY,
 )
 from bench.suites.base import SuiteUnavailable
@@ -101,7 +101,7 @@ def locate(repo_id: str, root: str | Path | None = None,
 
 def download_command(repo_id: str, revision: str | None = None) -> str:
     """The shell command that puts `repo_id` in the HF hub cache, where locate() finds it."""
-    from external.hubcache import download_command as hf_download
+    from ondisk.hubcache import download_command as hf_download
 
     return hf_download(repo_id, revision, repo_type="dataset")
 

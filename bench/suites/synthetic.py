@@ -38,9 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from bench.progress import Progress, ProgressSink
-from external.paths import build_dataset_dir, cache_dir
-from external.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
-from external.lerobot_dataset import write_dataset
+from ondisk.paths import build_dataset_dir, cache_dir
+from ondisk.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY, libero_features
+from ondisk.lerobot_dataset import write_dataset
 
 # Bump when a change to this file changes generated data: it is part of the cache key.
 GENERATOR_VERSION = "5"

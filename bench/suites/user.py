@@ -12,7 +12,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from external.libero_format import ACTION_KEY, STATE_KEY
+from ondisk.libero_format import ACTION_KEY, STATE_KEY
 from bench.suites.base import SuiteUnavailable
 
 IMAGES_IN_MEMORY_MAX = 20_000  # frames x cameras decoded once and kept; beyond: on demand

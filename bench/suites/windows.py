@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from external.libero_format import STATE_KEY
+from ondisk.libero_format import STATE_KEY
 from bench.suites.base import Suite
 
 

@@ -2,7 +2,7 @@
 
 The backbone is frozen and a sample never meets another in it (attention and norms act within a
 sample), so K graft cells of one backbone can share its forward and backward: each cell draws its
-step exactly as `bench.run.train.fit` would alone (its own data order, flow noise and time
+step exactly as `bench.loops.train.fit` would alone (its own data order, flow noise and time
 generators, its own batch function), the K batches are stacked into one, `PackedFeed` hands
 slice k of every image batch to projector k, each cell's loss is the mean over its own samples,
 and the SUM of the K losses is backpropagated: projector k only reaches loss k, so its gradient
@@ -11,7 +11,7 @@ is its own cell's. Clipping, AdamW and the schedule stay per cell. What differs 
 
 Not packable: cells that change the backbone (LoRA) or train their encoder (`other_lrs`).
 `train_pack` trains grid cells so; `--pack-grafts K` (grid-file key `pack_grafts`) routes a
-run's cells through it (bench.run.pack_run).
+run's cells through it (bench.cell.pack_run).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from torch import Tensor
 
 from backbones.base import Backbone
 from bench.progress import Progress, ProgressSink
-from bench.run.train import (
+from bench.loops.train import (
     BatchFn, FitConfig, NonFiniteLoss, batch_order, clip_and_step, draw_step, frozen_autocast,
     make_optimizer, noise_generator,
 )
@@ -169,8 +169,8 @@ class PackedGraft:
     pack's training (the shares of a pack sum to its wall time)."""
 
     cell: object  # bench.grid.cells.CellSpec
-    graft: object  # bench.run.runner.Graft
-    fitted: object = None  # bench.run.runner.Fitted
+    graft: object  # bench.cell.runner.Graft
+    fitted: object = None  # bench.cell.runner.Fitted
     error: Exception | None = None
     timings: dict = field(default_factory=dict)
 
@@ -189,11 +189,11 @@ def packable(cell) -> str | None:
 
 
 def train_pack(cells: Sequence, ws, contexts: Sequence, label: str = "packed") -> list[PackedGraft]:
-    """Build the graft cells of one backbone x suite as bench.run.runner.measure builds them and
+    """Build the graft cells of one backbone x suite as bench.cell.runner.measure builds them and
     train their projectors in one pack, each with what runner.train_graft does alone around its
     `fit` (its step count, probe loss before and after). Contexts: the cells' CellContexts (a
     reused projector is not packed: take it as runner.measure does)."""
-    from bench.run.runner import (Fitted, build_graft, cell_inputs, graft_fit_config,
+    from bench.cell.runner import (Fitted, build_graft, cell_inputs, graft_fit_config,
                                   probe_frames, probe_loss)
 
     worlds = {(c.backbone, c.suite) for c in cells}

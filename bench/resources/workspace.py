@@ -12,18 +12,18 @@ from pathlib import Path
 import torch
 
 from backbones import get_entry
-from bench.run.releases import (
+from bench.resources.releases import (
     Normalizer, checkpoint_id, load_released, normalizer_for, user_normalizer,
 )
-from bench.run.features import FeatureStore
-from external.paths import cache_dir
+from bench.resources.features import FeatureStore
+from ondisk.paths import cache_dir
 from bench.progress import ProgressSink, say
 from bench.grid.protocol import Profile
 from bench.results.store import ResultStore
 from bench.sim.batching import IN_PROCESS, Batching
 from bench.suites import load_suite
 from bench.suites.user import load_user_suite
-from bench.run.userworld import load_user_policy
+from bench.resources.user_policies import load_user_policy
 from bench.suites.windows import episode_frames, eval_windows, heldout_split
 from encoders import build_encoder
 
@@ -64,7 +64,7 @@ class Workspace:
     feature_dtype: str = "fp16"
     _features: FeatureStore | None = None  # opened lazily; keeps each stored file open
     # What one cell is measured with (a graft's trained projector to take, a planted feature
-    # transform) is not kept here: bench.run.plan's CellContext carries it.
+    # transform) is not kept here: bench.cell.plan's CellContext carries it.
     _session_dir: tempfile.TemporaryDirectory | None = None
 
     def session_dir(self) -> Path:
@@ -210,7 +210,7 @@ class Workspace:
         """{camera: view} of the stored features: `view[frames]` -> (B, rows*cols, C) float32 on
         the CPU, read from disk and pooled to `grid` per batch; `view.shape` is (N, rows*cols, C).
         The file is built on first use (resumable) and opened once per session. `transform`:
-        a planted degradation applied to every batch read (bench.run.plan.CellContext)."""
+        a planted degradation applied to every batch read (bench.cell.plan.CellContext)."""
         return self.feature_store().pooled_features(
             self.encoder(encoder_name), self.suite(suite_name), grid,
             transform=transform)

@@ -23,7 +23,7 @@ from bench.results.provenance import stable_seed
 from bench.results.record import NORMALIZED, RAW, Scores, task_score
 from bench.suites.critical import critical_rule, critical_windows
 from bench.suites.windows import raw_batch
-from bench.run.train import frozen_autocast
+from bench.loops.train import frozen_autocast
 
 # features_for(window positions, frames) -> {camera: (B, N, C)} for a graft, else None.
 FeaturesFn = Callable[[Tensor, Tensor], "dict[str, Tensor] | None"]
@@ -51,7 +51,7 @@ def masked_sq_error(pred: Tensor, target: Tensor, valid: Tensor) -> tuple[Tensor
 
 def executed_steps(backbone: Backbone) -> int:
     """Chunk steps the cell's policy executes before it replans: the closed loop
-    (bench.run.closed_loop) runs the whole chunk, as LeRobot's n_action_steps = chunk_size in
+    (bench.cell.rollouts) runs the whole chunk, as LeRobot's n_action_steps = chunk_size in
     every policy built here, so offline scoring and rollouts read this one number."""
     return backbone.info.chunk_size
 

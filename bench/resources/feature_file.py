@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from external.filelock import exclusive
+from ondisk.filelock import exclusive
 
 FORMAT = "graftbench-features/1"
 MAGIC = b"GBFEAT01"

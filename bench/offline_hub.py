@@ -2,7 +2,7 @@
 the REAL repo ids, so `--profile paper` runs offline through the same from_pretrained /
 LeRobotDataset / timm loading code as on a GPU box with the real cache.
 
-    .venv/bin/python -m bench.hubworld DIR    # then HF_HOME=DIR HF_HUB_OFFLINE=1 pytest bench --profile paper
+    .venv/bin/python -m bench.offline_hub DIR    # then HF_HOME=DIR HF_HUB_OFFLINE=1 pytest bench --profile paper
 
 What is real: repo ids, revisions (the pinned ones), the cache layout (`models--ORG--NAME/refs`,
 `snapshots/<rev>/`), file names, config fields, camera names and widths of the releases
@@ -40,7 +40,7 @@ from pathlib import Path
 import torch
 
 from backbones import BACKBONES, adapter_module
-from external.hubcache import snapshot_dir
+from ondisk.hubcache import snapshot_dir
 
 PAPER_SUITES = ("spatial", "object")
 
@@ -165,13 +165,13 @@ def build(root: Path) -> dict[str, str]:
     return env
 
 
-PROG = "python -m bench.hubworld"
+PROG = "python -m bench.offline_hub"
 OWN_ENTRIES = {"hub", "lerobot", "graftbench_hubworld.json"}  # what build writes into DIR
 
 
 def check_root(root: Path) -> None:
     """Refuse, before anything is written, a DIR that is a file or a folder of other things
-    (`python -m bench.hubworld .` would spread hub/ and lerobot/ into the checkout): one line
+    (`python -m bench.offline_hub .` would spread hub/ and lerobot/ into the checkout): one line
     with the fix, exit 4 (bench.option_values)."""
     from bench.option_values import refuse
 

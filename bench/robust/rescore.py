@@ -25,12 +25,12 @@ from bench.grid.kinds import GRAFT
 from bench.results.record import Record
 from bench.results.robust import (RobustEntry, RobustRecord, base_of, load_robust, stamped,
                                   write_robust)
-from bench.run.evaluate import score
-from bench.run.features import encode_pooled
+from bench.loops.evaluate import score
+from bench.loops.encode import encode_pooled
 from bench.progress import Progress, say
-from bench.run.perturbations import Applied
-from bench.run.projectors import ProjectorFileError, load_projector
-from bench.run.runner import cell_inputs
+from bench.robust.perturbations import Applied
+from bench.cell.projectors import ProjectorFileError, load_projector
+from bench.cell.runner import cell_inputs
 from graftcore.graft import GraftFeed, Projector
 
 WINDOW_STRIDE = 4  # one held-out window in 4 (tiny: 37 of 148 per suite)
@@ -51,7 +51,7 @@ def robust_windows(windows: Tensor, stride: int = WINDOW_STRIDE) -> Tensor:
 @dataclass
 class PerturbedWindows:
     """The held-out windows' frames under one perturbation, as a feature store source: row i is
-    `windows[i]` (bench.run.features.FeatureSource)."""
+    `windows[i]` (bench.resources.features.FeatureSource)."""
 
     suite: object
     windows: Tensor
@@ -116,7 +116,7 @@ def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
     """The robustness record of `cell` under `perturbations` (stored entries of the same
     measurement and windows resumed unless `rerun`), written to the store; (record, measured
     anything). `rollouts` > 0: also rolled out that many episodes per task under each
-    perturbation (bench.run.robust_loop; `scenes`: a test's stand-in for LIBERO)."""
+    perturbation (bench.robust.closed_loop; `scenes`: a test's stand-in for LIBERO)."""
     t_start = time.perf_counter()
     record = stored_cell(cell, ws)
     root = ws.store.root
@@ -145,7 +145,7 @@ def measure_robust(cell: CellSpec, ws, perturbations: tuple[Applied, ...], *,
     else:
         out = stored
     for applied in perturbations if rollouts else ():
-        from bench.run.robust_loop import has_rollouts, rollouts_under
+        from bench.robust.closed_loop import has_rollouts, rollouts_under
 
         if has_rollouts(out.rollouts.get(applied.label), applied, rollouts):
             continue
@@ -226,7 +226,7 @@ class _Scorer:
         return out
 
     def _features_for(self, applied: Applied):
-        """features_for(positions, frames) of bench.run.evaluate.score under `applied`."""
+        """features_for(positions, frames) of bench.loops.evaluate.score under `applied`."""
         encoder, grid = self.inputs.encoder, self.inputs.grid
         if self.loop:  # the cell ran its encoder in the loop: so does its rescoring
             return lambda pos, frames: encode_pooled(

@@ -1,6 +1,6 @@
 """The robustness tier in closed loop (`--robustness KINDS` with `--rollouts N`, sim profile): a
 cell's policy rolled out in LIBERO with every rendered frame perturbed (the offline table,
-bench.run.perturbations) before the policy or its encoder sees it. Only native and the best
+bench.robust.perturbations) before the policy or its encoder sees it. Only native and the best
 graft (lowest clean MSE) roll out: each perturbation costs as much as the cell's clean rollouts.
 
 Paired with the clean rollouts episode by episode: the same spec, so the same init states and env
@@ -21,8 +21,8 @@ from torch import Tensor
 
 from bench.grid.cells import CellSpec, graft_cells
 from bench.grid.kinds import GRAFT, NATIVE
-from bench.run.closed_loop import LoopGraft, cell_rollouts, policy_fingerprint
-from bench.run.perturbations import Applied
+from bench.cell.rollouts import LoopGraft, cell_rollouts, policy_fingerprint
+from bench.robust.perturbations import Applied
 
 # The cells that roll out under perturbations (besides the best graft): the released policy.
 LOOP_KINDS = (NATIVE,)
@@ -80,7 +80,7 @@ def log_id(cell: CellSpec, applied: Applied) -> str:
 
 def rollouts_under(applied: Applied, cell: CellSpec, ws, scorer, record, episodes: int, *,
                    scenes=None) -> dict:
-    """The cell's policy (scorer: bench.run.robust's, rebuilt from its stored projector) rolled
+    """The cell's policy (scorer: bench.robust.rescore's, rebuilt from its stored projector) rolled
     out `episodes` per task with every frame under `applied`; run_rollouts' dict plus "spec" and
     "perturbation". Resumable per episode through the store's episode log."""
     identity = json.dumps({"measured": asdict(record.measured),

@@ -77,7 +77,7 @@ def hub_artifact(kind: str, repo_id: str, files: tuple[str, ...], needed_by: str
     """An Artifact for `files` of `repo_id` at `revision` in the Hugging Face cache."""
     from huggingface_hub import constants
 
-    from external.artifacts import Artifact
+    from ondisk.artifacts import Artifact
 
     missing = [f for f in files if cached_file(repo_id, f, revision) is None]
     if missing:

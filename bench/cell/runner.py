@@ -1,5 +1,5 @@
 """One cell, top to bottom: build the graft -> train its projector -> score -> its record,
-returned (bench.run.service writes it, with the projector file, and keeps the projector a later
+returned (bench.cell.service writes it, with the projector file, and keeps the projector a later
 cell takes).
 
 What a kind of cell does differently is read from its entry in bench.grid.kinds; no branch here
@@ -15,22 +15,22 @@ import torch
 from safetensors.torch import load_file
 
 from bench.grid.cells import CellSpec
-from bench.run.evaluate import derangement, score
-from bench.run.features import feature_runtime
-from bench.run.graft import assert_only_trainable, trainable_parameters, tunable_copy
+from bench.loops.evaluate import derangement, score
+from bench.resources.features import feature_runtime
+from bench.cell.freeze import assert_only_trainable, trainable_parameters, tunable_copy
 from graftcore.graft import GraftFeed, Projector
-from bench.run.inputs import CellInputs
-from bench.run.plan import CellContext, CellResult
+from bench.cell.inputs import CellInputs
+from bench.cell.plan import CellContext, CellResult
 from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
-from bench.run.closed_loop import LoopGraft, cell_rollouts, policy_fingerprint
+from bench.cell.rollouts import LoopGraft, cell_rollouts, policy_fingerprint
 from bench.results.record import (
     MeasuredUnder, RunInfo, Training as TrainingPart, checkpoint_of, new_record,
 )
 from bench.suites.windows import raw_batch
-from bench.run.train import FitConfig, fit, frozen_autocast
-from bench.run.workspace import Workspace
+from bench.loops.train import FitConfig, fit, frozen_autocast
+from bench.resources.workspace import Workspace
 
 
 class _Captured(Exception):
@@ -132,7 +132,7 @@ def score_cell(cell: CellSpec, ws: Workspace, context: CellContext, backbone,
     """The cell's trained graft (or none) scored on the held-out windows, rolled out when the run
     asks: its record (no projector file yet: the service writes both) and the trained projector.
     `timings`: the phases so far (seconds); `spent`: the seconds they took in all (a packed
-    cell: its share of the pack, bench.run.pack_run)."""
+    cell: its share of the pack, bench.cell.pack_run)."""
     p, kind = ws.profile.protocol, cell.spec
     suite, split = ws.suite(cell.suite), ws.split(cell.suite)
     device = next(backbone.policy.parameters()).device
@@ -169,7 +169,7 @@ def score_cell(cell: CellSpec, ws: Workspace, context: CellContext, backbone,
 
 
 def cell_inputs(cell: CellSpec, p, suite, split, backbone, device) -> CellInputs:
-    """What the cell feeds its graft or policy (bench.run.inputs), under the protocol `p`."""
+    """What the cell feeds its graft or policy (bench.cell.inputs), under the protocol `p`."""
     return CellInputs(suite, split.windows, derangement(len(split.windows), p.split_seed),
                       backbone.info.chunk_size, device,
                       cell.spec.grid(backbone.info.native_grid, cell.variant),

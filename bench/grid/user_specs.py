@@ -1,7 +1,7 @@
 """Your own policy and data as values of the grid: `--policy NAME=REPO_ID_OR_PATH[@REVISION]`,
 `--dataset NAME=REPO_ID_OR_PATH`, `--camera-map POLICY_CAMERA=DATASET_CAMERA,...` (and the grid
 file's [policies], [datasets], [camera_map] tables). Parsing and names only; what they are is
-checked at start-up, before collection (bench.run.userworld).
+checked at start-up, before collection (bench.resources.user_policies).
 
 With --policy (--dataset) and no --backbones (--suites), the grid's backbones (suites) are the
 named policies (datasets). A camera name may be given short: `front` is

@@ -1,5 +1,5 @@
-"""Image augmentation shared by native training (bench.run.releases) and graft training
-(bench.run.inputs): one definition, so "image shift N" means the same in both."""
+"""Image augmentation shared by native training (bench.resources.releases) and graft training
+(bench.cell.inputs): one definition, so "image shift N" means the same in both."""
 
 from __future__ import annotations
 

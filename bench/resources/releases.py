@@ -22,16 +22,16 @@ import torch
 from backbones import adapter_module, get_entry
 from backbones.base import BackboneUnavailable, stats_fingerprint
 from backbones.hub import saved_normalizer_stats
-from external.filelock import exclusive
-from external.hubcache import download_command, folder_revision, resolved_revision
+from ondisk.filelock import exclusive
+from ondisk.hubcache import download_command, folder_revision, resolved_revision
 from bench.progress import ProgressSink, say
 from bench.grid.pinned_release import check_pinned
 from bench.grid.protocol import Profile, Protocol
 from bench.results.provenance import stable_seed
-from bench.run.augment import shift_images
-from external.libero_format import STATE_KEY
-from bench.run.train import FitConfig, fit
-from bench.run.userworld import policy_facts, user_checkpoint_id
+from bench.loops.augment import shift_images
+from ondisk.libero_format import STATE_KEY
+from bench.loops.train import FitConfig, fit
+from bench.resources.user_policies import policy_facts, user_checkpoint_id
 
 RELEASE_VERSION = "1"
 

@@ -1,16 +1,16 @@
 """One way to measure a cell: `CellService` takes a cell from its id to its record file.
 
 For every cell kind (graft, control, short graft) and every executor: the pytest session (serial
-or an xdist worker), a submitit / Slurm array task (bench.run.executors.run_cell_job) and a
+or an xdist worker), a submitit / Slurm array task (bench.cell.executors.run_cell_job) and a
 script outside pytest (`run_cell`) all call `CellService.run`. It claims the cell on the results
 store (another process measuring it makes this one wait, then resume), sets an unreadable
-record aside, reads the stored record once and plans (bench.run.plan: resume it or measure, with
-what), measures through its runner (bench.run.runner, which returns and writes nothing) or
+record aside, reads the stored record once and plans (bench.cell.plan: resume it or measure, with
+what), measures through its runner (bench.cell.runner, which returns and writes nothing) or
 `measure_with` (an array task), then alone writes what came of it: the record with its
 projector file, or the failure record when measuring raised; it keeps the projector a later cell
-takes, and returns the record with a typed outcome (bench.run.outcome). The screen's measurements go through `screen` alike (bench.run.screen_run
+takes, and returns the record with a typed outcome (bench.cell.outcome). The screen's measurements go through `screen` alike (bench.cell.screening
 keeps only the selection), and its short grafts through `run`. With `pack_grafts` > 1 a measured
-cell may lead a pack of graft cells trained together (bench.run.pack_run), each still claimed,
+cell may lead a pack of graft cells trained together (bench.cell.pack_run), each still claimed,
 written, failed and reported one by one.
 
 It imports nothing of pytest: the session turns what it raises into a case's failure.
@@ -24,15 +24,15 @@ from typing import Callable, Sequence
 
 from bench.grid.cells import CellSpec
 from bench.progress import say
-from bench.run.outcome import MEASURED, RESUMED, Outcome, failed
-from bench.run.plan import CellPlan, CellResult, plan
+from bench.cell.outcome import MEASURED, RESUMED, Outcome, failed
+from bench.cell.plan import CellPlan, CellResult, plan
 
 
 @dataclass(frozen=True)
 class RunSettings:
     """How this run measures (its options, not the protocol): measure again whatever is stored
     (`rerun`), the features mode, the stored features' dtype, closed-loop episodes per task,
-    graft cells trained per backbone pass (`pack_grafts`, bench.run.pack_run; 1: one at a time)."""
+    graft cells trained per backbone pass (`pack_grafts`, bench.cell.pack_run; 1: one at a time)."""
 
     rerun: bool = False
     features_mode: str = "cache"
@@ -42,8 +42,8 @@ class RunSettings:
 
 
 def measure_here(cell: CellSpec, ws, context) -> CellResult:
-    """The default runner: the cell measured in this process (bench.run.runner.measure)."""
-    from bench.run.runner import measure
+    """The default runner: the cell measured in this process (bench.cell.runner.measure)."""
+    from bench.cell.runner import measure
 
     return measure(cell, ws, context)
 
@@ -55,7 +55,7 @@ class CellService:
     `feature_transform(cell)`: a planted degradation for the cell (the baseline's), or None;
     `order()`: the run's selected cell ids, for "cell i/n" in the start line;
     `pack_candidates(cell)`: the selected cells that may share `cell`'s pack, in run order
-    (with `settings.pack_grafts` > 1; bench.run.pack_run picks and claims its mates)."""
+    (with `settings.pack_grafts` > 1; bench.cell.pack_run picks and claims its mates)."""
 
     def __init__(self, profile, store, workspace: Callable, settings: RunSettings, *,
                  runner: Callable = measure_here, measure_with: Callable | None = None,
@@ -96,7 +96,7 @@ class CellService:
         return record
 
     def plan(self, cell: CellSpec) -> CellPlan:
-        """Resume or measure `cell` (bench.run.plan.plan: reads the store, writes nothing)."""
+        """Resume or measure `cell` (bench.cell.plan.plan: reads the store, writes nothing)."""
         from bench.results.current import RunConditions
 
         s = self.settings
@@ -169,7 +169,7 @@ class CellService:
             if self.measure_with is not None:
                 result = self.measure_with(cell_plan)
             elif self.settings.pack_grafts > 1 and self.claim:
-                from bench.run.pack_run import measure_packed
+                from bench.cell.pack_run import measure_packed
 
                 result = measure_packed(self, cell_plan)  # with mates, when it finds them
             else:
@@ -190,7 +190,7 @@ class CellService:
         """What measuring `cell_plan` gave, written (its projector file, then the record naming
         it; not when a job array's task wrote it) and kept: the projector a later cell takes
         (`CellContext.keep_as`), one line. Returns the record as written."""
-        from bench.run.projectors import keep_for_session, save_projector
+        from bench.cell.projectors import keep_for_session, save_projector
 
         record, cell = result.record, cell_plan.cell
         if not result.stored:

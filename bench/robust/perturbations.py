@@ -151,7 +151,7 @@ def _blur(images, params, seeds):
 
 def _camera_shift(images, params, seeds):
     """Each image moved by `shift_frac` of its side in a direction drawn per window, and turned
-    by `degrees` either way (edges replicated, as bench.run.augment's shift)."""
+    by `degrees` either way (edges replicated, as bench.loops.augment's shift)."""
     n = len(seeds)
     theta = torch.zeros((n, 2, 3))
     for i, seed in enumerate(seeds):

@@ -21,7 +21,7 @@ import pytest
 from bench.grid.cells import CellSpec
 from bench.grid.kinds import SHORT_BY_VARIANT, SHORT_GRAFT
 from bench.progress import say
-from bench.run.outcome import MEASURED, OUTCOME_PROPERTY, Outcome, Status, failed
+from bench.cell.outcome import MEASURED, OUTCOME_PROPERTY, Outcome, Status, failed
 from bench.screen.records import (ScreenConditions, ScreenFailure, ScreenRecord, ScreenSelection,
                                   screen_id)
 from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
@@ -33,7 +33,7 @@ DROPPED = "dropped by the screen: "  # the skip line of a cell the screen droppe
 
 class ScreenRun:
     """Screens and selections of one run, measured through the run's cell service `cells`
-    (bench.run.service: its `screen` for a screen, its `run` for a short graft)."""
+    (bench.cell.service: its `screen` for a screen, its `run` for a short graft)."""
 
     def __init__(self, options: ScreenOptions, cells) -> None:
         self.options, self.cells = options, cells

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from bench.run.augment import shift_images
-from bench.run.features import encode_pooled
+from bench.loops.augment import shift_images
+from bench.loops.encode import encode_pooled
 from bench.grid.kinds import SAME, SHUFFLED, ZERO
 from bench.suites.windows import raw_batch
 
@@ -61,7 +61,7 @@ class CellInputs:
                 for k, v in encode_pooled(self.encoder, blank, self.grid).items()}
 
     def eval_features(self, rule: str):
-        """features_for(window positions, frames) of bench.run.evaluate.score, or None."""
+        """features_for(window positions, frames) of bench.loops.evaluate.score, or None."""
         if self.on_pixels:
             return None
         return {
@@ -72,7 +72,7 @@ class CellInputs:
 
     # --- images the policy sees -----------------------------------------------------------------
     def eval_images(self, rule: str):
-        """images_for(window positions, frames, images) of bench.run.evaluate.score, or None."""
+        """images_for(window positions, frames, images) of bench.loops.evaluate.score, or None."""
         if not self.on_pixels:
             return None
         return {
@@ -83,7 +83,7 @@ class CellInputs:
 
     # --- training batches -----------------------------------------------------------------------
     def train_batches(self, rule: str):
-        """next_batch(frames) -> (raw batch, graft features or None) of bench.run.train.fit."""
+        """next_batch(frames) -> (raw batch, graft features or None) of bench.loops.train.fit."""
         shift = self.train_shift if rule != ZERO else 0
         needs_pixels = self.on_pixels or self.features is None or shift > 0
         shifts = torch.Generator().manual_seed(self.shift_seed)

@@ -19,10 +19,10 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from bench.grid.cells import CellSpec
-from external.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT
 from bench.grid.protocol import Profile
 from bench.results.record import Record
-from bench.run.service import RunSettings
+from bench.cell.service import RunSettings
 from bench.sim.batching import IN_PROCESS, Batching
 
 EXECUTORS = ("local", "slurm", "submitit-local")
@@ -48,7 +48,7 @@ class CellJob:
     profile: Profile
     results_dir: str
     cache_dir: str
-    # How the run measures (bench.run.service.RunSettings); a task always measures (rerun):
+    # How the run measures (bench.cell.service.RunSettings); a task always measures (rerun):
     # the session submits only cells without a current record.
     settings: RunSettings = RunSettings()
     rollout_batching: Batching = IN_PROCESS  # --rollout-batch, --rollout-envs
@@ -56,15 +56,15 @@ class CellJob:
 
 def run_cell_job(job: CellJob) -> Record:
     """Array-task entry point, in a fresh process: rebuild the workspace, then the cell through
-    the cell service (bench.run.service: claim, plan, measure, record or failure record)."""
+    the cell service (bench.cell.service: claim, plan, measure, record or failure record)."""
     os.environ["GRAFTBENCH_CACHE"] = job.cache_dir
     if job.profile.offline:  # before anything imports huggingface_hub
         for var in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
             os.environ[var] = "1"
     from bench.results.store import ResultStore
-    from bench.run.service import CellService
+    from bench.cell.service import CellService
     from bench.progress import LogSink
-    from bench.run.workspace import Workspace
+    from bench.resources.workspace import Workspace
 
     store = ResultStore(Path(job.results_dir))
     s = replace(job.settings, rerun=True)

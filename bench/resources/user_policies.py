@@ -22,9 +22,9 @@ from pathlib import Path
 
 from backbones import adapter_for_policy_type
 from backbones.hub import saved_normalizer_stats
-from external.hubcache import cached_file, folder_revision, resolved_revision
-from bench.grid.userworld import split_revision
-from external.libero_format import ACTION_KEY, STATE_KEY
+from ondisk.hubcache import cached_file, folder_revision, resolved_revision
+from bench.grid.user_specs import split_revision
+from ondisk.libero_format import ACTION_KEY, STATE_KEY
 from bench.suites.user import DatasetFacts, check_dataset, dataset_facts
 
 

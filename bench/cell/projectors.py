@@ -54,8 +54,8 @@ def save_projector(results_dir: str | os.PathLike, cell_id: str,
 
 def keep_for_session(folder: Path, record, projector: torch.nn.Module):
     """`record`'s trained projector saved in the session's folder, for a later cell of the run
-    that takes it (bench.run.plan `CellContext.keep_as`), with what its training recorded."""
-    from bench.run.plan import TrainedProjector
+    that takes it (bench.cell.plan `CellContext.keep_as`), with what its training recorded."""
+    from bench.cell.plan import TrainedProjector
 
     path = Path(folder) / f"projector-{record.cell_id}.safetensors"
     save_file({k: v.detach().cpu().contiguous() for k, v in projector.state_dict().items()}, path)

@@ -32,8 +32,9 @@ from typing import Callable, Protocol
 import torch
 from torch import Tensor
 
-from bench.run import extraction
-from bench.run import feature_file as fs
+from bench.loops.encode import encode_grid
+from bench.resources import extraction
+from bench.resources import feature_file as fs
 from bench.progress import Progress, say
 from encoders.base import Encoder
 from graftcore.graft import pool_grid  # noqa: F401  (the one pooling, shared with the plugin)
@@ -44,7 +45,7 @@ FEATURES_VERSION = "2"
 CHUNK_FRAMES = 64  # frames encoded (and committed to disk) at a time
 
 # transform(features {camera: (B, T, C) float32}, frames (B,) global indices) -> same shapes;
-# applied to each batch read, one camera at a time (bench.run.plan.CellContext.feature_transform)
+# applied to each batch read, one camera at a time (bench.cell.plan.CellContext.feature_transform)
 FeatureTransform = Callable[[dict, Tensor], dict]
 
 
@@ -57,35 +58,6 @@ class FeatureSource(Protocol):
     state: Tensor  # (N, 8): only its length (the number of frames) is used here
 
     def images(self, frames: Tensor) -> dict[str, Tensor]: ...
-
-
-def encoder_device(encoder: Encoder) -> torch.device:
-    """Device of the encoder's parameters or buffers (CPU for parameter-free encoders)."""
-    for tensor in (*encoder.parameters(), *encoder.buffers()):
-        return tensor.device
-    return torch.device("cpu")
-
-
-def encode_grid(encoder: Encoder, images_by_camera: dict[str, Tensor],
-                grad: bool = False) -> dict[str, Tensor]:
-    """{camera: (B, 3, H, W) in [0,1]} -> {camera: (B, C, h, w) float32}, the encoder's own grid.
-    `grad`: through the encoder's autograd entry (`grid`: its forward is no_grad), for a cell
-    that trains the encoder's weights (bench.grid.kinds tune_encoder); the same computation."""
-    device = encoder_device(encoder)
-    if grad:
-        return {camera: encoder.grid(images.to(device, torch.float32)).float()
-                for camera, images in images_by_camera.items()}
-    with torch.no_grad():
-        return {camera: encoder(images.to(device, torch.float32)).float()
-                for camera, images in images_by_camera.items()}
-
-
-def encode_pooled(encoder: Encoder, images_by_camera: dict[str, Tensor],
-                  target_grid: tuple[int, int], grad: bool = False) -> dict[str, Tensor]:
-    """{camera: (B, 3, H, W) in [0,1]} -> {camera: (B, rows*cols, C) float32} on the encoder's
-    device (`grad`: as encode_grid's)."""
-    return {camera: pool_grid(grid, target_grid).contiguous()
-            for camera, grid in encode_grid(encoder, images_by_camera, grad).items()}
 
 
 def feature_key(encoder: Encoder, suite: FeatureSource, grid: tuple[int, int] | None,
@@ -109,7 +81,7 @@ def feature_key(encoder: Encoder, suite: FeatureSource, grid: tuple[int, int] | 
     }
     if encoder.weights_id.startswith("tiny"):  # tiny architecture is defined by its overrides
         fields["tiny_kwargs"] = repr(sorted(spec.tiny_kwargs.items()))
-    if runtime != "torch":  # another runtime's kernels: other float32 bits (bench.run.extraction)
+    if runtime != "torch":  # another runtime's kernels: other float32 bits (bench.resources.extraction)
         fields["runtime"] = runtime
     blob = json.dumps(fields, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()
@@ -162,7 +134,7 @@ def feature_runtime(views: dict | None) -> str | None:
 class FeatureStore:
     """The session's stored features under `root`: each file built once (resumably), opened once
     and kept open, shared by every cell that reads it. `runtime`: what extracts (a key of
-    bench.run.extraction.RUNTIMES; "auto": onnxruntime where it pays and checks, else torch)."""
+    bench.resources.extraction.RUNTIMES; "auto": onnxruntime where it pays and checks, else torch)."""
 
     def __init__(self, root: str | os.PathLike, dtype: str = "fp16", *, progress,
                  chunk_frames: int = CHUNK_FRAMES,

@@ -1,5 +1,5 @@
 """The robustness tier in a grid run: the `--robustness` option and grid-file key, the cells that
-get a `test_robust[...]` case, and the run's robustness cases (bench.run.robust measures one).
+get a `test_robust[...]` case, and the run's robustness cases (bench.robust.rescore measures one).
 
 Off by default: without `--robustness` (or `robustness = [...]` in the grid file) no case is
 collected and nothing here imports torch; the default run's records and protocol hash are those
@@ -24,7 +24,7 @@ def add_robustness_option(group) -> None:
     group.addoption(OPTION, metavar="KIND[:SEVERITIES],...",
                     help="rescore every graft, native and native_wrapped cell on perturbed "
                          "held-out images, no retraining (cases test_robust[CELL_ID]): all, or "
-                         "kinds of bench/run/perturbations.py (brightness, contrast, colour, "
+                         "kinds of bench/robust/perturbations.py (brightness, contrast, colour, "
                          "noise, blur, camera_shift, occlusion), each at severities 1-3 unless "
                          "given, e.g. brightness,blur:1,3")
 
@@ -41,7 +41,7 @@ def with_robustness(profile, given: str | None):
                  else "robustness")
     if not values:
         return dataclasses.replace(profile, robustness=())
-    from bench.run.perturbations import parse_robustness
+    from bench.robust.perturbations import parse_robustness
 
     try:
         applied = parse_robustness(values, where)
@@ -71,8 +71,8 @@ def robust_cells(profile) -> list[CellSpec]:
 
 
 def applied(profile):
-    """The profile's perturbations as bench.run.perturbations.Applied."""
-    from bench.run.perturbations import parse_robustness
+    """The profile's perturbations as bench.robust.perturbations.Applied."""
+    from bench.robust.perturbations import parse_robustness
 
     return parse_robustness(profile.robustness, "robustness")
 
@@ -83,14 +83,14 @@ class RobustRun:
 
     def __init__(self, profile, workspace, rerun: bool = False) -> None:
         self.profile, self.workspace, self.rerun = profile, workspace, rerun
-        self.outcomes: dict = {}  # cell id -> bench.run.outcome.Outcome
+        self.outcomes: dict = {}  # cell id -> bench.cell.outcome.Outcome
 
     def run(self, cell: CellSpec):
         """The robustness record of `cell`; the case fails in one line (naming the command that
         measures what is missing) when the cell has no stored record or projector."""
-        from bench.run.outcome import MEASURED, RESUMED, failed
-        from bench.run.robust import RobustUnavailable, measure_robust
-        from bench.run.robust_loop import rolls_out
+        from bench.cell.outcome import MEASURED, RESUMED, failed
+        from bench.robust.rescore import RobustUnavailable, measure_robust
+        from bench.robust.closed_loop import rolls_out
 
         ws = self.workspace()
         # with --rollouts N: native and the best graft also roll out under each perturbation

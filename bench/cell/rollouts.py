@@ -21,10 +21,10 @@ from torch import Tensor
 
 from bench.progress import ProgressSink
 from bench.results.provenance import stable_seed
-from external.libero_format import LIBERO_ACTION_DIM, STATE_KEY
-from bench.run.evaluate import executed_steps, sample_grafted
+from ondisk.libero_format import LIBERO_ACTION_DIM, STATE_KEY
+from bench.loops.evaluate import executed_steps, sample_grafted
 from bench.grid.kinds import NO_CLOSED_LOOP, ZERO
-from external.libero_format import LIBERO_SUITES
+from ondisk.libero_format import LIBERO_SUITES
 
 # A function of one observation's images {camera: (B, 3, H, W)} (features, or other images).
 ObservationFn = Callable[[dict[str, Tensor]], dict[str, Tensor]]
@@ -93,7 +93,7 @@ def cell_act(cell, backbone, *, noise_seed: int, graft: LoopGraft | None = None,
              perturb: ObservationFn | None = None):
     """`make_act` for a cell: native cells sample as released; grafts encode live pixels.
     `perturb`: applied to every rendered frame before the policy or its encoder sees it (the
-    robustness tier in closed loop: bench.run.robust_loop)."""
+    robustness tier in closed loop: bench.robust.closed_loop)."""
     zero = cell.spec.eval_inputs == ZERO
     transform = (lambda images: {k: torch.zeros_like(v) for k, v in images.items()}) if zero else None
     if perturb is not None:
@@ -103,7 +103,7 @@ def cell_act(cell, backbone, *, noise_seed: int, graft: LoopGraft | None = None,
     feed, encoder, grid = graft.feed, graft.encoder, graft.grid
     if feed.tower is not None:  # native_wrapped: the feed runs the policy's own tower itself
         return make_act(backbone, noise_seed=noise_seed, feed=feed, images_transform=transform)
-    from bench.run.features import encode_pooled
+    from bench.loops.encode import encode_pooled
 
     return make_act(backbone, noise_seed=noise_seed, feed=feed, images_transform=transform,
                     features_from_images=lambda images: encode_pooled(encoder, images, grid))

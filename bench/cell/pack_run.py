@@ -1,8 +1,8 @@
 """`--pack-grafts K`: a run's graft cells trained K at a time through one frozen-backbone pass
-(bench.run.packed), each still its own record, claim, outcome and failure.
+(bench.cell.packed), each still its own record, claim, outcome and failure.
 
-The cell service (bench.run.service) calls `measure_packed` for a cell its plan measures. That
-cell leads a pack when it is packable (bench.run.packed.packable) and takes no graft's projector.
+The cell service (bench.cell.service) calls `measure_packed` for a cell its plan measures. That
+cell leads a pack when it is packable (bench.cell.packed.packable) and takes no graft's projector.
 Its mates are up to K-1 cells the session offers (`CellService.pack_candidates`: the selection in
 run order, of its backbone x suite and tier, none the screen dropped) that are packable, not yet
 measured or failed by this service, and not a control that takes its graft's projector; any seed:
@@ -23,15 +23,15 @@ from __future__ import annotations
 import contextlib
 
 from bench.progress import say
-from bench.run.outcome import MEASURED
-from bench.run.plan import CellPlan, CellResult
+from bench.cell.outcome import MEASURED
+from bench.cell.plan import CellPlan, CellResult
 
 
 def measure_packed(service, lead: CellPlan) -> CellResult:
     """`lead`'s result, its cell trained in a pack with the mates it finds (their records written
     and kept by `service`), or alone when it cannot lead one or finds no mate. Raises what the
     lead's own training or scoring raised (the service writes its failure)."""
-    from bench.run.packed import packable
+    from bench.cell.packed import packable
 
     cell, ws = lead.cell, service.workspace()
     if packable(cell) is not None or lead.context.reuse is not None:
@@ -47,7 +47,7 @@ def measure_packed(service, lead: CellPlan) -> CellResult:
 
 def claim_mates(service, lead: CellPlan, claims: contextlib.ExitStack) -> list[CellPlan]:
     """Plans of up to K-1 mates for `lead`, each claimed (the claims entered on `claims`)."""
-    from bench.run.packed import packable
+    from bench.cell.packed import packable
 
     cell, wanted = lead.cell, service.settings.pack_grafts - 1
     mates: list[CellPlan] = []
@@ -74,10 +74,10 @@ def claim_mates(service, lead: CellPlan, claims: contextlib.ExitStack) -> list[C
 
 def _takes_graft_projector(cell, service) -> bool:
     """A control that trains exactly its graft's projector takes the graft's once measured
-    (bench.run.plan); packed beside or before its graft it would train a copy, and its record
+    (bench.cell.plan); packed beside or before its graft it would train a copy, and its record
     would lose `projector_from`: never a mate (as a lead, its plan is the unpacked one)."""
     from bench.grid.kinds import GRAFT
-    from bench.run.plan import shared_projector_key
+    from bench.cell.plan import shared_projector_key
 
     return (cell.kind != GRAFT
             and shared_projector_key(cell, service.settings.features_mode) is not None)
@@ -86,7 +86,7 @@ def _takes_graft_projector(cell, service) -> bool:
 def _train_and_write(service, plans: list[CellPlan]) -> CellResult:
     """Train the pack, then score and write each cell; the lead's (plans[0]) result last."""
     from bench.results.provenance import reset_peak_memory
-    from bench.run.packed import train_pack
+    from bench.cell.packed import train_pack
 
     ws = service.workspace()
     for plan in plans:
@@ -115,7 +115,7 @@ def _train_and_write(service, plans: list[CellPlan]) -> CellResult:
 
 def _score(ws, plan: CellPlan, item) -> CellResult:
     """One packed cell scored as runner.measure does alone (its training's error raised here)."""
-    from bench.run.runner import score_cell
+    from bench.cell.runner import score_cell
 
     if item.error is not None:
         raise item.error
