@@ -7,6 +7,7 @@ hands them over (images, state, task; no action keys).
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 from bench.progress import QUIET
 import pytest
@@ -213,3 +214,18 @@ def test_a_crashed_env_fails_its_cell_with_the_reason_and_the_next_cell_runs(tin
     other = CellSpec("native", "pi05", "spatial", 1)
     out = cell_rollouts(other, suite, backbone, 2, store=store, scenes=healthy, progress=QUIET)
     assert len(out["episodes"]) == 8
+
+
+def test_the_episode_log_key_ignores_the_grid_files_text_not_what_it_measures():
+    """A comment edited in a study's grid file between sittings restarted a resumed item's
+    episodes (the key read the file's text); what the policy is measured under still counts."""
+    from bench.cell.rollouts import policy_identity
+    from tests.factories import make_record
+
+    measured = make_record().measured
+    noted = replace(measured, grid_file={"path": "s.toml", "sha256": "a", "text": "# one"})
+    edited = replace(noted, grid_file={"path": "s.toml", "sha256": "b", "text": "# two"})
+    assert policy_identity(noted) == policy_identity(edited)
+    assert policy_identity(noted) != policy_identity(replace(noted, protocol_hash="other"))
+    assert (policy_identity(noted, perturbation={"kind": "blur"})
+            != policy_identity(noted, perturbation={"kind": "noise"}))

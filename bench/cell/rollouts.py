@@ -131,6 +131,18 @@ def rollout_spec(suite, episodes_per_task: int, n_action_steps: int, description
                        n_action_steps=n_action_steps)
 
 
+def policy_identity(measured, **more) -> str:
+    """What names a cell's policy for its episode log: what it was measured under (a record's
+    MeasuredUnder) and `more`, without the grid file's provenance: its text is a study's notes
+    (a comment edited between sittings restarted 33 episodes of a resumed item), what it sets
+    is in the protocol and the checkpoint already."""
+    from dataclasses import asdict
+
+    fields = {k: v for k, v in asdict(measured).items() if k != "grid_file"}
+    return json.dumps({"measured": fields, **more} if more else fields, sort_keys=True,
+                      default=str)
+
+
 def policy_fingerprint(backbone, feed, identity: str) -> str:
     """sha256 naming the policy a cell rolls out: `identity` (its checkpoint and protocol, as
     recorded) and the parameters it trained (projector, LoRA). Episodes resumed from an episode

@@ -7,9 +7,8 @@ names a kind."""
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 from safetensors.torch import load_file
@@ -24,7 +23,8 @@ from bench.cell.plan import CellContext, CellResult
 from bench.results.provenance import (
     git_commit, hardware, peak_memory_mb, reset_peak_memory, stable_seed, versions,
 )
-from bench.cell.rollouts import LoopGraft, cell_rollouts, policy_fingerprint
+from bench.cell.rollouts import (LoopGraft, cell_rollouts, policy_fingerprint,
+                                 policy_identity)
 from bench.results.record import (
     MeasuredUnder, RunInfo, Training as TrainingPart, checkpoint_of, new_record,
 )
@@ -151,8 +151,7 @@ def score_cell(cell: CellSpec, ws: Workspace, context: CellContext, backbone,
             cell, suite, backbone, ws.rollouts, store=ws.store, progress=ws.progress,
             graft=LoopGraft(feed, inputs.encoder, inputs.grid) if graft else None,
             batching=ws.rollout_batching,
-            policy=policy_fingerprint(backbone, feed, json.dumps(asdict(measured),
-                                                                 sort_keys=True, default=str)))
+            policy=policy_fingerprint(backbone, feed, policy_identity(measured)))
         timings.update(rollouts=time.perf_counter() - t0)  # the phase (a timings_s entry)
     timings["total"] = spent + time.perf_counter() - t_scoring
 

@@ -13,15 +13,14 @@ episode and seed; severity 0 returns the frames as they are (the clean rollout's
 from __future__ import annotations
 
 import hashlib
-import json
-from dataclasses import asdict
 
 import torch
 from torch import Tensor
 
 from bench.grid.cells import CellSpec, graft_cells
 from bench.grid.kinds import GRAFT, NATIVE
-from bench.cell.rollouts import LoopGraft, cell_rollouts, policy_fingerprint
+from bench.cell.rollouts import (LoopGraft, cell_rollouts, policy_fingerprint,
+                                 policy_identity)
 from bench.robust.perturbations import Applied
 
 # The cells that roll out under perturbations (besides the best graft): the released policy.
@@ -83,8 +82,7 @@ def rollouts_under(applied: Applied, cell: CellSpec, ws, scorer, record, episode
     """The cell's policy (scorer: bench.robust.rescore's, rebuilt from its stored projector) rolled
     out `episodes` per task with every frame under `applied`; run_rollouts' dict plus "spec" and
     "perturbation". Resumable per episode through the store's episode log."""
-    identity = json.dumps({"measured": asdict(record.measured),
-                           "perturbation": applied.to_json()}, sort_keys=True, default=str)
+    identity = policy_identity(record.measured, perturbation=applied.to_json())
     name = log_id(cell, applied)
     graft = (LoopGraft(scorer.feed, scorer.inputs.encoder, scorer.inputs.grid)
              if scorer.feed is not None else None)
