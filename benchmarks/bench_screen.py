@@ -19,7 +19,7 @@ stride-16 tap 14x14x112, DINOv2-S 16x16x384 channels-last; 1,082 frames x 2 came
 training windows in 5 folds, 122 held out, pooled to the tiny backbones' 2x2 / 4x4 grids).
 
 Per encoder on the tiny profile (SmolVLA, spatial, seed 0): one graft cell through
-bench.run.service.run_cell (1 round: a cell takes ~10-30 s on 2 cores), then its screen through
+bench.cell.service.run_cell (1 round: a cell takes ~10-30 s on 2 cores), then its screen through
 bench.screen.measure.measure_screen (3 rounds). The feature store is built before either is timed
 (both read the same stored features; extraction is the graft's cost too). The goal: the screen's
 minimum at most 5% of the graft cell's.
@@ -41,7 +41,7 @@ GRAFT_SECONDS: dict[str, float] = {}
 def workspace():
     from bench.grid.protocol import TINY
     from bench.results.store import ResultStore
-    from bench.run.workspace import Workspace
+    from bench.resources.workspace import Workspace
 
     ws = Workspace(TINY, ResultStore(tempfile.mkdtemp(prefix="bench-screen-")), progress=QUIET)
     for encoder in ENCODERS:  # build the stores and load the policy outside the timings
@@ -53,7 +53,7 @@ def workspace():
 @pytest.mark.parametrize("encoder", ENCODERS)
 def test_graft_cell(benchmark, workspace, encoder):
     from bench.grid.cells import CellSpec
-    from bench.run.service import run_cell
+    from bench.cell.service import run_cell
 
     cell = CellSpec("graft", BACKBONE, SUITE, 0, encoder)
     benchmark.pedantic(run_cell, args=(cell, workspace), rounds=1, iterations=1)
@@ -110,7 +110,7 @@ def _real_store(root, name: str):
     """A completed fp16 store at `name`'s shapes: ReLU units of a per-episode latent walk."""
     import torch
 
-    from bench.run import feature_file as fs
+    from bench.resources import feature_file as fs
 
     grid, channels, memory_format, _ = REAL_STORES[name]
     layout = fs.Layout(name, ("cam0", "cam1"), REAL_FRAMES, grid, channels, "fp16", memory_format)
@@ -149,7 +149,7 @@ def test_screen_real_store(benchmark, tmp_path_factory, name):
     """One whole screen (bench.screen.measure.screen_features: read and pool both cameras'
     stored grids, every proxy on [state] and [state, features], entropy) from a store at
     docs/real's shapes, one thread; the goal: <= 5% of a tiny graft cell (22-34 s here)."""
-    from bench.run.features import PooledView
+    from bench.resources.features import PooledView
     from bench.screen.measure import screen_features
 
     stored = _real_store(tmp_path_factory.mktemp("real-store"), name)

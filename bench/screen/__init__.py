@@ -9,7 +9,7 @@ stored features, and which of them the graft runs.
     selection.py   --screen-by / --screen-keep, and what is grafted (no torch)
     records.py     the stored screen, failure and selection, typed (no torch)
 
-Outside it, by layer: bench.run.screen_run runs the screens of one pytest run (locks, the
+Outside it, by layer: bench.cell.screening runs the screens of one pytest run (locks, the
 store, the short grafts); bench.report.screen writes REPORT.md's section. This package sits
 below bench.results (which stores its records) and imports nothing of the analysis or report.
 """

@@ -32,7 +32,7 @@ from functools import reduce
 import numpy as np
 
 from bench.screen.spectral import (CONSTANT_REL_VAR, ZERO_EIGEN_REL, Spectrum, fold_errors,
-                                   logme_profile, spectrum, standard_parts)
+                                   knn_windows, logme_profile, spectrum)
 from bench.stats import Measure, Undefined
 
 RIDGE_GRID = tuple(float(r) for r in np.logspace(-4, 2, 13))
@@ -281,21 +281,6 @@ def ridge_windows(train: np.ndarray, targets: np.ndarray, fold: np.ndarray,
     return float(error / np.size(heldout_targets)), RIDGE_GRID[best]
 
 
-def _standardiser(features: np.ndarray, weights: np.ndarray | None = None):
-    """(f(x) -> standardised kept columns (times `weights` (D,) when given), f(features)), by
-    `features`' own mean and std; or Undefined. f(features) is scaled in place on the centred
-    copy the statistics were computed on (the same numbers and memory order as calling f)."""
-    stats = standard_parts(features)
-    if isinstance(stats, Undefined):
-        return stats
-    keep, mean, scale, centred = stats
-    factor = (np.ones(len(keep)) if weights is None else np.asarray(weights, float))[keep]
-    own = centred if keep.all() else centred[:, keep]
-    own /= scale[keep]
-    own *= factor
-    return lambda x: (np.asarray(x, float)[:, keep] - mean[keep]) / scale[keep] * factor, own
-
-
 def _knn_sse(queries: np.ndarray, query_targets: np.ndarray, reference: np.ndarray,
              reference_targets: np.ndarray, ks: tuple[int, ...], chunk: int,
              ref_sq: np.ndarray | None = None) -> np.ndarray:
@@ -330,15 +315,14 @@ def _nearest_sse(dist: np.ndarray, truth: np.ndarray, reference_targets: np.ndar
 
 
 def _knn_fold_sse(z: np.ndarray, y: np.ndarray, fold: np.ndarray, ks: tuple[int, ...],
-                  chunk: int, sq: np.ndarray) -> np.ndarray:
+                  chunk: int, sq: np.ndarray, gram: np.ndarray | None) -> np.ndarray:
     """(len(ks),) k-NN's squared error, each episode fold predicted from the others; sq (N,):
-    z's squared row norms. Up to KNN_GRAM_MAX windows the distances are blocks of one symmetric
-    N x N product (~1/3 of the multiplications of one per fold) and sq: gathering z's rows per
-    fold (column-major after dropping constant columns) cost more than the neighbour search."""
+    z's squared row norms. Up to KNN_GRAM_MAX windows the distances are blocks of one N x N z z^T
+    (`gram`, if made already) and sq: gathering z's rows per fold cost more than the search."""
     if len(z) > KNN_GRAM_MAX:
         return sum(_knn_sse(z[fold == f], y[fold == f], z[fold != f], y[fold != f], ks, chunk)
                    for f in np.unique(fold))
-    sse, gram = np.zeros(len(ks)), z @ z.T
+    sse, gram = np.zeros(len(ks)), z @ z.T if gram is None else gram
     for f in np.unique(fold):
         inside, rest = np.flatnonzero(fold == f), np.flatnonzero(fold != f)
         for start in range(0, len(inside), chunk):
@@ -350,25 +334,27 @@ def _knn_fold_sse(z: np.ndarray, y: np.ndarray, fold: np.ndarray, ks: tuple[int,
 
 def knn_heldout(train_features: np.ndarray, train_targets: np.ndarray, train_fold: np.ndarray,
                 heldout_features: np.ndarray, heldout_targets: np.ndarray, chunk: int = 512,
-                weights: np.ndarray | None = None) -> tuple[Measure, int | None]:
+                weights: np.ndarray | None = None, spec: Spectrum | Undefined | None = None
+                ) -> tuple[Measure, int | None]:
     """(held-out MSE per target element, chosen k) of k-NN regression.
 
     train_features (N, D), train_targets (N, C), train_fold (N,) int: the episode fold of each
     training window (>= 2 folds; k chosen on them), heldout_* (M, D), (M, C); weights (D,): a
-    factor on each standardised column in the distance (default 1)."""
+    factor on each standardised column in the distance (default 1); `spec`: the training
+    windows' Spectrum, if made already (its standardisation: spectral.knn_windows)."""
     folds, sizes = np.unique(train_fold, return_counts=True)
     if len(folds) < 2:
         return Undefined(f"{len(folds)} training episode fold(s): k cannot be chosen on "
                          "training episodes"), None
     if len(heldout_features) == 0:
         return Undefined("no held-out windows"), None
-    standard = _standardiser(train_features, weights)
+    standard = knn_windows(train_features, weights, spec)
     if isinstance(standard, Undefined):
         return standard, None
-    (scale, z), y = standard, np.asarray(train_targets, float)
+    (scale, z, gram), y = standard, np.asarray(train_targets, float)
     ks = tuple(k for k in KNN_GRID if k <= len(train_fold) - sizes.max())  # <= every fit set
     sq = (z ** 2).sum(axis=1)  # _knn_sse's own expression: the held-out scores' bits
-    sse = _knn_fold_sse(z, y, train_fold, ks, chunk, sq)
+    sse = _knn_fold_sse(z, y, train_fold, ks, chunk, sq, gram)
     k = ks[int(np.argmin(sse))]  # ties: the smaller k (argmin's first)
     heldout_sse = _knn_sse(scale(heldout_features), np.asarray(heldout_targets, float), z, y,
                            (k,), chunk, sq)[0]

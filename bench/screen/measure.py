@@ -14,7 +14,7 @@ higher is better. k-NN weighs the state and each camera's block equally in its d
 (block_weights): unweighted, hundreds of feature columns drown the 8 state columns. The
 label-free proxies (norm entropy) read the tokens of all cameras' grids (the backbone's native
 grid, as stored) of the held-out windows.
-Memory: the (N_train, D) training and (M, D) held-out inputs as float32, plus float64 centred
+Memory: the (N_train, D) training and (M, D) held-out inputs as float64, plus float64 centred
 and standardised copies, the cheaper of a D x D or N x N matrix (bench.screen.spectral) and
 k-NN's N x N distances (up to estimators.KNN_GRAM_MAX windows); stored grids are read CHUNK
 windows at a time.
@@ -44,12 +44,13 @@ CHUNK = 64
 
 @dataclass
 class _Inputs:
-    """What one pass over a set of windows yields (train: with folds and kept arrays)."""
+    """What one pass over a set of windows yields: per input set the inputs (N, D) and the
+    targets (N, C), float64 (the proxies' precision: widened once here instead of by each proxy;
+    float32 values widen exactly, so the same numbers), and the token norms' chunks."""
 
-    arrays: dict[str, list[np.ndarray]]  # input set -> chunks of inputs
-    targets: list[np.ndarray]
-    folds: list[np.ndarray]
-    norms: list[np.ndarray]
+    arrays: dict[str, np.ndarray]
+    targets: np.ndarray
+    norms: list[np.ndarray | None]
 
 
 def window_inputs(views: dict, suite, frames: torch.Tensor, normalize_actions, chunk_size: int,
@@ -66,21 +67,24 @@ def window_inputs(views: dict, suite, frames: torch.Tensor, normalize_actions, c
     return (suite.state[frames].float().numpy(), features, targets.numpy(), norms)
 
 
-def _read(views, suite, frames: torch.Tensor, fold_of: np.ndarray, normalize_actions,
-          chunk_size: int, with_norms: bool) -> _Inputs:
-    out = _Inputs({s: [] for s in INPUT_SETS}, [], [], [])
+def _read(views, suite, frames: torch.Tensor, normalize_actions, chunk_size: int,
+          with_norms: bool) -> _Inputs:
+    inputs = targets = None
+    norms = []
     for start in range(0, len(frames), CHUNK):
         part = frames[start:start + CHUNK]
-        state, features, targets, norms = window_inputs(views, suite, part, normalize_actions,
-                                                        chunk_size, with_norms)
-        sets = {"state": state, "state+features": np.concatenate([state, features], axis=1)}
-        fold = fold_of[start:start + CHUNK]
-        for name, x in sets.items():
-            out.arrays[name].append(x.astype(np.float32))
-        out.targets.append(targets)
-        out.folds.append(fold)
-        out.norms.append(norms)
-    return out
+        state, features, y, n = window_inputs(views, suite, part, normalize_actions, chunk_size,
+                                              with_norms)
+        if inputs is None:  # [state, features] written in place: no per-chunk concatenation
+            inputs = np.empty((len(frames), state.shape[1] + features.shape[1]))
+            targets = np.empty((len(frames), y.shape[1]))
+        rows = slice(start, start + len(part))
+        inputs[rows, :state.shape[1]], inputs[rows, state.shape[1]:] = state, features
+        targets[rows] = y
+        norms.append(n)
+    width = int(suite.state.shape[1])
+    return _Inputs({"state": np.ascontiguousarray(inputs[:, :width]), "state+features": inputs},
+                   targets, norms)
 
 
 def episode_folds(suite, frames: torch.Tensor, episodes: list[int], n_folds: int) -> np.ndarray:
@@ -108,20 +112,17 @@ def _screen(views: dict, suite, split, normalize_actions, chunk_size: int,
     n_folds = min(FOLDS, len(split.train_episodes))
     train_folds = episode_folds(suite, split.train_frames, split.train_episodes, n_folds)
     # The label-free proxies read the held-out windows' token norms only.
-    train = _read(views, suite, split.train_frames, train_folds, normalize_actions, chunk_size,
+    train = _read(views, suite, split.train_frames, normalize_actions, chunk_size,
                   with_norms=False)
-    held = _read(views, suite, split.windows, np.zeros(len(split.windows), int),
-                 normalize_actions, chunk_size, with_norms=True)
+    held = _read(views, suite, split.windows, normalize_actions, chunk_size, with_norms=True)
     out.n_train, out.n_heldout = len(split.train_frames), len(split.windows)
-    y_train, y_held = np.concatenate(train.targets), np.concatenate(held.targets)
-    folds = np.concatenate(train.folds)
     state_dim = int(suite.state.shape[1])
     blocks = {"state": [state_dim],
               "state+features": [state_dim] + [int(views[k].shape[-1]) for k in sorted(views)]}
     for name in INPUT_SETS:
-        out.dims[name] = int(train.arrays[name][0].shape[1])
-        fit = FitInputs(np.concatenate(train.arrays[name]), y_train, folds,
-                        np.concatenate(held.arrays[name]), y_held, block_weights(blocks[name]))
+        out.dims[name] = int(train.arrays[name].shape[1])
+        fit = FitInputs(train.arrays[name], train.targets, train_folds, held.arrays[name],
+                        held.targets, block_weights(blocks[name]))
         out.chosen[name] = {}
         for proxy in supervised_proxies():
             value, chosen = proxy.compute(fit)
@@ -162,7 +163,7 @@ def measure_screen(ws, encoder: str, backbone: str, suite: str,
     extraction = max((float(b) for b in built if b is not None), default=None)
     scores = screen_features(views, ws.suite(suite), ws.split(suite), bb.normalize_actions,
                              bb.info.chunk_size, (encoder, backbone, suite))
-    # What extracted them (bench.run.features.PooledView.runtime; read here by name: bench.run
+    # What extracted them (bench.resources.features.PooledView.runtime; read here by name: bench.run
     # imports bench.results, which imports bench.screen).
     runtimes = {getattr(v, "runtime", None) for v in views.values()}
     return new_screen_record(scores, conditions, feature_seconds, extraction,

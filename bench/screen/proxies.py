@@ -35,11 +35,12 @@ INPUT_SETS = ("state", "state+features")  # a supervised proxy's two fits; the g
 
 @dataclass
 class FitInputs:
-    """One input set's windows, as a supervised proxy reads them: train (N, D) float32 with
-    targets (N, C) and fold (N,) int (the episode fold of each training window), heldout (M, D)
-    float32 with targets (M, C); `weights` (D,) the k-NN distance factor of each column. Derived
-    on first use: `spectrum`, the training windows' decomposition (LogME and ridge's final fit
-    share it), and the same windows as `Moments` (`folds`, `heldout`, `train_total`)."""
+    """One input set's windows, as a supervised proxy reads them: train (N, D) with targets
+    (N, C) and fold (N,) int (the episode fold of each training window), heldout (M, D) with
+    targets (M, C), float32 or float64 (the proxies compute in float64; the screen hands float64
+    over); `weights` (D,) the k-NN distance factor of each column. Derived on first use:
+    `spectrum`, the training windows' decomposition (LogME, ridge's final fit and k-NN share it),
+    and the same windows as `Moments` (`folds`, `heldout`, `train_total`)."""
 
     train: np.ndarray
     train_targets: np.ndarray
@@ -146,7 +147,7 @@ def _ridge(fit: FitInputs) -> tuple[Measure, float | None]:
 
 def _knn(fit: FitInputs) -> tuple[Measure, int | None]:
     return knn_heldout(fit.train, fit.train_targets, fit.train_fold, fit.heldout_features,
-                       fit.heldout_targets, weights=fit.weights)
+                       fit.heldout_targets, weights=fit.weights, spec=fit.spectrum)
 
 
 # Table order is the order of the records' proxies, --screen-by's choices and the report's columns.

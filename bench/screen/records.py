@@ -9,7 +9,7 @@
 A screen id reads as the pytest case: `smolvla-spatial-timm:convnext_atto` (backbone-suite-encoder;
 no seed: a screen trains nothing). bench.results.store reads and writes the files; a screen record
 stands for a later run when `screen_conditions` match (protocol, normaliser, feature dtype,
-screen version) and it holds every proxy of the table (bench.run.screen_run). Undefined proxies
+screen version) and it holds every proxy of the table (bench.cell.screening). Undefined proxies
 travel as {"undefined": reason}, never as NaN.
 
 Where a proxy's values live (bench.screen.proxies says which kind each is): a supervised one's
@@ -123,7 +123,7 @@ class ScreenRecord:
     # How long extracting the stored features took, whichever tier did it (the file's build_s):
     # a screen that found the graft's features stored spent ~0 s, yet they were not free.
     extraction_seconds: float | None = None
-    # What extracted them (bench.run.extraction): "torch" or an onnxruntime tag; None before it.
+    # What extracted them (bench.resources.extraction): "torch" or an onnxruntime tag; None before it.
     extraction_runtime: str | None = None
 
     @property

@@ -43,7 +43,10 @@ class Spectrum:
     """Z = the standardised kept columns of n fitting windows, Yc their centred targets:
     sigma (r,) the nonzero eigenvalues of Z^T Z, z (r, C) = V^T Z^T Yc, yy (C,) = column sums of
     Yc^2, `ymean` (C,); `project(x)` -> (m, r) new windows x (m, D) standardised and put on V;
-    `form`: "primal" or "dual", which matrix was decomposed."""
+    `form`: "primal" or "dual", which matrix was decomposed. The dual form also keeps Z itself
+    (`windows`, which its `project` reads anyway), `standard(x)` -> new windows x (m, D)
+    standardised (m, d), `gram` Z Z^T (n, n) and `keep` (D,) the kept columns: k-NN reads them
+    (knn_windows). The primal form keeps none: there Z would outlive the decomposition."""
 
     n: int
     sigma: np.ndarray
@@ -52,6 +55,10 @@ class Spectrum:
     ymean: np.ndarray
     project: Callable[[np.ndarray], np.ndarray]
     form: str
+    windows: np.ndarray | None = None
+    standard: Callable[[np.ndarray], np.ndarray] | None = None
+    gram: np.ndarray | None = None
+    keep: np.ndarray | None = None
 
     def predict(self, basis: np.ndarray, ratio: float) -> np.ndarray:
         """Ridge's predictions (m, C) at penalty ratio * n for windows already projected."""
@@ -130,32 +137,111 @@ def spectrum(x: np.ndarray, y: np.ndarray, eigh: Callable = np.linalg.eigh,
         z = vecs.T @ (zs.T @ yc)
         return Spectrum(n, sigma, z, (yc * yc).sum(axis=0), ymean,
                         lambda q: standard(q) @ vecs, "primal")
-    sigma, vecs = eigh(zs @ zs.T)
+    gram = zs @ zs.T
+    sigma, vecs = eigh(gram)
     rank = sigma > ZERO_EIGEN_REL * max(sigma.max(), 0.0)
     sigma, vecs = sigma[rank], vecs[:, rank]
     s = np.sqrt(sigma)
     z = s[:, None] * (vecs.T @ yc)
     to_v = vecs / s  # Q V = Q Z^T U S^-1
     return Spectrum(n, sigma, z, (yc * yc).sum(axis=0), ymean,
-                    lambda q: (standard(q) @ zs.T) @ to_v, "dual")
+                    lambda q: (standard(q) @ zs.T) @ to_v, "dual", zs, standard, gram, keep)
+
+
+def knn_windows(features: np.ndarray, weights: np.ndarray | None = None,
+                spec: Spectrum | Undefined | None = None):
+    """k-NN's (f(x) -> standardised kept columns (times `weights` (D,) when given), f(features),
+    f(features) f(features)^T or None), by `features`' own mean and std; or Undefined. From
+    `spec`, the same windows' Spectrum, where given (weighted_windows). Else f(features) is
+    scaled in place on the centred copy the statistics were computed on (the same numbers and
+    memory order as calling f)."""
+    if isinstance(spec, Spectrum) and spec.windows is not None:
+        return weighted_windows(spec, weights)
+    stats = standard_parts(features)
+    if isinstance(stats, Undefined):
+        return stats
+    keep, mean, scale, centred = stats
+    factor = (np.ones(len(keep)) if weights is None else np.asarray(weights, float))[keep]
+    own = centred if keep.all() else centred[:, keep]
+    own /= scale[keep]
+    own *= factor
+    return lambda x: (np.asarray(x, float)[:, keep] - mean[keep]) / scale[keep] * factor, own, None
+
+
+def weighted_windows(spec: Spectrum, weights: np.ndarray | None):
+    """knn_windows from `spec`: Z (spec.windows) is what knn_windows' own path scales by the
+    weights, so the same bits; and in the dual form the N x N product comes from spec.gram, not
+    another N x N x D one: most columns share one weight w (the cameras'), so it is w^2 Z Z^T
+    plus the few others' (the state's) correction. Other rounding than a product of its own:
+    k-NN only compares these fold distances, to choose k (its held-out ones are z's own)."""
+    factor = (np.ones(len(spec.keep)) if weights is None else np.asarray(weights, float))[spec.keep]
+    z = spec.windows * factor
+    gram = None
+    if spec.gram is not None:
+        values, counts = np.unique(factor, return_counts=True)
+        common = values[np.argmax(counts)]
+        gram = common * common * spec.gram
+        other = factor != common
+        if other.any():
+            zo = spec.windows[:, other]
+            gram += (zo * (factor[other] ** 2 - common * common)) @ zo.T
+    return (lambda x: spec.standard(x) * factor), z, gram
 
 
 def fold_errors(x: np.ndarray, y: np.ndarray, fold: np.ndarray, ratios
                 ) -> np.ndarray | Undefined:
     """(len(ratios),) ridge's squared error summed over the episode folds of windows x (n, D),
-    targets y (n, C), `fold` (n,): each fold predicted by the others' Spectrum (standardised by
-    their own statistics) at each penalty ratio (Spectrum.squared_errors). Only compared, to
-    choose the penalty, never stored: so its spectra may round otherwise than LogME's and the
-    final fit's (overwrite, _eigh_mkl: ~1e-12 relative at most on the real screens)."""
+    targets y (n, C), `fold` (n,): each fold predicted by the others (standardised by their own
+    statistics) at each penalty ratio (`_fold_errors`). Only compared, to choose the penalty,
+    never stored: so they may round otherwise than LogME's and the final fit's spectrum
+    (overwrite, _eigh_mkl, products in another order: ~1e-12 relative at most)."""
     x, y = np.asarray(x, float), np.asarray(y, float)  # converted once, not per fold
     errors = np.zeros(len(ratios))
     for f in np.unique(fold):
         inside = fold == f
-        fit = spectrum(x[~inside], y[~inside], _eigh_mkl, overwrite=True)  # a copy: ours
-        if isinstance(fit, Undefined):
-            return fit
-        errors += fit.squared_errors(fit.project(x[inside]), y[inside], ratios)
+        # Boolean indexing copies: every array handed on is ours to overwrite.
+        part = _fold_errors(x[~inside], y[~inside], x[inside], y[inside], ratios)
+        if isinstance(part, Undefined):
+            return part
+        errors += part
     return errors
+
+
+def _fold_errors(x: np.ndarray, y: np.ndarray, q: np.ndarray, yq: np.ndarray, ratios
+                 ) -> np.ndarray | Undefined:
+    """Spectrum.squared_errors of the fold q (m, D), targets yq (m, C) predicted by ridge on x
+    (n, D), y (n, C) (x standardised by its own statistics), without building a Spectrum: with
+    P = Q V and R = V^T Z^T Yc, in the dual form P = Q Z^T U / s and R = s U^T Yc, whose s cancel
+    in (P^T P) o (R R^T) and (P^T Yq) o R, so they are never applied. The four arrays are ours:
+    they are standardised and centred in place (no copies of a fold's windows)."""
+    stats = standard_parts(x, overwrite=True)
+    if isinstance(stats, Undefined):
+        return stats
+    keep, mean, scale, zs = stats
+    inverse = 1.0 / scale[keep]
+    if not keep.all():
+        zs, q = zs[:, keep], q[:, keep]
+    zs *= inverse
+    q -= mean[keep]
+    q *= inverse
+    ymean = y.mean(axis=0)
+    y -= ymean
+    yq -= ymean
+    n, d = zs.shape
+    if d <= n:
+        sigma, vecs = _eigh_mkl(zs.T @ zs)
+    else:
+        sigma, vecs = _eigh_mkl(zs @ zs.T)
+    rank = sigma > ZERO_EIGEN_REL * max(sigma.max(), 0.0)
+    sigma, vecs = sigma[rank], vecs[:, rank]
+    if d <= n:
+        p, r = q @ vecs, vecs.T @ (zs.T @ y)
+    else:
+        p, r = (q @ zs.T) @ vecs, vecs.T @ y
+    quad = (p.T @ p) * (r @ r.T)
+    cross = ((p.T @ yq) * r).sum(axis=1)
+    a = 1.0 / (sigma[None, :] + np.asarray(ratios, float)[:, None] * n)
+    return ((a @ quad) * a).sum(axis=1) - 2 * (a @ cross) + float((yq * yq).sum())
 
 
 def _eigh_mkl(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -223,18 +309,19 @@ def logme_profile(sigma: np.ndarray, z: np.ndarray, yy: np.ndarray, n: int
 def _ascend(values: np.ndarray, start: int) -> np.ndarray:
     """(C,) the grid index of the local maximum each column of values (G, C) climbs to from
     `start`: the maximum MacKay's fixed point (screen_version 2, from alpha = beta = 1, lam = 1)
-    converged to where the evidence has more than one; bounded by G steps."""
-    g, cols = len(values), np.arange(values.shape[1])
-    at = np.full(values.shape[1], start)
-    for _ in range(g):
-        here = values[at, cols]
-        right = np.where(at + 1 < g, values[np.minimum(at + 1, g - 1), cols], -np.inf)
-        left = np.where(at > 0, values[np.maximum(at - 1, 0), cols], -np.inf)
-        step = np.where(right > here, 1, np.where(left > here, -1, 0))
-        if not step.any():
-            break
-        at = at + step
-    return at
+    converged to where the evidence has more than one. A climb never turns (a step up to the
+    right leaves a lower left neighbour): right first where the right neighbour is higher, else
+    left where that one is, then on while the next is higher; found per column at once, not by
+    one step of every column per pass (up to G passes)."""
+    g, s = len(values), start
+    rising = values[1:] > values[:-1]  # (G - 1, C): from i, i + 1 is higher
+    falling = values[:-1] > values[1:]  # from i + 1, i is higher
+    right = rising[s] if s + 1 < g else np.zeros(values.shape[1], bool)
+    left = ~right & (falling[s - 1] if s > 0 else False)
+    end = np.ones((1, values.shape[1]), bool)  # the grid's edge stops every climb
+    up = s + np.argmax(np.concatenate([~rising[s:], end]), axis=0)  # first stop to the right
+    down = s - np.argmax(np.concatenate([~falling[:s][::-1], end]), axis=0)  # to the left
+    return np.where(right, up, np.where(left, down, s))
 
 
 def _golden(lo: np.ndarray, hi: np.ndarray, sigma: np.ndarray, w: np.ndarray,
