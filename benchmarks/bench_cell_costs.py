@@ -20,7 +20,7 @@ import torch
 
 from bench.loops.evaluate import score
 from bench.loops.encode import encode_pooled
-from bench.cell.freeze import GraftFeed, Projector
+from graftcore.graft import GraftFeed, Projector
 from bench.grid.protocol import TINY, with_overrides
 from bench.results.store import ResultStore
 from bench.suites.windows import raw_batch
@@ -70,7 +70,8 @@ def _placeholders(world: World, raw: dict, n: int) -> dict:
 
 
 def _train_projector(world: World, channels: int, next_batch, steps: int = STEPS) -> None:
-    """`steps` projector steps through bench.loops.train.fit, as bench.cell.service.run_cell runs them."""
+    """`steps` projector steps through bench.loops.train.fit, as bench.cell.service.run_cell
+    runs them."""
     torch.manual_seed(0)
     projector = Projector(channels, world.backbone.info.lm_width)
     feed = GraftFeed(projector, world.backbone.camera_keys, world.grid)

@@ -3,13 +3,13 @@ and grids (no encoder runs), stores of N, 4N and 16N frames, two subprocesses pe
 
     .venv/bin/pytest benchmarks/bench_feature_store.py --benchmark-only -p no:randomly
 
-The "build" subprocess builds one store through bench.resources.feature_file.build (fp16, the chunking,
-crc32 and fsync of a real build; making the synthetic chunks is timed apart and left out of the
-write rate), then reads it back; its ru_maxrss is the peak RSS ("growth": minus its RSS after
-imports). The "read" subprocess opens the finished store and times random training batches of
-32 frames through bench.resources.features.PooledView, the object the runner indexes, both cameras, pooled
-to pi0.5's 16x16 and to SmolVLA's 8x8. "cold" reads follow posix_fadvise(DONTNEED) on the file
-(disk, not page cache: at paper scale a file does not fit in RAM), "warm" ones repeat the same
+The "build" subprocess builds one store through bench.resources.feature_file.build (fp16, the
+chunking, crc32 and fsync of a real build; making the synthetic chunks is timed apart and left out
+of the write rate), then reads it back; its ru_maxrss is the peak RSS ("growth": minus its RSS after
+imports). The "read" subprocess opens the finished store and times random training batches of 32
+frames through bench.resources.features.PooledView, the object the runner indexes, both cameras,
+pooled to pi0.5's 16x16 and to SmolVLA's 8x8. "cold" reads follow posix_fadvise(DONTNEED) on the
+file (disk, not page cache: at paper scale a file does not fit in RAM), "warm" ones repeat the same
 batches from the page cache.
 
 Goals (docs/PERFORMANCE.md): peak RSS within 10% over N, 4N, 16N; one pi0.5 SigLIP batch read

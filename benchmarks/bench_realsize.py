@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from bench.loops.evaluate import score
-from bench.cell.freeze import GraftFeed, Projector
+from graftcore.graft import GraftFeed, Projector
 from bench.grid.protocol import PAPER, TINY, with_overrides
 from bench.results.store import ResultStore
 from bench.suites.windows import raw_batch

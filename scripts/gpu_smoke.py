@@ -1,10 +1,11 @@
 """GPU smoke of a graft on real-size, randomly initialised SmolVLA and pi0.5 (issue 14).
 
-Per backbone: build the architecture offline (no weights, no hub), then a few projector steps of
-a graft and one evaluation batch, in bf16 autocast on CUDA (bench.loops.train.frozen_autocast), through
-the harness's own pieces: the adapter's `preprocess`, `sample_time`, `image_embedder`, `loss` and
-`sample_actions` (via bench.loops.evaluate.sample_grafted), bench.cell.freeze's Projector and GraftFeed, and
-bench.resources.features.pool_grid. Prints one JSON line and one human line per backbone.
+Per backbone: build the architecture offline (no weights, no hub), then a few projector steps of a
+graft and one evaluation batch, in bf16 autocast on CUDA (bench.loops.train.frozen_autocast),
+through the harness's own pieces: the adapter's `preprocess`, `sample_time`, `image_embedder`,
+`loss` and `sample_actions` (via bench.loops.evaluate.sample_grafted), graftcore.graft's Projector
+and GraftFeed, and bench.resources.features.pool_grid. Prints one JSON line and one human line per
+backbone.
 
 - Architectures: SmolVLA from SmolVLM2-500M's config numbers (backbones.tiny_smolvla.REAL_VLM,
   16 of 32 text layers as smolvla_base: 450M parameters); pi0.5 from LeRobot's default
@@ -116,7 +117,8 @@ def smoke_one(name: str, size: str, device, args: argparse.Namespace) -> dict:
     import torch
 
     from bench.loops.evaluate import sample_grafted
-    from bench.cell.freeze import GraftFeed, Projector, assert_only_trainable, trainable_parameters
+    from bench.cell.freeze import assert_only_trainable, trainable_parameters
+    from graftcore.graft import GraftFeed, Projector
     from bench.loops.train import frozen_autocast
 
     torch.manual_seed(0)

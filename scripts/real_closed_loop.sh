@@ -4,7 +4,7 @@
 # continues by running this again. Two queues hold disjoint items (no encoder in both, so two
 # one-thread jobs never wait on each other's feature extraction); run them side by side:
 #   OMP_NUM_THREADS=1 bash scripts/real_closed_loop.sh a &  OMP_NUM_THREADS=1 bash scripts/real_closed_loop.sh b
-# Usage: bash scripts/real_closed_loop.sh [a|b|all] [RESULTS] [REPORT]
+# Usage: bash scripts/real_closed_loop.sh [a|b|c|all] [RESULTS] [REPORT]
 set -euo pipefail
 queue=${1:-all}
 results=${2:-docs/real/records/closed_loop}
@@ -31,11 +31,20 @@ b=("--encoders blind -k spatial-blind-seed"
    "--encoders blind --controls native_wrapped -k native_wrapped-seed1"
    "--encoders effnet_lite1 -k effnet_lite1-seed1"
    "--encoders dinov2_s_focus_random -k dinov2_s_focus_random-seed1")
+# Closed-loop robustness (issue 54 item 5), once the items above are measured: native and the
+# best graft by clean offline MSE (both its seeds) rolled out again under one photometric and
+# one geometric perturbation on the clean rollouts' episodes (paired), beside the offline
+# robustness of the same cells under the same two (rescored from the stored projectors, which
+# this study commits). 3 policies x 2 perturbations x 40 episodes: ~2 h of one core. The best
+# graft is read from the records when it runs (bench/robust/closed_loop.py best_graft_encoder):
+# Lite2 so far; name the leading encoder in --encoders if another leads by then.
+c=("--encoders effnet_lite2 --controls native --robustness brightness:3,camera_shift:2 -k test_robust")
 case $queue in
     a) items=("${a[@]}") ;;
     b) items=("${b[@]}") ;;
-    all) items=("${a[@]}" "${b[@]}") ;;
-    *) echo "real_closed_loop.sh: queue $queue is not a, b or all" >&2; exit 4 ;;
+    c) items=("${c[@]}") ;;
+    all) items=("${a[@]}" "${b[@]}" "${c[@]}") ;;
+    *) echo "real_closed_loop.sh: queue $queue is not a, b, c or all" >&2; exit 4 ;;
 esac
 for item in "${items[@]}"; do
     echo "== $(date -u +%H:%M:%S) $item"

@@ -18,7 +18,7 @@ from bench.cell.rollouts import (
     NO_CLOSED_LOOP, LoopGraft, cell_act, make_act, observation_noise,
 )
 from bench.loops.encode import encode_pooled
-from bench.cell.freeze import GraftFeed, Projector
+from graftcore.graft import GraftFeed, Projector
 from bench.suites.windows import raw_batch
 from bench.loops.train import frozen_autocast
 from tests.factories import make_record

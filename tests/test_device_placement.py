@@ -109,7 +109,7 @@ def test_sampler_gets_every_tensor_on_the_policy_device(meta_backbone):
 
 def test_graft_feed_returns_tokens_on_the_device_of_the_image(meta_backbone):
     # Cached features live on the CPU; the tokens must come out where the policy's images are.
-    from bench.cell.freeze import GraftFeed, Projector
+    from graftcore.graft import GraftFeed, Projector
 
     backbone, _ = meta_backbone
     projector = Projector(16, backbone.info.lm_width).to("meta")
@@ -124,7 +124,7 @@ def test_graft_feed_returns_tokens_on_the_device_of_the_image(meta_backbone):
 def test_paligemma_grafted_loss_and_sampler_run_whole_on_meta(name):
     # pi0.5's and pi0's forward and sampler need no data-dependent value: run them whole on meta
     # (pi0's state token included).
-    from bench.cell.freeze import GraftFeed, Projector
+    from graftcore.graft import GraftFeed, Projector
 
     backbone, raw = _meta_backbone(name)
     projector = Projector(16, backbone.info.lm_width).to("meta")

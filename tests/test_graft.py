@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from bench.cell.freeze import GraftFeed, Projector, assert_only_trainable, trainable_parameters
+from bench.cell.freeze import assert_only_trainable, trainable_parameters
+from graftcore.graft import GraftFeed, Projector
 
 
 def test_projector_is_one_linear_behind_a_parameter_free_layernorm():

@@ -141,7 +141,7 @@ def test_train_pack_gives_each_grid_cell_what_train_graft_gives_it_alone(tiny_wo
         inputs = cell_inputs(spec, ws.profile.protocol, ws.suite(spec.suite),
                              ws.split(spec.suite), backbone, torch.device("cpu"))
         graft = build_graft(spec, ws, backbone, inputs, CellContext())
-        fitted, _ = train_graft(spec, ws, backbone, graft, CellContext())
+        fitted = train_graft(spec, ws, backbone, graft, CellContext())
         assert item.error is None and item.fitted.steps == fitted.steps
         assert item.fitted.probe_losses == pytest.approx(fitted.probe_losses, abs=TOL)
         assert max_diff(item.fitted.curve, item.graft.projector.state_dict(),

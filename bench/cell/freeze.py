@@ -1,7 +1,7 @@
-"""The freeze checks of a cell, and the tuned-encoder control's private copy of its encoder. The
-fixed wrapper itself (pool_grid, Projector, GraftFeed) lives in the LeRobot plugin's distribution
-(graftcore.graft), so that an export stands alone; it is imported here for the harness's modules,
-not copied.
+"""The freeze checks of a cell (only the projector, plus LoRA or the encoder where the kind says,
+may train), and the tuned-encoder control's private copy of its encoder. The fixed wrapper itself
+(pool_grid, Projector, GraftFeed) is the LeRobot plugin's (graftcore.graft), so that an export
+stands alone.
 """
 
 from __future__ import annotations
@@ -9,8 +9,6 @@ from __future__ import annotations
 import copy
 
 from torch import nn
-
-from graftcore.graft import GraftFeed, Projector  # noqa: F401  (the harness's import point)
 
 
 def trainable_parameters(*modules: nn.Module) -> int:

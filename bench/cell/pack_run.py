@@ -1,21 +1,21 @@
 """`--pack-grafts K`: a run's graft cells trained K at a time through one frozen-backbone pass
 (bench.cell.packed), each still its own record, claim, outcome and failure.
 
-The cell service (bench.cell.service) calls `measure_packed` for a cell its plan measures. That
-cell leads a pack when it is packable (bench.cell.packed.packable) and takes no graft's projector.
-Its mates are up to K-1 cells the session offers (`CellService.pack_candidates`: the selection in
-run order, of its backbone x suite and tier, none the screen dropped) that are packable, not yet
+The cell service (bench.cell.service) calls `measure_packed` for a cell its plan measures. That cell
+leads a pack when it is packable (bench.cell.packed.packable) and takes no graft's projector. Its
+mates are up to K-1 cells the session offers (`CellService.pack_candidates`: the selection in run
+order, of its backbone x suite and tier, none the screen dropped) that are packable, not yet
 measured or failed by this service, and not a control that takes its graft's projector; any seed:
-each cell keeps its own seed, data order, noise and schedule in the pack, so a seed is no reason
-to keep cells apart, and more cells fill a pack. Each mate is claimed on the results store
-WITHOUT waiting: one another process holds is left to it; one with a current record (its plan:
-resume) is left out and resumed by its own case. The pack trains (train_pack), then every cell is
-scored as it is alone (runner.score_cell) and written by the service, mates first, the lead last
-(returned to the service like a runner's result), the claims held until all are written. A mate that fails gets its failure record, and its case fails
-with that error when reached; the others go on. The mates' records and outcomes go into the
-service's caches, so their cases take them without measuring again and report "measured" (this
-process measured them; an xdist worker that waited on a mate's claim resumes it: "resumed").
-No mate found: the cell is measured alone, as without the option.
+each cell keeps its own seed, data order, noise and schedule in the pack, so a seed is no reason to
+keep cells apart, and more cells fill a pack. Each mate is claimed on the results store WITHOUT
+waiting: one another process holds is left to it; one with a current record (its plan: resume) is
+left out and resumed by its own case. The pack trains (train_pack), then every cell is scored as it
+is alone (runner.score_cell) and written by the service, mates first, the lead last (returned to the
+service like a runner's result), the claims held until all are written. A mate that fails gets its
+failure record, and its case fails with that error when reached; the others go on. The mates'
+records and outcomes go into the service's caches, so their cases take them without measuring again
+and report "measured" (this process measured them; an xdist worker that waited on a mate's claim
+resumes it: "resumed"). No mate found: the cell is measured alone, as without the option.
 """
 
 from __future__ import annotations

@@ -1,17 +1,17 @@
 """One way to measure a cell: `CellService` takes a cell from its id to its record file.
 
-For every cell kind (graft, control, short graft) and every executor: the pytest session (serial
-or an xdist worker), a submitit / Slurm array task (bench.cell.executors.run_cell_job) and a
-script outside pytest (`run_cell`) all call `CellService.run`. It claims the cell on the results
-store (another process measuring it makes this one wait, then resume), sets an unreadable
-record aside, reads the stored record once and plans (bench.cell.plan: resume it or measure, with
-what), measures through its runner (bench.cell.runner, which returns and writes nothing) or
-`measure_with` (an array task), then alone writes what came of it: the record with its
-projector file, or the failure record when measuring raised; it keeps the projector a later cell
-takes, and returns the record with a typed outcome (bench.cell.outcome). The screen's measurements go through `screen` alike (bench.cell.screening
-keeps only the selection), and its short grafts through `run`. With `pack_grafts` > 1 a measured
-cell may lead a pack of graft cells trained together (bench.cell.pack_run), each still claimed,
-written, failed and reported one by one.
+For every cell kind (graft, control, short graft) and every executor: the pytest session (serial or
+an xdist worker), a submitit / Slurm array task (bench.cell.executors.run_cell_job) and a script
+outside pytest (`run_cell`) all call `CellService.run`. It claims the cell on the results store
+(another process measuring it makes this one wait, then resume), sets an unreadable record aside,
+reads the stored record once and plans (bench.cell.plan: resume it or measure, with what), measures
+through its runner (bench.cell.runner, which returns and writes nothing) or `measure_with` (an array
+task), then alone writes what came of it: the record with its projector file, or the failure record
+when measuring raised; it keeps the projector a later cell takes, and returns the record with a
+typed outcome (bench.cell.outcome). The screen's measurements go through `screen` alike
+(bench.cell.screening keeps only the selection), and its short grafts through `run`. With
+`pack_grafts` > 1 a measured cell may lead a pack of graft cells trained together
+(bench.cell.pack_run), each still claimed, written, failed and reported one by one.
 
 It imports nothing of pytest: the session turns what it raises into a case's failure.
 """
