@@ -114,3 +114,39 @@ def test_bootstrap_of_a_tied_prediction_is_undefined_with_reason():
     assert out["mmrv"].low == out["mmrv"].high == pytest.approx(1.0)  # (0 + 1 + 2) / 3
     with pytest.raises(ValueError, match=r"\(n, W\)"):
         bootstrap_agreement([1, 2], np.zeros(2))
+
+
+def _seed_case(errors_by_seed, success_by_seed, windows=6, episodes=6):
+    """SeedStacks whose windows and episodes carry no variance: every spread is the seeds'."""
+    from bench.analysis.agreement import SeedStacks
+
+    pred = -np.repeat(np.asarray(errors_by_seed, float)[:, :, None], windows, axis=2)
+    act = np.repeat(np.asarray(success_by_seed, float)[:, :, None], episodes, axis=2)
+    n, s = pred.shape[:2]
+    return pred.mean(axis=1), act.mean(axis=1), SeedStacks(pred, act, np.full(n, s), np.arange(n))
+
+
+def test_a_bootstrap_over_seeds_widens_what_the_seeds_disagree_on():
+    """Planted: the middle item's seed 0 is the best offline and the worst in closed loop, its
+    seed 1 the reverse; over the means the orders agree (tau 1), over windows and episodes alone
+    the interval is [1, 1]; drawing seeds as well must reach below it."""
+    from bench.analysis.agreement import bootstrap_two_axes
+
+    pred, act, seeds = _seed_case([[0.1, 0.1], [0.05, 0.35], [0.3, 0.3]],
+                                  [[0.9, 0.9], [0.1, 0.95], [0.2, 0.2]])
+    alone = bootstrap_two_axes(pred, act, n_resamples=200, statistics=("tau_b",))
+    drawn = bootstrap_two_axes(pred, act, n_resamples=200, statistics=("tau_b",), seeds=seeds)
+    assert (alone["tau_b"].low, alone["tau_b"].high) == (1.0, 1.0)
+    assert drawn["tau_b"].low < 0 and drawn["tau_b"].high == 1.0
+
+
+def test_one_seed_per_item_gives_the_two_axis_intervals_exactly():
+    from bench.analysis.agreement import SeedStacks, bootstrap_two_axes
+
+    rng = np.random.default_rng(3)
+    pred, act = rng.normal(size=(4, 1, 9)), rng.random((4, 1, 7))
+    seeds = SeedStacks(pred, act, np.ones(4, int), np.arange(4))
+    alone = bootstrap_two_axes(pred[:, 0], act[:, 0], n_resamples=100)
+    drawn = bootstrap_two_axes(pred[:, 0], act[:, 0], n_resamples=100, seeds=seeds)
+    assert {k: (v.low, v.high) for k, v in alone.items()} == {
+        k: (v.low, v.high) for k, v in drawn.items()}

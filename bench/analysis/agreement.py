@@ -248,11 +248,35 @@ def masked_mean(scores: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
         return (scores * mask).sum(axis=1) / mask.sum(axis=1)
 
 
+@dataclass(frozen=True)
+class SeedStacks:
+    """Each row's scores per training seed, for a bootstrap that draws seeds too: predicted
+    (n, S, W) and actual (n, S, E), a row with fewer than S seeds padded (its pads never drawn);
+    count (n,) the seeds of each row; item (n,) the item a row belongs to (an item's rows, e.g.
+    its item x task pairs, share one draw of its seeds)."""
+
+    predicted: np.ndarray
+    actual: np.ndarray
+    count: np.ndarray
+    item: np.ndarray
+
+    def draw(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """(n, W) and (n, E): each item's seeds drawn with replacement (as many as it has),
+        each row averaged over its item's draw. One seed: that seed's scores, bit for bit."""
+        weights = np.zeros(self.predicted.shape[:2])
+        for item in np.unique(self.item):
+            rows = np.flatnonzero(self.item == item)
+            n = int(self.count[rows[0]])
+            weights[rows] = np.bincount(rng.integers(0, n, n), minlength=weights.shape[1]) / n
+        return (np.einsum("ns,nsw->nw", weights, np.nan_to_num(self.predicted)),
+                np.einsum("ns,nse->ne", weights, np.nan_to_num(self.actual)))
+
+
 def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: int = 1000,
                        seed: int = 0, confidence: float = 0.95, *,
                        statistics: tuple[str, ...] = WITH_PEARSON,
-                       masks: tuple[np.ndarray, np.ndarray] | None = None
-                       ) -> dict[str, Interval | Undefined]:
+                       masks: tuple[np.ndarray, np.ndarray] | None = None,
+                       seeds: SeedStacks | None = None) -> dict[str, Interval | Undefined]:
     """Paired bootstrap when the two tiers are measured on different units: each replicate draws
     the W columns of `predicted` and, independently, the E columns of `actual` with replacement,
     ONCE for all n items, and re-averages both (e.g. offline -MSE over held-out windows against
@@ -261,20 +285,24 @@ def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: i
     predicted: (n, W) per-window scores; actual: (n, E) per-episode scores; both higher is
     better. Intervals of `statistics` (names of BY_NAME; default the four and Pearson r).
     masks: (n, W) and (n, E) 0/1 weights, row i averaging only the columns its masks keep (an
-    item x task pair: its task's windows and episodes); the draws are the same either way."""
+    item x task pair: its task's windows and episodes); the draws are the same either way.
+    seeds: the same scores per training seed (SeedStacks): each replicate first draws every
+    item's seeds (its own random stream, so items of one seed each give the two-axis intervals
+    exactly), then the windows and episodes of that draw: the training's variance enters."""
     predicted = np.asarray(predicted, dtype=float)
     actual = np.asarray(actual, dtype=float)
     if predicted.ndim != 2 or actual.ndim != 2 or len(predicted) != len(actual):
         raise ValueError(f"predicted must be (n, W) and actual (n, E); got {predicted.shape} and "
                          f"{actual.shape}")
     pm, am = (None, None) if masks is None else (np.asarray(m, dtype=float) for m in masks)
-    rng = np.random.default_rng(seed)
+    rng, seed_rng = np.random.default_rng(seed), np.random.default_rng([seed, 1])
     values: dict[str, list[float]] = {k: [] for k in statistics}
     reasons: dict[str, str] = {}
     for _ in range(n_resamples):
+        p, a = (predicted, actual) if seeds is None else seeds.draw(seed_rng)
         w = rng.integers(0, predicted.shape[1], predicted.shape[1])
         e = rng.integers(0, actual.shape[1], actual.shape[1])
-        s = masked_mean(predicted[:, w], None if pm is None else pm[:, w])
-        r = masked_mean(actual[:, e], None if am is None else am[:, e])
+        s = masked_mean(p[:, w], None if pm is None else pm[:, w])
+        r = masked_mean(a[:, e], None if am is None else am[:, e])
         _keep(values, reasons, {k: BY_NAME[k](s, r) for k in statistics})
     return _percentile_intervals(values, reasons, n_resamples, confidence)

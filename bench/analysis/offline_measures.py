@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from bench.analysis.agreement import (
-    BY_NAME, Interval, Measure, Undefined, bootstrap_two_axes, masked_mean,
+    BY_NAME, Interval, Measure, SeedStacks, Undefined, bootstrap_two_axes, masked_mean,
 )
 from bench.analysis.rankings import CONFIDENCE, PRIMARY
 
@@ -32,13 +32,23 @@ TABLE_STATISTICS = ("tau_b", "spearman_rho", "pearson_r", "mmrv", "top1_regret")
 class Rolled:
     """The rolled-out items of one backbone x suite, paired (same windows, same episodes).
 
-    groups: item -> its seeds' records; success: (I, E) per-episode success, mean over seeds;
-    episode_task: (E,) each episode's LIBERO task id."""
+    groups: item -> its seeds' records; success_by_seed: (I, S, E) per-episode success of each
+    seed (an item with fewer than S seeds padded with NaN); episode_task: (E,) each episode's
+    LIBERO task id."""
 
     items: list[str]
     groups: dict[str, list]
-    success: np.ndarray
+    success_by_seed: np.ndarray
     episode_task: np.ndarray
+
+    @property
+    def success(self) -> np.ndarray:
+        """(I, E) per-episode success, mean over each item's seeds."""
+        return np.nanmean(self.success_by_seed, axis=1)
+
+    @property
+    def seed_count(self) -> np.ndarray:
+        return np.array([len(self.groups[i]) for i in self.items])
 
 
 @dataclass(frozen=True)
@@ -50,6 +60,7 @@ class Rows:
     success: np.ndarray
     masks: tuple[np.ndarray, np.ndarray] | None = None
     note: str = ""
+    seeds: SeedStacks | None = None  # the same rows per training seed, for the bootstrap
 
 
 @dataclass(frozen=True)
@@ -59,22 +70,39 @@ class OfflineMeasure:
     rows: Callable[[Rolled], Rows | Undefined]
 
 
-def _mean_over_seeds(rolled: Rolled, per_record: Callable) -> np.ndarray | Undefined:
-    """(I, W): each item's per-window values (per_record(record) -> (W,) or Undefined),
-    averaged over its seeds; the first Undefined stops it."""
+def seed_stack(per_seed: list[list]) -> np.ndarray:
+    """(I, S, K) from I lists of per-seed (K,) values, an item with fewer than S seeds padded
+    with NaN (never drawn: bench.analysis.agreement.SeedStacks)."""
+    width = max(len(seeds) for seeds in per_seed)
+    out = np.full((len(per_seed), width, len(per_seed[0][0])), np.nan)
+    for i, seeds in enumerate(per_seed):
+        out[i, :len(seeds)] = seeds
+    return out
+
+
+def _by_seed(rolled: Rolled, per_record: Callable) -> np.ndarray | Undefined:
+    """(I, S, W): each item's per-window values per seed (per_record(record) -> (W,) or
+    Undefined); the first Undefined stops it."""
     out = []
     for item in rolled.items:
         values = [per_record(r) for r in rolled.groups[item]]
         bad = next((v for v in values if isinstance(v, Undefined)), None)
         if bad is not None:
             return bad
-        out.append(np.mean(values, axis=0))
-    return np.array(out)
+        out.append(values)
+    return seed_stack(out)
 
 
-def _full_chunk(rolled: Rolled) -> Rows:
-    errors = _mean_over_seeds(rolled, lambda r: r.scores.per_window_in(PRIMARY))
-    return Rows(rolled.items, errors, rolled.success)
+def _rows(rolled: Rolled, stack: np.ndarray, note: str = "") -> Rows:
+    """One row per item: its errors (mean over seeds) and success, with their per-seed stacks."""
+    seeds = SeedStacks(-stack, rolled.success_by_seed, rolled.seed_count,
+                       np.arange(len(rolled.items)))
+    return Rows(rolled.items, np.nanmean(stack, axis=1), rolled.success, note=note, seeds=seeds)
+
+
+def full_chunk(rolled: Rolled) -> Rows:
+    """The offline score's rows: each item's per-window MSE over every real chunk step."""
+    return _rows(rolled, _by_seed(rolled, lambda r: r.scores.per_window_in(PRIMARY)))
 
 
 def executed_errors(record) -> list[float] | Undefined:
@@ -98,17 +126,16 @@ def executed_errors(record) -> list[float] | Undefined:
 
 
 def _executed(rolled: Rolled) -> Rows | Undefined:
-    errors = _mean_over_seeds(rolled, executed_errors)
-    if isinstance(errors, Undefined):
-        return errors
+    stack = _by_seed(rolled, executed_errors)
+    if isinstance(stack, Undefined):
+        return stack
     first = rolled.groups[rolled.items[0]][0]
     ran = first.run.rollout_action_steps
     n = ran if ran is not None else first.scores.n_action_steps
     horizon = first.scores.per_horizon_in(PRIMARY)
     chunk = first.scores.chunk_length or (len(horizon) if horizon else None)
-    return Rows(rolled.items, errors, rolled.success,
-                note=f"n_action_steps {n} of chunk {chunk}"
-                + (" (the full chunk)" if chunk is not None and n >= chunk else ""))
+    return _rows(rolled, stack, note=f"n_action_steps {n} of chunk {chunk}"
+                 + (" (the full chunk)" if chunk is not None and n >= chunk else ""))
 
 
 def _critical(rolled: Rolled) -> Rows | Undefined:
@@ -124,10 +151,9 @@ def _critical(rolled: Rolled) -> Rows | Undefined:
     keep = np.asarray(flags, dtype=bool)
     if keep.sum() < 2:
         return Undefined(f"{int(keep.sum())} critical window(s) of {len(keep)}: nothing to average")
-    errors = _full_chunk(rolled).errors[:, keep]
+    stack = _by_seed(rolled, lambda r: r.scores.per_window_in(PRIMARY))[:, :, keep]
     rule_text = ", ".join(f"{k} {v}" for k, v in (rule or {}).items())
-    return Rows(rolled.items, errors, rolled.success,
-                note=f"{int(keep.sum())} of {len(keep)} windows ({rule_text})")
+    return _rows(rolled, stack, note=f"{int(keep.sum())} of {len(keep)} windows ({rule_text})")
 
 
 def _task_ids(record) -> dict[int, int] | Undefined:
@@ -150,9 +176,10 @@ def _per_task(rolled: Rolled) -> Rows | Undefined:
         for r in rolled.groups[item]:
             if _task_ids(r) != mapping or r.scores.window_task != first.scores.window_task:
                 return Undefined(f"{r.cell_id} names or places its tasks otherwise: not paired")
-    errors = _full_chunk(rolled).errors
+    full = full_chunk(rolled)
+    errors, by_seed = full.errors, full.seeds
     window_task = np.asarray(first.scores.window_task)
-    labels, err_rows, succ_rows, wmask, emask = [], [], [], [], []
+    labels, err_rows, succ_rows, wmask, emask, item_of = [], [], [], [], [], []
     for task, task_id in sorted(mapping.items()):
         if not (window_task == task).any() or not (rolled.episode_task == task_id).any():
             continue  # a task without held-out windows or without episodes pairs nothing
@@ -162,16 +189,19 @@ def _per_task(rolled: Rolled) -> Rows | Undefined:
             succ_rows.append(rolled.success[i])
             wmask.append(window_task == task)
             emask.append(rolled.episode_task == task_id)
+            item_of.append(i)
     if not labels:
         return Undefined("no task has both held-out windows and rollout episodes")
+    rows = np.array(item_of)
+    seeds = SeedStacks(by_seed.predicted[rows], by_seed.actual[rows], by_seed.count[rows], rows)
     return Rows(labels, np.array(err_rows), np.array(succ_rows),
                 (np.array(wmask, dtype=float), np.array(emask, dtype=float)),
-                note=f"{len(labels)} item x task pairs")
+                note=f"{len(labels)} item x task pairs", seeds=seeds)
 
 
 MEASURES = (
     OfflineMeasure("full chunk", "MSE over every real step of each predicted chunk (the "
-                   "offline score)", _full_chunk),
+                   "offline score)", full_chunk),
     OfflineMeasure("executed steps", "MSE over only the first n_action_steps steps of each "
                    "chunk: what the policy executes before it replans", _executed),
     OfflineMeasure("critical interval", "MSE over the windows whose scored span lies within "
@@ -228,7 +258,8 @@ def measure_agreement(measure: OfflineMeasure, rolled: Rolled, *, n_resamples: i
     out.value = {k: BY_NAME[k](-error, success) for k in TABLE_STATISTICS}
     out.intervals = bootstrap_two_axes(-rows.errors, rows.success, n_resamples=n_resamples,
                                        seed=seed, confidence=confidence,
-                                       statistics=TABLE_STATISTICS, masks=rows.masks)
+                                       statistics=TABLE_STATISTICS, masks=rows.masks,
+                                       seeds=rows.seeds)
     return out
 
 

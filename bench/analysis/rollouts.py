@@ -28,8 +28,9 @@ from bench.analysis.agreement import (
     Interval, Measure, Undefined, WITH_PEARSON, agreement, bootstrap_two_axes, kendall_p_value,
     pearson_r,
 )
-from bench.analysis.offline_measures import MeasureAgreement, Rolled, measure_agreements
-from bench.analysis.rankings import CONFIDENCE, PRIMARY
+from bench.analysis.offline_measures import (MeasureAgreement, Rolled, full_chunk,
+                                             measure_agreements, seed_stack)
+from bench.analysis.rankings import CONFIDENCE
 from bench.grid.kinds import record_label
 from bench.stats import wilson_interval
 
@@ -114,11 +115,13 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     for r in rolled:
         groups.setdefault(record_label(r), []).append(r)
     out.items = sorted(groups)
-    # (I, W) per-window MSE and (I, E) per-episode success, each averaged over the item's seeds.
-    per_window = np.array([np.mean([g.scores.per_window_in(PRIMARY) for g in groups[i]], axis=0)
-                           for i in out.items])
-    per_episode = np.array([np.mean([[float(e["success"]) for e in g.run.rollouts["episodes"]]
-                                     for g in groups[i]], axis=0) for i in out.items])
+    # (I, S, E) per-episode success per seed; the items' (I, W) MSE and (I, E) success are
+    # means over their seeds (bench.analysis.offline_measures: full chunk, with its seed stacks).
+    rolled_items = Rolled(out.items, groups, seed_stack(
+        [[[float(e["success"]) for e in g.run.rollouts["episodes"]] for g in groups[i]]
+         for i in out.items]), np.array([k[0] for k in keys]))
+    full = full_chunk(rolled_items)
+    per_window, per_episode = full.errors, full.success
     out.seeds = {i: sorted(g.seed for g in groups[i]) for i in out.items}
     out.mse = per_window.mean(axis=1).tolist()
     out.success = per_episode.mean(axis=1).tolist()
@@ -136,8 +139,7 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
                      for k in WITH_PEARSON}
     out.agreement["p_value"] = kendall_p_value(predicted, actual)
     out.intervals = bootstrap_two_axes(-per_window, per_episode, n_resamples=n_resamples,
-                                       seed=random_seed, confidence=CONFIDENCE)
-    rolled_items = Rolled(out.items, groups, per_episode, np.array([k[0] for k in keys]))
+                                       seed=random_seed, confidence=CONFIDENCE, seeds=full.seeds)
     out.measures = measure_agreements(rolled_items, n_resamples=n_resamples, seed=random_seed)
     return out
 
