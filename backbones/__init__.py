@@ -75,6 +75,8 @@ register(BackboneEntry("pi05_libero", "pi05", "backbones.pi05", "lerobot/pi05_li
 
 
 def get_entry(name: str) -> BackboneEntry:
+    """The entry of backbone `name`; else ValueError in bench.table's one refusal shape (this
+    registry sits below bench: it cannot import it)."""
     if name not in BACKBONES:
         close = difflib.get_close_matches(name, BACKBONES, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""

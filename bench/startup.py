@@ -78,8 +78,7 @@ def validate_names(profile, labels: dict[str, str] | None = None) -> None:
             raise pytest.UsageError(f"{labels.get(field, '--' + field)}: {e}") from None
     for s in profile.suites:
         if s not in SUITES and s not in datasets:
-            raise pytest.UsageError(f"{labels.get('suites', '--suites')}: unknown suite {s!r}; "
-                                    f"valid suites: {', '.join(SUITES)}")
+            raise pytest.UsageError(f"{labels.get('suites', '--suites')}: {SUITES.refusal(s)}")
 
 
 def check_user_world(profile) -> list[str]:

@@ -1,9 +1,12 @@
 """A table where adding a thing is one entry (cell kinds: bench.grid.kinds; screen proxies:
-bench.screen.proxies): a dict by name, in registration order, that refuses a name twice and
-names the valid ones when asked for an unknown one. Imports nothing, so any floor may hold one."""
+bench.screen.proxies; suites: bench.suites; perturbations: bench.robust.perturbations): a dict by
+name, in registration order, that refuses a name twice and, asked for an unknown one, refuses it
+in one shape: "unknown <what> 'x' (did you mean 'y'?); valid <plural>: a, b". The registries
+below bench (backbones/, encoders/: they import nothing of bench) refuse in the same shape."""
 
 from __future__ import annotations
 
+import difflib
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -26,9 +29,14 @@ class Table(dict, Generic[T]):
         """Tests that register an entry of their own take it out again."""
         self.pop(name)
 
+    def refusal(self, name: str) -> str:
+        """The one line that refuses an unknown `name`, with the nearest valid one."""
+        close = difflib.get_close_matches(str(name), list(self), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        return f"unknown {self.what} {name!r}{hint}; valid {self.plural}: {', '.join(self)}"
+
     def get_entry(self, name: str) -> T:
         try:
             return self[name]
         except KeyError:
-            raise ValueError(f"unknown {self.what} {name!r}; valid {self.plural}: "
-                             f"{', '.join(self)}") from None
+            raise ValueError(self.refusal(name)) from None

@@ -81,9 +81,10 @@ def list_encoders() -> list[str]:
 def _unknown(name: str) -> UnknownEncoder:
     valid = list_encoders()
     close = difflib.get_close_matches(name, valid, n=3, cutoff=0.5)
-    hint = f" Did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+    # bench.table's one refusal shape (this registry sits below bench: it cannot import it).
+    hint = f" (did you mean {' or '.join(repr(c) for c in close)}?)" if close else ""
     prefixes = "".join(f"'{p}:<model>', " for p in sorted(_PREFIXES))
-    return UnknownEncoder(f"unknown encoder {name!r}.{hint} Registered encoders: {', '.join(valid)}"
+    return UnknownEncoder(f"unknown encoder {name!r}{hint}; valid encoders: {', '.join(valid)}"
                           f"; also accepted: {prefixes}'PKG.MODULE:FACTORY' (a factory in an "
                           "importable module, encoders/user_encoders.py).")
 

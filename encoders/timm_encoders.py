@@ -187,9 +187,9 @@ def resolve_timm(model_name: str) -> EncoderSpec:
     """Spec for "timm:<model_name>": layout, prefix tokens, input size and mean/std from timm."""
     if not timm.is_model(model_name):
         close = difflib.get_close_matches(model_name, timm.list_models(), n=3, cutoff=0.6)
-        hint = f" Did you mean {' or '.join(repr('timm:' + c) for c in close)}?" if close else ""
-        raise UnknownEncoder(f"unknown timm model {model_name!r}.{hint} "
-                             f"See timm.list_models() for valid names.")
+        hint = f" (did you mean {' or '.join(repr('timm:' + c) for c in close)}?)" if close else ""
+        raise UnknownEncoder(f"unknown timm model {model_name!r}{hint}; valid models: "
+                             "timm.list_models()")
     with torch.device("meta"):  # architecture only: no memory, no init cost
         model = timm.create_model(model_name, pretrained=False, num_classes=0)
     cfg = model.pretrained_cfg

@@ -94,11 +94,11 @@ def test_unknown_name_lists_valid_names_and_suggests():
     with pytest.raises(UnknownEncoder) as err:
         get_spec("dinov2")
     msg = str(err.value)
-    assert "'dinov2'" in msg and "Did you mean 'dinov2_s'" in msg
+    assert "'dinov2'" in msg and "did you mean 'dinov2_s'" in msg
     for name in EXPECTED:
         assert name in msg
     assert "timm:<model>" in msg
-    with pytest.raises(UnknownEncoder, match="Did you mean 'timm:resnet18'"):
+    with pytest.raises(UnknownEncoder, match="did you mean 'timm:resnet18'"):
         get_spec("timm:resnt18")
     with pytest.raises(UnknownEncoder):
         build_encoder("nope:resnet18", "tiny")

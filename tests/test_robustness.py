@@ -57,7 +57,7 @@ def test_parse_names_kinds_and_severities_and_refuses_the_rest():
     assert [a.label for a in parse_robustness(["blur:3,1", "brightness"], "x")] == [
         "brightness:1", "brightness:2", "brightness:3", "blur:1", "blur:3"]
     with pytest.raises(ValueError, match=r"--robustness: unknown perturbation kind 'fog'; "
-                                         r"valid: brightness, .*occlusion"):
+                                         r"valid kinds: brightness, .*occlusion"):
         parse_robustness(["fog"], "--robustness")
     with pytest.raises(ValueError, match=r"severity 4 out of range; give severities in 0..3"):
         parse_robustness(["noise:4"], "--robustness")

@@ -108,7 +108,7 @@ def test_images_of_the_wrong_shape_fail_clearly():
 
 
 def test_unknown_names_and_sources_list_the_valid_ones():
-    with pytest.raises(ValueError, match="valid names.*object.*spatial"):
+    with pytest.raises(ValueError, match="valid suites: .*(object.*spatial|spatial.*object)"):
         load_suite("spatail", "tiny", progress=QUIET)
     with pytest.raises(ValueError, match="tiny.*hub"):
         load_suite("spatial", "local", progress=QUIET)
@@ -326,3 +326,24 @@ def test_an_unselected_suite_the_tiny_release_needs_says_why_it_loads(tmp_path, 
                              "suites, so its numbers do not depend on the selection)")
     assert sink.lines[2] == ("[graftbench] suite spatial (tiny): loading (generated on first "
                              "use, then cached)")
+
+
+def test_every_table_refuses_an_unknown_name_in_one_shape():
+    """Suites, perturbations, cell kinds (bench.table), backbones and encoders (below bench):
+    "unknown <what> 'x' (did you mean 'y'?); valid <plural>: ..."."""
+    from backbones import get_entry
+    from bench.grid.kinds import CELL_KINDS
+    from bench.robust.perturbations import PERTURBATIONS
+    from encoders.registry import get_spec
+
+    refusals = [SUITES.refusal("spatail"), PERTURBATIONS.refusal("blurr"),
+                CELL_KINDS.refusal("graf")]
+    for call, name in ((get_entry, "smolvlm"), (get_spec, "pixel")):
+        with pytest.raises(ValueError) as err:
+            call(name)
+        refusals.append(str(err.value))
+    for line, what, close in zip(refusals, ("suite", "perturbation kind", "cell kind",
+                                            "backbone", "encoder"),
+                                 ("spatial", "blur", "graft", "smolvla", "pixels")):
+        assert line.startswith(f"unknown {what} "), line
+        assert f"(did you mean {close!r}" in line and "; valid " in line, line

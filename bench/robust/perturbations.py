@@ -22,6 +22,7 @@ import torch.nn.functional as F
 import torchvision.transforms.v2.functional as TF
 
 from bench.results.provenance import stable_seed
+from bench.table import Table
 
 SEVERITIES = (0, 1, 2, 3)
 DEFAULT_SEVERITIES = (1, 2, 3)
@@ -47,17 +48,14 @@ class Perturbation:
         return {} if severity == 0 else dict(self.levels[severity - 1])
 
 
-PERTURBATIONS: dict[str, Perturbation] = {}
+PERTURBATIONS: Table[Perturbation] = Table("perturbation kind", "kinds")
 
 
 def register_perturbation(kind: Perturbation) -> Perturbation:
-    if kind.name in PERTURBATIONS:
-        raise ValueError(f"perturbation {kind.name!r} registered twice")
     if len(kind.levels) != len(DEFAULT_SEVERITIES):
         raise ValueError(f"perturbation {kind.name!r}: give parameters for severities "
                          f"{DEFAULT_SEVERITIES}")
-    PERTURBATIONS[kind.name] = kind
-    return kind
+    return PERTURBATIONS.register(kind)
 
 
 @dataclass(frozen=True)
@@ -102,9 +100,8 @@ def parse_robustness(values, where: str) -> tuple[Applied, ...]:
         name, _, given = str(value).strip().partition(":")
         names = list(PERTURBATIONS) if name == "all" else [name]
         if name != "all" and name not in PERTURBATIONS:
-            raise ValueError(f"{where}: unknown perturbation kind {name!r}; valid: "
-                             f"{', '.join(PERTURBATIONS)} (or all), each as KIND or "
-                             "KIND:SEVERITIES, e.g. blur:1,3")
+            raise ValueError(f"{where}: {PERTURBATIONS.refusal(name)} (or all), each as KIND "
+                             "or KIND:SEVERITIES, e.g. blur:1,3")
         severities = DEFAULT_SEVERITIES
         if given:
             parts = [s.strip() for s in given.replace("+", ",").split(",") if s.strip()]

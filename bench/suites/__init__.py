@@ -18,6 +18,7 @@ import torch
 
 from bench.progress import ProgressSink
 from bench.suites import libero, synthetic
+from bench.table import Table
 from ondisk.libero_format import ACTION_KEY, IMAGE_KEYS, STATE_KEY
 from bench.suites.base import Suite, SuiteUnavailable
 
@@ -32,10 +33,9 @@ class SuiteSpec:
     has_tiny: bool  # a synthetic stand-in exists
 
 
-SUITES: dict[str, SuiteSpec] = {
-    name: SuiteSpec(name, repo_id, name in synthetic.SUITE_PARAMS)
-    for name, repo_id in libero.LIBERO_REPO_IDS.items()
-}
+SUITES: Table[SuiteSpec] = Table("suite", "suites")
+for _name, _repo_id in libero.LIBERO_REPO_IDS.items():
+    SUITES.register(SuiteSpec(_name, _repo_id, _name in synthetic.SUITE_PARAMS))
 
 
 def load_suite(name: str, source: str, root: str | Path | None = None,
@@ -43,8 +43,7 @@ def load_suite(name: str, source: str, root: str | Path | None = None,
     """Load suite `name` from `source` ("tiny" | "hub" | "sim"); `root`: optional local folder;
     `sim_spec`: the sim source's bench.sim.demos.DemoSpec (default: its DEFAULT_SPECS entry);
     `progress`: where generating a sim suite on first use (minutes) reports (bench.progress)."""
-    if name not in SUITES:
-        raise ValueError(f"unknown suite {name!r}; valid names: {sorted(SUITES)}")
+    SUITES.get_entry(name)  # an unknown name: ValueError, one line
     if source == "tiny":
         if not SUITES[name].has_tiny:
             tiny = sorted(n for n, s in SUITES.items() if s.has_tiny)
