@@ -28,8 +28,8 @@ b=("--encoders blind -k spatial-blind-seed"
    "--encoders blind --controls native_wrapped -k native_wrapped-seed0"
    "--encoders effnet_lite1 -k effnet_lite1-seed0"
    "--encoders dinov2_s_focus_random -k dinov2_s_focus_random-seed0"
-   "--encoders blind --controls native_wrapped -k native_wrapped-seed1"
    "--encoders effnet_lite1 -k effnet_lite1-seed1"
+   "--encoders blind --controls native_wrapped -k native_wrapped-seed1"
    "--encoders dinov2_s_focus_random -k dinov2_s_focus_random-seed1")
 # Closed-loop robustness (issue 54 item 5), once the items above are measured: native and the
 # best graft by clean offline MSE (both its seeds) rolled out again under one photometric and
