@@ -13,7 +13,7 @@ import torch
 from bench.analysis.agreement import Undefined, spearman_rho
 from bench.analysis.offline_measures import MEASURES, executed_errors
 from bench.analysis.rollouts import rollout_agreement
-from bench.report.closed_loop import measures_table
+from bench.report.closed_loop import closed_loop_caveat, measure_verdict, measures_table
 from bench.loops.evaluate import masked_sq_error, prefix_window_error
 from bench.suites.critical import critical_rule, critical_windows
 from tests.factories import make_record
@@ -183,3 +183,37 @@ def test_spearman_known_answer_and_ties():
     # sqrt(4.5 * 5).
     assert spearman_rho([1, 2, 2, 3], [1, 2, 3, 4]) == pytest.approx(4.5 / (4.5 * 5) ** 0.5)
     assert isinstance(spearman_rho([1, 1, 1], [1, 2, 3]), Undefined)
+
+
+def test_the_verdict_reads_a_measure_only_where_it_agrees_measurably_better():
+    # a: 0.05 off the critical windows, 0.35 on them (full 0.125): the full chunk ranks it
+    # first though it fails where it matters (success 0.2; b 0.25 flat, 0.6; c 0.15 flat, 0.9).
+    # Full-chunk tau-b -1/3 (only (c, b) concordant), critical 1: +4/3. A replicate puts a
+    # behind c by the full chunk when it draws over 1/3 critical windows (then +2/3), behind b
+    # only above 2/3 (never): so the paired difference's interval lies above 0.
+    a = [0.35 if crit else 0.05 for crit in CRITICAL]
+    cl = rollout_agreement([item("a", a, 0.2, **NEW_FIELDS),
+                            item("b", [0.25] * N_WINDOWS, 0.6, **NEW_FIELDS),
+                            item("c", [0.15] * N_WINDOWS, 0.9, **NEW_FIELDS)],
+                           "smolvla", "spatial", n_resamples=200)
+    m = by_name(cl)
+    assert m["full chunk"].versus_full is None
+    assert m["critical interval"].versus_full == pytest.approx(4 / 3)
+    assert m["critical interval"].versus_full_interval.high == pytest.approx(4 / 3)
+    assert m["critical interval"].versus_full_interval.low > 0
+    executed = m["executed steps"].versus_full_interval  # the same windows: exactly 0
+    assert (executed.low, executed.high, m["executed steps"].versus_full) == (0.0, 0.0, 0.0)
+    assert "not the items" in m["per task"].versus_full.reason
+    verdict = measure_verdict(cl)
+    assert verdict.startswith("Which offline measure to read: the **critical interval** MSE")
+    assert "Which offline measure to read: the **critical interval**" in closed_loop_caveat(
+        SimpleNamespace(closed_loop=[cl]))
+    # The same items with the errors spread evenly: the critical interval agrees no better
+    # than the full chunk, and the verdict keeps the full chunk.
+    flat = rollout_agreement([item("a", [0.125] * N_WINDOWS, 0.2, **NEW_FIELDS),
+                              item("b", [0.25] * N_WINDOWS, 0.6, **NEW_FIELDS),
+                              item("c", [0.15] * N_WINDOWS, 0.9, **NEW_FIELDS)],
+                             "smolvla", "spatial", n_resamples=200)
+    assert by_name(flat)["critical interval"].versus_full == 0.0
+    assert measure_verdict(flat).startswith(
+        "Which offline measure to read: the **full chunk** MSE")

@@ -260,16 +260,25 @@ class SeedStacks:
     count: np.ndarray
     item: np.ndarray
 
-    def draw(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """(n, W) and (n, E): each item's seeds drawn with replacement (as many as it has),
-        each row averaged over its item's draw. One seed: that seed's scores, bit for bit."""
+    def weights(self, rng: np.random.Generator) -> np.ndarray:
+        """(n, S): each item's seeds drawn with replacement (as many as it has), as each row's
+        weight on its seeds (a seed drawn twice weighs 2 / count)."""
         weights = np.zeros(self.predicted.shape[:2])
         for item in np.unique(self.item):
             rows = np.flatnonzero(self.item == item)
             n = int(self.count[rows[0]])
             weights[rows] = np.bincount(rng.integers(0, n, n), minlength=weights.shape[1]) / n
+        return weights
+
+    def apply(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, W) and (n, E): each row averaged over its seeds with `weights` (n, S)."""
         return (np.einsum("ns,nsw->nw", weights, np.nan_to_num(self.predicted)),
                 np.einsum("ns,nse->ne", weights, np.nan_to_num(self.actual)))
+
+    def draw(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """(n, W) and (n, E) of one draw of the seeds (`weights`). One seed: that seed's
+        scores, bit for bit."""
+        return self.apply(self.weights(rng))
 
 
 def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: int = 1000,

@@ -14,7 +14,7 @@ and, independently, the rollout episodes with replacement, once for all rows.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -26,6 +26,8 @@ from bench.analysis.rankings import CONFIDENCE, PRIMARY
 
 # The report table's columns, in order (names of bench.analysis.agreement.BY_NAME).
 TABLE_STATISTICS = ("tau_b", "spearman_rho", "pearson_r", "mmrv", "top1_regret")
+# The statistic the verdict compares measures by (the issue's first: an order, not a slope).
+VERDICT_STATISTIC = "tau_b"
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,9 @@ class Rows:
     masks: tuple[np.ndarray, np.ndarray] | None = None
     note: str = ""
     seeds: SeedStacks | None = None  # the same rows per training seed, for the bootstrap
+    # The held-out windows the errors' columns are, as indices of every scored window (None:
+    # all of them): what lets two measures of one window axis be drawn together (difference).
+    columns: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -153,7 +158,8 @@ def _critical(rolled: Rolled) -> Rows | Undefined:
         return Undefined(f"{int(keep.sum())} critical window(s) of {len(keep)}: nothing to average")
     stack = _by_seed(rolled, lambda r: r.scores.per_window_in(PRIMARY))[:, :, keep]
     rule_text = ", ".join(f"{k} {v}" for k, v in (rule or {}).items())
-    return _rows(rolled, stack, note=f"{int(keep.sum())} of {len(keep)} windows ({rule_text})")
+    rows = _rows(rolled, stack, note=f"{int(keep.sum())} of {len(keep)} windows ({rule_text})")
+    return replace(rows, columns=np.flatnonzero(keep))
 
 
 def _task_ids(record) -> dict[int, int] | Undefined:
@@ -226,6 +232,11 @@ class MeasureAgreement:
     value: dict[str, Measure] = field(default_factory=dict)
     intervals: dict[str, Interval | Undefined] = field(default_factory=dict)
     missing: str | None = None
+    # VERDICT_STATISTIC of this measure minus the full chunk's, with its paired interval (both
+    # measures on one draw of seeds, windows and episodes per replicate); None for the full
+    # chunk itself, Undefined where the two rank other rows.
+    versus_full: Measure | None = None
+    versus_full_interval: Interval | Undefined | None = None
 
     def interval_of(self, name: str) -> tuple[float, float] | None:
         ci = self.intervals.get(name)
@@ -240,14 +251,19 @@ class MeasureAgreement:
         return {"name": self.name, "definition": self.definition, "labels": self.labels,
                 "offline_error": self.error, "success": self.success, "note": self.note,
                 "missing": self.missing, "value": {k: plain(v) for k, v in self.value.items()},
-                "intervals": {k: plain(v) for k, v in self.intervals.items()}}
+                "intervals": {k: plain(v) for k, v in self.intervals.items()},
+                f"{VERDICT_STATISTIC}_minus_full_chunk": plain(self.versus_full),
+                f"{VERDICT_STATISTIC}_minus_full_chunk_interval":
+                    plain(self.versus_full_interval)}
 
 
-def measure_agreement(measure: OfflineMeasure, rolled: Rolled, *, n_resamples: int,
-                      seed: int = 0, confidence: float = CONFIDENCE) -> MeasureAgreement:
-    """One measure's agreement with success over its rows, with paired bootstrap intervals."""
+def measure_agreement(measure: OfflineMeasure, rolled: Rolled | Rows | Undefined, *,
+                      n_resamples: int, seed: int = 0, confidence: float = CONFIDENCE
+                      ) -> MeasureAgreement:
+    """One measure's agreement with success over its rows (made from `rolled`, or given), with
+    paired bootstrap intervals."""
     out = MeasureAgreement(measure.name, measure.definition)
-    rows = measure.rows(rolled)
+    rows = measure.rows(rolled) if isinstance(rolled, Rolled) else rolled
     if isinstance(rows, Undefined):
         out.missing = rows.reason
         return out
@@ -264,5 +280,66 @@ def measure_agreement(measure: OfflineMeasure, rolled: Rolled, *, n_resamples: i
 
 
 def measure_agreements(rolled: Rolled, **kwargs) -> list[MeasureAgreement]:
-    """Every registered measure's agreement with success (MEASURES' order)."""
-    return [measure_agreement(m, rolled, **kwargs) for m in MEASURES]
+    """Every registered measure's agreement with success (MEASURES' order), each after the
+    first (the full chunk, the offline score) with its difference from the full chunk's."""
+    base = MEASURES[0].rows(rolled)
+    out = []
+    for m in MEASURES:
+        rows = base if m is MEASURES[0] else m.rows(rolled)
+        agreed = measure_agreement(m, rows, **kwargs)
+        if out and not agreed.missing and not out[0].missing:
+            agreed.versus_full = _difference(out[0].value[VERDICT_STATISTIC],
+                                             agreed.value[VERDICT_STATISTIC])
+            if out[0].labels != agreed.labels:
+                agreed.versus_full = Undefined(f"ranks {rows.note}, not the items")
+            agreed.versus_full_interval = paired_difference(base, rows, **kwargs)
+        out.append(agreed)
+    return out
+
+
+def _difference(a: Measure, b: Measure) -> Measure:
+    bad = next((v for v in (a, b) if isinstance(v, Undefined)), None)
+    return bad if bad is not None else b - a
+
+
+def _replicate(rows: Rows, weights: np.ndarray, windows: np.ndarray, episodes: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(predicted (n,), actual (n,)) of `rows` under one draw: seed weights (n, S), how many
+    times each scored window (W,) and each episode (E,) was drawn; None if none of the
+    windows the rows read was drawn."""
+    p, a = rows.seeds.apply(weights)
+    w = windows if rows.columns is None else windows[rows.columns]
+    if w.sum() == 0:
+        return None
+    return p @ w / w.sum(), a @ episodes / episodes.sum()
+
+
+def paired_difference(a: Rows, b: Rows, *, n_resamples: int, seed: int = 0,
+                      confidence: float = CONFIDENCE) -> Interval | Undefined:
+    """Percentile interval of VERDICT_STATISTIC(b) - VERDICT_STATISTIC(a) when both measures
+    rank the same items on one window axis: each replicate draws the items' seeds, the scored
+    windows and the episodes ONCE for both (a's columns are every window), so what the two
+    share cancels. Undefined where they rank other rows (per task) or no replicate is defined."""
+    if a.labels != b.labels or a.masks is not None or b.masks is not None:
+        return Undefined(f"ranks {b.note or 'other rows'}, not the items")
+    n_windows, n_episodes = a.errors.shape[1], a.success.shape[1]
+    stat = BY_NAME[VERDICT_STATISTIC]
+    rng, seed_rng = np.random.default_rng(seed), np.random.default_rng([seed, 1])
+    diffs, reason = [], "no replicate drew a window of both"
+    for _ in range(n_resamples):
+        weights = a.seeds.weights(seed_rng)
+        windows = np.bincount(rng.integers(0, n_windows, n_windows), minlength=n_windows)
+        episodes = np.bincount(rng.integers(0, n_episodes, n_episodes), minlength=n_episodes)
+        drawn = [_replicate(r, weights, windows, episodes) for r in (a, b)]
+        if None in drawn:
+            continue
+        diff = _difference(*(stat(*d) for d in drawn))
+        if isinstance(diff, Undefined):
+            reason = diff.reason
+            continue
+        diffs.append(diff)
+    if not diffs:
+        return Undefined(f"every replicate undefined: {reason}")
+    alpha = (1 - confidence) / 2
+    return Interval(float(np.quantile(diffs, alpha)), float(np.quantile(diffs, 1 - alpha)),
+                    len(diffs), n_resamples - len(diffs))

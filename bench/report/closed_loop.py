@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from bench.analysis.agreement import SPEARMAN_TIES, TIE_RULE, Interval, Undefined
-from bench.analysis.offline_measures import MEASURES, TABLE_STATISTICS
+from bench.analysis.offline_measures import MEASURES, TABLE_STATISTICS, VERDICT_STATISTIC
 from bench.analysis.rankings import CONFIDENCE
 from bench.report.context import ReportContext
 from bench.report.format import interval, num, table
@@ -44,7 +44,44 @@ def agreement_summary(cl) -> str:
         return f"{where}: Kendall tau-b {tau} over {len(cl.items)} items"
     shown = [f"{label.split(' (')[0]} {stat_text(cl.agreement[k])} "
              f"{interval(cl.interval_of(k), 2)}" for k, label in AGREEMENT_ROWS[:4]]
-    return f"{where} ({len(cl.items)} items): " + ", ".join(shown)
+    return f"{where} ({len(cl.items)} items): " + ", ".join(shown) + ". " + measure_verdict(cl).rstrip(".")
+
+
+def _versus(m) -> str:
+    """A measure's tau-b minus the full chunk's, with its paired interval."""
+    if isinstance(m.versus_full, Undefined) or m.versus_full is None:
+        return f"not paired ({m.versus_full.reason})" if m.versus_full else "n/a"
+    ci = m.versus_full_interval
+    return (f"{m.versus_full:+.2f} "
+            + (interval((ci.low, ci.high), 2) if isinstance(ci, Interval) else f"({ci})"))
+
+
+def measure_verdict(cl) -> str:
+    """Which offline measure to read on this backbone x suite, from the measurement: a measure
+    replaces the full-chunk MSE only where its Kendall tau-b with success is above the full
+    chunk's by a paired interval that excludes 0 (both on one draw of seeds, windows and
+    episodes); otherwise the full chunk (the offline score every cell reports) stands."""
+    full = next((m for m in cl.measures if m.name == MEASURES[0].name), None)
+    if full is None or full.missing:
+        return "No offline measure was compared (the full chunk's inputs are missing)."
+    better = [m for m in cl.measures if isinstance(m.versus_full_interval, Interval)
+              and m.versus_full_interval.low > 0]
+    pick = max(better, key=lambda m: m.value[VERDICT_STATISTIC], default=full)
+    tau = (f"Kendall tau-b {stat_text(pick.value[VERDICT_STATISTIC])} "
+           f"{interval(pick.interval_of(VERDICT_STATISTIC), 2)}")
+    others = "; ".join(f"{m.name} {_versus(m)}" for m in cl.measures
+                       if m is not full and m is not pick and not m.missing)
+    if pick is full:
+        head = (f"Which offline measure to read: the **{full.name}** MSE (the offline score), "
+                f"{tau}; no other measure agreed measurably better (tau-b minus the full "
+                f"chunk's, paired: {others or 'none measured'})")
+    else:
+        head = (f"Which offline measure to read: the **{pick.name}** MSE, {tau}, above the full "
+                f"chunk's by {_versus(pick)}" + (f" (others: {others})" if others else ""))
+    low = pick.interval_of(VERDICT_STATISTIC)
+    if low is not None and low[0] <= 0:
+        head += "; even it is not measured to agree (its interval reaches 0)"
+    return head + "."
 
 
 def closed_loop_caveat(ctx: ReportContext) -> str:
@@ -76,15 +113,16 @@ def measures_table(cl) -> str:
     rows = []
     for m in cl.measures:
         if m.missing:
-            rows.append([m.name, "not measured", *[""] * len(TABLE_STATISTICS), m.missing])
+            rows.append([m.name, "not measured", *[""] * (len(TABLE_STATISTICS) + 1), m.missing])
             continue
         cells = [stat_text(m.value[k]) + " " + (interval(m.interval_of(k), 2)
                                                 if m.interval_of(k) else
                                                 f"({stat_text(m.intervals.get(k))})")
                  for k in TABLE_STATISTICS]
-        rows.append([m.name, len(m.labels), *cells, m.note])
+        rows.append([m.name, len(m.labels), *cells,
+                     "" if m.versus_full is None else _versus(m), m.note])
     return table(rows, ["measure", "rows", *(MEASURE_COLUMNS[k] for k in TABLE_STATISTICS),
-                        "note"])
+                        "tau-b minus the full chunk's (paired)", "note"])
 
 
 def closed_loop_section(ctx: ReportContext) -> str:
@@ -119,6 +157,7 @@ def closed_loop_section(ctx: ReportContext) -> str:
                      + table(stats, ["statistic", "value", f"{CONFIDENCE:.0%} bootstrap CI",
                                      "replicates defined"]))
             if cl.measures:
-                head += f"\n\nOffline measures against success:\n\n{measures_table(cl)}"
+                head += (f"\n\nOffline measures against success:\n\n{measures_table(cl)}"
+                         f"\n\n{measure_verdict(cl)}")
         parts.append(head)
     return "\n\n".join(parts)
