@@ -149,3 +149,64 @@ def test_native_and_the_best_graft_roll_out(tmp_path):
     assert rolls_out(CellSpec("graft", BACKBONE, "spatial", 1, "blind"), profile, store)
     assert not rolls_out(CellSpec("graft", BACKBONE, "spatial", 0, "pixels"), profile, store)
     assert not rolls_out(CellSpec("native_wrapped", BACKBONE, "spatial", 0), profile, store)
+
+
+def _robust(record, label_mse: dict, label_success: dict, windows: list[int]):
+    """A robustness record of `record` under each "kind:severity": per-window perturbed MSE
+    `label_mse[label]` (flat) and the first round(rate * 10) episodes of each task succeeding."""
+    from bench.results.robust import RobustEntry, RobustRecord, base_of
+
+    entries, rollouts = [], {}
+    for label, level in label_mse.items():
+        kind, severity = label.split(":")
+        entries.append(RobustEntry({"kind": kind, "severity": int(severity), "params": {},
+                                    "seed": 0, "version": "1"}, {"normalized": level},
+                                   {"normalized": [level] * len(windows)}))
+        rollouts[label] = {"episodes": [
+            {"task": t, "episode": e, "init_state": 49 - e,
+             "success": e < round(label_success[label] * 10), "steps": 50}
+            for t in (3, 7) for e in range(10)]}
+    return RobustRecord(record.cell_id, record.kind, record.backbone, record.suite,
+                        record.encoder, record.seed, base_of(record), windows, entries,
+                        rollouts=rollouts)
+
+
+def test_the_offline_robustness_order_against_the_closed_loop_one():
+    # Known answer: under brightness:3 the graft's perturbed MSE (0.3, both seeds) is above
+    # native's (0.2) and its perturbed success (0.1) below native's (0.6): the offline order
+    # predicts the closed loop's (tau-b +1); under camera_shift:2 the graft's MSE is lower
+    # (0.15 < 0.25) but its success lower too (0.2 < 0.5): tau-b -1. The intervals draw the
+    # graft's two seeds, the windows and the episodes; flat scores leave them at the point.
+    from bench.analysis.robust_loop import robust_orders
+    from bench.report.robustness import _orders_text
+    from tests.factories import make_record
+    from tests.test_offline_measures import episodes
+
+    rows = [make_record(kind="native", backbone="pi05", encoder=None, level=0.1,
+                        rollouts=episodes({3: 0.8, 7: 0.8}, per_task=10))]
+    rows += [make_record(backbone="pi05", encoder="effnet_lite2", seed=s, level=0.09,
+                         rollouts=episodes({3: 0.7, 7: 0.7}, per_task=10)) for s in (0, 1)]
+    windows = rows[0].scores.window_ids[::3]
+    robust = [_robust(rows[0], {"brightness:3": 0.2, "camera_shift:2": 0.25},
+                      {"brightness:3": 0.6, "camera_shift:2": 0.5}, windows)]
+    robust += [_robust(r, {"brightness:3": 0.3, "camera_shift:2": 0.15},
+                       {"brightness:3": 0.1, "camera_shift:2": 0.2}, windows) for r in rows[1:]]
+    orders = {o.label: o for o in robust_orders(rows, robust, n_resamples=50)}
+    bright, shift = orders["brightness:3"], orders["camera_shift:2"]
+    assert bright.items == ["effnet_lite2", "native"]
+    assert bright.seeds == {"effnet_lite2": [0, 1], "native": [0]}
+    assert bright.mse == pytest.approx([0.3, 0.2]) and bright.success == pytest.approx([0.1, 0.6])
+    assert bright.clean_success == pytest.approx([0.7, 0.8])
+    assert bright.clean_mse == pytest.approx([0.09, 0.1], abs=0.02)  # the windows' own mean
+    assert bright.episodes == [40, 20]
+    assert bright.tau_b == 1.0 and (bright.interval.low, bright.interval.high) == (1.0, 1.0)
+    assert shift.tau_b == -1.0 and (shift.interval.low, shift.interval.high) == (-1.0, -1.0)
+    text = _orders_text([bright, shift])
+    assert "| brightness:3 | effnet_lite2 | 0, 1" in " ".join(text.split())
+    assert "0.3 (x" in text and "70% -> 10%" in text and "1 [1, 1]" in text
+    assert "-1 [-1, -1]" in text
+    # A stale robustness record (another projector) is left out, never mixed in.
+    stale = dataclasses.replace(robust[1], base={**robust[1].base, "projector_sha256": "0" * 64})
+    left = {o.label: o for o in robust_orders(rows, [robust[0], stale, robust[2]],
+                                              n_resamples=20)}
+    assert left["brightness:3"].seeds == {"effnet_lite2": [1], "native": [0]}

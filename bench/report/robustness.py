@@ -14,9 +14,13 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from bench.analysis.agreement import Interval
 from bench.analysis.rankings import CONFIDENCE
-from bench.analysis.robust_loop import LoopRow, Rate, closed_loop_rows
+from bench.analysis.robust_loop import (
+    LoopRow, Rate, RobustOrder, closed_loop_rows, robust_orders,
+)
 from bench.analysis.robustness import RobustnessTable, robustness_all, robustness_transfer
+from bench.report.closed_loop import stat_text
 from bench.report.context import ReportContext
 from bench.report.format import bullets, interval, num, pct, table, yes_no
 from bench.results.robust import load_all_robust
@@ -44,7 +48,9 @@ def robustness_section(ctx: ReportContext) -> str | None:
         parts += [f"### {t.backbone} x {t.suite}", _table_text(t)]
     loop = _closed_loop_text(closed_loop_rows(ctx.records, robust))
     if loop is not None:
-        parts += ["### In closed loop", loop]
+        parts += ["### In closed loop", loop,
+                  _orders_text(robust_orders(ctx.records, robust,
+                                             n_resamples=ctx.n_resamples or 1000))]
     parts.append("### Does the most robust encoder transfer across backbones?")
     parts.append(_transfer_text(robustness_transfer(tables)))
     plot = _plot(tables, ctx) if ctx.plots else None
@@ -132,6 +138,38 @@ def _closed_loop_text(rows: list[LoopRow]) -> str | None:
             "95%], then -lost/+gained: episodes that succeeded clean and failed perturbed, and "
             "the reverse (paired by episode).\n\n"
             + table(body, ["backbone x suite", "cell", "clean"] + labels))
+
+
+def _orders_text(orders: list[RobustOrder]) -> str:
+    """Per perturbation: does the offline robustness ranking predict the closed-loop one?"""
+    if not orders:
+        return "_No perturbation rolled out on two paired items: no order to compare._"
+    rows = []
+    for o in orders:
+        tau = ("n/a" if o.tau_b is None else
+               f"{stat_text(o.tau_b)} " + (interval((o.interval.low, o.interval.high), 2)
+                                           if isinstance(o.interval, Interval)
+                                           else f"({o.interval})"))
+        for k, item in enumerate(o.items):
+            rows.append([f"{o.backbone} x {o.suite}", o.label, item,
+                         ", ".join(map(str, o.seeds[item])),
+                         f"{num(o.clean_mse[k])} -> {num(o.mse[k])} "
+                         f"(x{o.mse[k] / o.clean_mse[k]:.2f})",
+                         f"{o.clean_success[k]:.0%} -> {o.success[k]:.0%}", o.episodes[k],
+                         tau if k == 0 else ""])
+        if o.missing:
+            rows.append([f"{o.backbone} x {o.suite}", o.label, f"_{o.missing}_", "", "", "",
+                         "", ""])
+    return ("Does the offline robustness ranking predict the closed-loop one? Per perturbation, "
+            "the rolled-out items' offline MSE on the robustness windows (clean -> perturbed) "
+            "and their success (clean -> perturbed, the same episodes), means over seeds; "
+            "Kendall tau-b of -perturbed MSE against perturbed success over the items, with "
+            "the closed loop's paired bootstrap interval (each item's seeds, then windows and "
+            "episodes drawn). With two items tau-b is +1 (same order) or -1; its interval says "
+            "whether that order survives the draws.\n\n"
+            + table(rows, ["backbone x suite", "perturbation", "item", "seeds",
+                           "offline MSE (clean -> perturbed)", "success", "episodes",
+                           "tau-b [95% CI]"]))
 
 
 def _rate(rate: Rate | None) -> str:
