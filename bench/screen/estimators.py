@@ -15,8 +15,10 @@ Rules (stated in the report):
   (relative variance <= 1e-10) carries nothing and is dropped. No column left: undefined.
 - Ridge: the penalty is lambda = r * N_fit with r in RIDGE_GRID (N_fit: the fitting windows;
   the standardised Gram has diagonal N_fit), chosen by the smallest summed squared error of
-  episode-wise folds of the training episodes (ties: the larger penalty); then refitted on all
-  training episodes and scored on the held-out windows. k-NN: k in KNN_GRID (<= the fitting
+  episode-wise folds of the training episodes (ties: the larger penalty), each fold predicted by
+  a fit on the others with the same scales and penalty (screen_version 4: exact grouped
+  cross-validation through the full fit's hat matrix, bench.screen.spectral.fold_errors); then
+  refitted on all training episodes and scored on the held-out windows. k-NN: k in KNN_GRID (<= the fitting
   windows), chosen the same way; uniform mean of the k nearest (Euclidean, standardised).
 - LogME (You et al., 2021) is the exact evidence, with every one of the D eigenvalues of
   F^T F in ln|A| (the reference's fast path drops (D - k) ln(alpha) and is wrong for D > N),
@@ -99,18 +101,23 @@ class Standardised:
     ymean: np.ndarray
 
 
-def standardise(m: Moments) -> Standardised | Undefined:
-    """Centre and scale by `m`'s own windows, dropping constant columns; undefined if none vary."""
+def standardise(m: Moments, frame: Standardised | None = None) -> Standardised | Undefined:
+    """Centre by `m`'s own windows and scale by them, dropping constant columns (undefined if
+    none vary); or scale and drop as `frame` (all fitting windows' standardisation) does: what
+    ridge's fold fits do (see spectral.fold_errors)."""
     n, d = m.n, m.dim
     if n < 2:
         return Undefined(f"{n} fitting window(s): too few windows")
     mean, ymean = m.xtx[:d, -1] / n, m.xty[-1] / n
     cov = m.xtx[:d, :d] - n * np.outer(mean, mean)
-    var = np.diag(cov) / n
-    keep = var > CONSTANT_REL_VAR * np.maximum(np.diag(m.xtx)[:d] / n, 1e-300)
-    if not keep.any():
-        return Undefined(f"all {d} feature columns constant over the {n} fitting windows")
-    scale = np.where(keep, np.sqrt(np.where(keep, var, 1.0)), 1.0)
+    if frame is not None:
+        keep, scale = frame.keep, frame.scale
+    else:
+        var = np.diag(cov) / n
+        keep = var > CONSTANT_REL_VAR * np.maximum(np.diag(m.xtx)[:d] / n, 1e-300)
+        if not keep.any():
+            return Undefined(f"all {d} feature columns constant over the {n} fitting windows")
+        scale = np.where(keep, np.sqrt(np.where(keep, var, 1.0)), 1.0)
     k = keep
     gram = cov[np.ix_(k, k)] / np.outer(scale[k], scale[k])
     zy = (m.xty[:d][k] - n * np.outer(mean[k], ymean)) / scale[k, None]
@@ -206,18 +213,20 @@ def logme_moments(m: Moments) -> Measure:
     return logme_gram(s.gram, s.zy, s.yy, s.n - 1)
 
 
-def ridge_path(m: Moments, ratios: tuple[float, ...]
+def ridge_path(m: Moments, ratios: tuple[float, ...], frame: Standardised | None = None
                ) -> list[tuple[np.ndarray, np.ndarray]] | Undefined:
     """Per ratio (weights (D, C), bias (C,)) in raw feature units: ridge on `m`'s standardised
-    windows, penalty ratio * n, bias unpenalised (the centring); one eigh for all ratios."""
-    s = standardise(m)
+    windows, penalty ratio * n, bias unpenalised (the centring); one eigh for all ratios.
+    `frame`: scaled as all fitting windows are and penalised ratio * their n (a fold fit)."""
+    s = standardise(m, frame)
     if isinstance(s, Undefined):
         return s
     sigma, vecs = np.linalg.eigh(s.gram)
     rotated = vecs.T @ s.zy
+    penalty_n = s.n if frame is None else frame.n
     out = []
     for ratio in ratios:
-        wz = vecs @ (rotated / (np.clip(sigma, 0.0, None) + ratio * s.n)[:, None])
+        wz = vecs @ (rotated / (np.clip(sigma, 0.0, None) + ratio * penalty_n)[:, None])
         weights = np.zeros((m.dim, m.outputs))
         weights[s.keep] = wz / s.scale[s.keep, None]
         out.append((weights, s.ymean - s.mean @ weights))
@@ -243,9 +252,12 @@ def ridge_heldout(folds: list[Moments], heldout: Moments) -> tuple[Measure, floa
         return Undefined(f"{len(folds)} training episode fold(s): the penalty cannot be chosen "
                          "on training episodes"), None
     total = reduce(Moments.plus, folds)  # f0 + f1 + ..., in fold order
+    frame = standardise(total)
+    if isinstance(frame, Undefined):
+        return frame, None
     errors = np.zeros(len(RIDGE_GRID))
     for f in folds:
-        path = ridge_path(total.plus(f, -1.0), RIDGE_GRID)
+        path = ridge_path(total.plus(f, -1.0), RIDGE_GRID, frame)
         if isinstance(path, Undefined):
             return path, None
         errors += [squared_error(f, *fit) for fit in path]
@@ -268,13 +280,11 @@ def ridge_windows(train: np.ndarray, targets: np.ndarray, fold: np.ndarray,
     if len(folds) < 2:
         return Undefined(f"{len(folds)} training episode fold(s): the penalty cannot be chosen "
                          "on training episodes"), None
-    errors = fold_errors(train, targets, fold, RIDGE_GRID)
-    if isinstance(errors, Undefined):
-        return errors, None
-    best = max(i for i, e in enumerate(errors) if e <= min(errors))  # ties: the larger penalty
     fit = spectrum(train, targets) if spec is None else spec
     if isinstance(fit, Undefined):
         return fit, None
+    errors = fold_errors(fit, targets, fold, RIDGE_GRID)
+    best = max(i for i, e in enumerate(errors) if e <= min(errors))  # ties: the larger penalty
     if len(heldout) == 0:
         return Undefined("no held-out windows"), RIDGE_GRID[best]
     error = ((fit.predict(fit.project(heldout), RIDGE_GRID[best]) - heldout_targets) ** 2).sum()
