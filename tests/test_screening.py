@@ -261,13 +261,16 @@ def test_where_the_evidence_has_two_maxima_the_fixed_points_is_kept_and_flagged(
     assert ev / 50 == pytest.approx(fixed_point(sigma, z, yy, 50), rel=LOGME_REL_TOL)
 
 
+@pytest.mark.parametrize("rank_space", [True, False])  # Woodbury's (r + 1) space or m x m
 @pytest.mark.parametrize("d", [40, 300])  # the primal and the dual form
-def test_ridge_fold_errors_through_the_hat_matrix_equal_refitting_each_fold(d):
+def test_ridge_fold_errors_through_the_hat_matrix_equal_refitting_each_fold(d, rank_space,
+                                                                           monkeypatch):
     """spectral.fold_errors (one decomposition, (I - H_ff)^-1 (y_f - yhat_f)) against refitting
     ridge without each fold, directly: its columns scaled by all fitting windows' std, centred
     on its own windows (the unpenalised intercept), penalty ratio * N; the fold's squared
     residuals summed, at every penalty. Equal to rounding (measured 1e-13 and 4e-12; 1e-10 asked)."""
     from bench.screen.estimators import RIDGE_GRID
+    from bench.screen import spectral
     from bench.screen.spectral import fold_errors, standardiser
 
     fit = synthetic_fit(n=120, m=30, d=d, c=14)
@@ -283,6 +286,7 @@ def test_ridge_fold_errors_through_the_hat_matrix_equal_refitting_each_fold(d):
             w = np.linalg.solve(zo.T @ zo + r * len(x) * np.eye(zo.shape[1]), zo.T @ yo)
             pred = (z[into] - z[out].mean(axis=0)) @ w + y[out].mean(axis=0)
             want[i] += ((pred - y[into]) ** 2).sum()
+    monkeypatch.setattr(spectral, "in_rank_space", lambda m, r, c: rank_space)
     got = fold_errors(fit.spectrum, y, fold, RIDGE_GRID)
     assert np.allclose(got, want, rtol=1e-10, atol=0), np.max(np.abs(got / want - 1))
 
