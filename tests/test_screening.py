@@ -267,7 +267,7 @@ def test_ridge_fold_errors_through_the_hat_matrix_equal_refitting_each_fold(d, r
                                                                            monkeypatch):
     """spectral.fold_errors (one decomposition, (I - H_ff)^-1 (y_f - yhat_f)) against refitting
     ridge without each fold, directly: its columns scaled by all fitting windows' std, centred
-    on its own windows (the unpenalised intercept), penalty ratio * N; the fold's squared
+    on its own windows (the unpenalised intercept), penalty ratio * its windows; the fold's squared
     residuals summed, at every penalty. Equal to rounding (measured 1e-13 and 4e-12; 1e-10 asked)."""
     from bench.screen.estimators import RIDGE_GRID
     from bench.screen import spectral
@@ -283,7 +283,7 @@ def test_ridge_fold_errors_through_the_hat_matrix_equal_refitting_each_fold(d, r
         out, into = fold != f, fold == f
         zo, yo = z[out] - z[out].mean(axis=0), y[out] - y[out].mean(axis=0)
         for i, r in enumerate(RIDGE_GRID):
-            w = np.linalg.solve(zo.T @ zo + r * len(x) * np.eye(zo.shape[1]), zo.T @ yo)
+            w = np.linalg.solve(zo.T @ zo + r * len(zo) * np.eye(zo.shape[1]), zo.T @ yo)
             pred = (z[into] - z[out].mean(axis=0)) @ w + y[out].mean(axis=0)
             want[i] += ((pred - y[into]) ** 2).sum()
     monkeypatch.setattr(spectral, "in_rank_space", lambda m, r, c: rank_space)

@@ -16,8 +16,8 @@ Rules (stated in the report):
 - Ridge: the penalty is lambda = r * N_fit with r in RIDGE_GRID (N_fit: the fitting windows;
   the standardised Gram has diagonal N_fit), chosen by the smallest summed squared error of
   episode-wise folds of the training episodes (ties: the larger penalty), each fold predicted by
-  a fit on the others with the same scales and penalty (screen_version 4: exact grouped
-  cross-validation through the full fit's hat matrix, bench.screen.spectral.fold_errors); then
+  a fit on the others scaled as all training windows are (screen_version 4: exact grouped
+  cross-validation through a full fit's hat matrix, bench.screen.spectral.fold_errors); then
   refitted on all training episodes and scored on the held-out windows. k-NN: k in KNN_GRID (<= the fitting
   windows), chosen the same way; uniform mean of the k nearest (Euclidean, standardised).
 - LogME (You et al., 2021) is the exact evidence, with every one of the D eigenvalues of
@@ -217,16 +217,15 @@ def ridge_path(m: Moments, ratios: tuple[float, ...], frame: Standardised | None
                ) -> list[tuple[np.ndarray, np.ndarray]] | Undefined:
     """Per ratio (weights (D, C), bias (C,)) in raw feature units: ridge on `m`'s standardised
     windows, penalty ratio * n, bias unpenalised (the centring); one eigh for all ratios.
-    `frame`: scaled as all fitting windows are and penalised ratio * their n (a fold fit)."""
+    `frame`: scaled as all fitting windows are (a fold fit; see spectral.fold_errors)."""
     s = standardise(m, frame)
     if isinstance(s, Undefined):
         return s
     sigma, vecs = np.linalg.eigh(s.gram)
     rotated = vecs.T @ s.zy
-    penalty_n = s.n if frame is None else frame.n
     out = []
     for ratio in ratios:
-        wz = vecs @ (rotated / (np.clip(sigma, 0.0, None) + ratio * penalty_n)[:, None])
+        wz = vecs @ (rotated / (np.clip(sigma, 0.0, None) + ratio * s.n)[:, None])
         weights = np.zeros((m.dim, m.outputs))
         weights[s.keep] = wz / s.scale[s.keep, None]
         out.append((weights, s.ymean - s.mean @ weights))

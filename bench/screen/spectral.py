@@ -180,24 +180,27 @@ def weighted_windows(spec: Spectrum, weights: np.ndarray | None):
 
 def fold_errors(spec: Spectrum, y: np.ndarray, fold: np.ndarray, ratios) -> np.ndarray:
     """(len(ratios),) ridge's squared error summed over the episode folds of the fitting windows
-    (`fold` (n,)), each fold predicted by a fit on the others, at each penalty ratio: grouped
-    cross-validation through the hat matrix of the fit on ALL of them (`spec`, targets y (n, C)),
-    exactly: with H = 11^T / n + P diag(a) P^T (P = Z V, a = 1 / (sigma + ratio n): the
+    (`fold` (n,)), each fold predicted by a fit on the others penalised ratio * their count (the
+    same penalty per window as the final fit), at each penalty ratio: grouped cross-validation
+    through the hat matrix of a fit on ALL of them at that penalty (`spec`, targets y (n, C)),
+    exactly: with H = 11^T / n + P diag(a) P^T (P = Z V, a = 1 / (sigma + lambda): the
     unpenalised intercept and the penalised columns), a fold's residuals under the fit without it
     are (I - H_ff)^-1 (y_f - yhat_f) (Sherman-Morrison-Woodbury). So the fold fits share the
-    fitting windows' standardisation (their scales; the intercept centres each fold fit on its own
-    windows) and penalty ratio * n (n: all fitting windows), and no fold is decomposed again:
-    one (m x m) solve per fold and penalty (screen_version 4; until 3 each fold was standardised
-    by its own windows, penalised ratio * its n and decomposed: five eighs)."""
+    fitting windows' scales (the intercept centres each fold fit on its own windows) and no fold
+    is decomposed again: one small Cholesky per fold and penalty (screen_version 4; until 3 each
+    fold was also scaled by its own windows and decomposed: five eighs)."""
     yc = np.asarray(y, float) - spec.ymean
     rows = [np.flatnonzero(fold == f) for f in np.unique(fold)]
     parts = [spec.basis[r] for r in rows]
     errors = np.zeros(len(ratios))
     for i, ratio in enumerate(ratios):
-        a = 1.0 / (spec.sigma + ratio * spec.n)
-        residual = yc - spec.basis @ (a[:, None] * spec.z)
         for r, part in zip(rows, parts):
-            errors[i] += _held_out_sq(part, a, spec.n, residual[r])
+            # The fit without the fold penalised ratio * its own windows, as the final fit is
+            # on all of them: the same penalty per window. Its residuals come from the fit on
+            # all windows at that same penalty.
+            a = 1.0 / (spec.sigma + ratio * (spec.n - len(r)))
+            residual = yc[r] - part @ (a[:, None] * spec.z)
+            errors[i] += _held_out_sq(part, a, spec.n, residual)
     return errors
 
 
