@@ -37,8 +37,11 @@ b=("--encoders blind -k spatial-blind-seed"
 # robustness of the same cells under the same two (rescored from the stored projectors, which
 # this study commits). 3 policies x 2 perturbations x 40 episodes: ~2 h of one core. The best
 # graft is read from the records when it runs (bench/robust/closed_loop.py best_graft_encoder):
-# Lite2 so far; name the leading encoder in --encoders if another leads by then.
-c=("--encoders effnet_lite2 --controls native --robustness brightness:3,camera_shift:2 -k test_robust")
+# Lite2 so far; name the leading encoder in --encoders if another leads by then. A third item
+# for the ranking: DINOv2-S/14 (another family: a ViT against the CNNs), seed 0, the best graft
+# of a run that selects only it.
+c=("--encoders effnet_lite2 --controls native --robustness brightness:3,camera_shift:2 -k test_robust"
+   "--encoders dinov2_s_focus --controls none --robustness brightness:3,camera_shift:2 -k dinov2_s_focus-seed0")
 case $queue in
     a) items=("${a[@]}") ;;
     b) items=("${b[@]}") ;;
