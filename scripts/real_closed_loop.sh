@@ -40,7 +40,9 @@ b=("--encoders blind -k spatial-blind-seed"
 # Lite2 so far; name the leading encoder in --encoders if another leads by then. A third item
 # for the ranking: DINOv2-S/14 (another family: a ViT against the CNNs), seed 0, the best graft
 # of a run that selects only it.
-c=("--encoders effnet_lite2 --controls native --robustness brightness:3,camera_shift:2 -k test_robust"
+# (native has one seed here, the pinned release's: its item names seed 0.)
+c=("--encoders effnet_lite2 --controls none --robustness brightness:3,camera_shift:2 -k test_robust"
+   "--encoders blind --controls native --robustness brightness:3,camera_shift:2 -k native-seed0"
    "--encoders dinov2_s_focus --controls none --robustness brightness:3,camera_shift:2 -k dinov2_s_focus-seed0")
 case $queue in
     a) items=("${a[@]}") ;;
