@@ -101,10 +101,6 @@ class RobustOrder:
     missing: str | None = None
 
 
-def _label(entry) -> str:
-    return f"{entry.kind}:{entry.severity}"
-
-
 def _item_stacks(pairs: list, label: str, windows: list[int], keys: list
                  ) -> tuple[list, list, list, list]:
     """Per seed of one item: clean and perturbed per-window MSE on `windows`, clean and
@@ -113,7 +109,7 @@ def _item_stacks(pairs: list, label: str, windows: list[int], keys: list
     for record, rr in pairs:
         at = dict(zip(record.scores.window_ids, record.scores.per_window_in(PRIMARY)))
         clean_w.append([at[w] for w in windows])
-        entry = next(e for e in rr.entries if _label(e) == label)
+        entry = next(e for e in rr.entries if e.label == label)
         pert_w.append(list(entry.per_window[PRIMARY]))
         clean, seen = _outcomes(record.run.rollouts), _outcomes(rr.rollouts[label])
         clean_e.append([float(clean[k]) for k in keys])
@@ -131,7 +127,7 @@ def robust_orders(records: list[Record], robust: list[RobustRecord], *, n_resamp
         if not rr.rollouts or record is None or not rr.is_for(record):
             continue
         for label in rr.rollouts:
-            if any(_label(e) == label for e in rr.entries) and record.run.rollouts:
+            if any(e.label == label for e in rr.entries) and record.run.rollouts:
                 groups.setdefault((rr.backbone, rr.suite, label), {}).setdefault(
                     record_label(record), []).append((record, rr))
     return [_order(key, items, n_resamples, seed) for key, items in sorted(groups.items())]

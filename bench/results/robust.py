@@ -48,6 +48,11 @@ class RobustEntry:
     def severity(self) -> int:
         return int(self.perturbation["severity"])
 
+    @property
+    def label(self) -> str:
+        """"kind:severity", as the record's `rollouts` keys it (perturbations.Applied.label)."""
+        return f"{self.kind}:{self.severity}"
+
 
 @dataclass(frozen=True)
 class RobustRecord:
