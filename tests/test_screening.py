@@ -268,7 +268,8 @@ def test_ridge_fold_errors_through_the_hat_matrix_equal_refitting_each_fold(d, r
     """spectral.fold_errors (one decomposition, (I - H_ff)^-1 (y_f - yhat_f)) against refitting
     ridge without each fold, directly: its columns scaled by all fitting windows' std, centred
     on its own windows (the unpenalised intercept), penalty ratio * its windows; the fold's squared
-    residuals summed, at every penalty. Equal to rounding (measured 1e-13 and 4e-12; 1e-10 asked)."""
+    residuals summed, at every penalty. Equal to rounding (measured 1e-13 and 4e-12; 1e-10
+    asked)."""
     from bench.screen.estimators import RIDGE_GRID
     from bench.screen import spectral
     from bench.screen.spectral import fold_errors, standardiser

@@ -44,7 +44,8 @@ def agreement_summary(cl) -> str:
         return f"{where}: Kendall tau-b {tau} over {len(cl.items)} items"
     shown = [f"{label.split(' (')[0]} {stat_text(cl.agreement[k])} "
              f"{interval(cl.interval_of(k), 2)}" for k, label in AGREEMENT_ROWS[:4]]
-    return f"{where} ({len(cl.items)} items): " + ", ".join(shown) + ". " + measure_verdict(cl).rstrip(".")
+    return (f"{where} ({len(cl.items)} items): " + ", ".join(shown) + ". "
+            + measure_verdict(cl).rstrip("."))
 
 
 def _versus(m) -> str:

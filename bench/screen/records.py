@@ -31,8 +31,9 @@ from bench.stats import Measure, Undefined
 # 2: LogME in the n - 1 centred dims, finite where D > N. 3: LogME's maximum by a bounded profile
 # search (was a fixed point capped at 100,000 steps), ridge's errors from residuals, both in the
 # cheaper of the D x D and N x N forms; scores within 1e-9 relative of 2's where 2 converged.
-# 4: ridge's fold fits share all training windows' scales and penalty (exact grouped
-# cross-validation through one hat matrix, no eigh per fold): its chosen penalty can move.
+# 4: ridge's fold fits share all training windows' scales, each still penalised ratio * its own
+# windows (exact grouped cross-validation through a full fit's hat matrix, no eigh per fold):
+# its chosen penalty can move.
 SCREEN_VERSION = 4
 OK, FAILED = "ok", "failed"
 _STATUS = "status"  # the envelope key; every other key is a field name

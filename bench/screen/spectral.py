@@ -74,23 +74,17 @@ def standardiser(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | U
     return parts if isinstance(parts, Undefined) else parts[:3]
 
 
-def standard_parts(x: np.ndarray, overwrite: bool = False):
+def standard_parts(x: np.ndarray):
     """standardiser's (keep, mean, scale) and the centred windows x - mean (n, D) float64 it
     computed them from: spectrum scales that array instead of converting and centring x again
-    (the same operations on the same numbers, so the same bits). `overwrite`: x is a float64
-    copy to centre in place, its variance summed without a squared copy (einsum): ~1/5 of the
-    time on a fold's (577, 2568) (no fresh arrays), but other rounding: ridge's folds only."""
+    (the same operations on the same numbers, so the same bits)."""
     x = np.asarray(x, float)
     n = len(x)
     if n < 2:
         return Undefined(f"{n} fitting window(s): too few windows")
     mean = x.mean(axis=0)
-    if overwrite:
-        centred = np.subtract(x, mean, out=x)
-        var = np.einsum("ij,ij->j", centred, centred) / n
-    else:
-        centred = x - mean
-        var = (centred ** 2).mean(axis=0)
+    centred = x - mean
+    var = (centred ** 2).mean(axis=0)
     # The mean square as var + mean^2: one pass less than (x * x).mean(), and it only decides
     # `keep`, at a threshold no real column sits within rounding of.
     keep = var > CONSTANT_REL_VAR * np.maximum(var + mean * mean, 1e-300)
@@ -99,11 +93,11 @@ def standard_parts(x: np.ndarray, overwrite: bool = False):
     return keep, mean, np.where(keep, np.sqrt(np.where(keep, var, 1.0)), 1.0), centred
 
 
-def spectrum(x: np.ndarray, y: np.ndarray, eigh: Callable = np.linalg.eigh,
-             overwrite: bool = False) -> Spectrum | Undefined:
+def spectrum(x: np.ndarray, y: np.ndarray, eigh: Callable = np.linalg.eigh
+             ) -> Spectrum | Undefined:
     """The Spectrum of windows x (n, D) with targets y (n, C), in the cheaper form; `eigh`
-    decomposes the symmetric Gram ((sigma, vectors), as numpy's); `overwrite`: standard_parts'."""
-    stats = standard_parts(x, overwrite)
+    decomposes the symmetric Gram ((sigma, vectors), as numpy's)."""
+    stats = standard_parts(x)
     if isinstance(stats, Undefined):
         return stats
     keep, mean, scale, centred = stats
