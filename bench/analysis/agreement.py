@@ -205,7 +205,7 @@ def bootstrap_agreement(predicted: np.ndarray, actual: np.ndarray, n_resamples: 
         s = predicted[:, w].mean(axis=1) if predicted.ndim == 2 else predicted
         a = agreement(s, actual[:, w].mean(axis=1))
         _keep(values, reasons, {k: getattr(a, k) for k in STATISTICS})
-    return _percentile_intervals(values, reasons, n_resamples, confidence)
+    return percentile_intervals(values, reasons, n_resamples, confidence)
 
 
 def _keep(values: dict[str, list[float]], reasons: dict[str, str],
@@ -218,9 +218,9 @@ def _keep(values: dict[str, list[float]], reasons: dict[str, str],
             values[k].append(v)
 
 
-def _percentile_intervals(values: dict[str, list[float]], reasons: dict[str, str],
-                          n_resamples: int, confidence: float
-                          ) -> dict[str, Interval | Undefined]:
+def percentile_intervals(values: dict[str, list[float]], reasons: dict[str, str],
+                         n_resamples: int, confidence: float
+                         ) -> dict[str, Interval | Undefined]:
     """Percentile interval per statistic over its defined replicates; Undefined when none is."""
     alpha = (1 - confidence) / 2
     out: dict[str, Interval | Undefined] = {}
@@ -314,4 +314,4 @@ def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: i
         s = masked_mean(p[:, w], None if pm is None else pm[:, w])
         r = masked_mean(a[:, e], None if am is None else am[:, e])
         _keep(values, reasons, {k: BY_NAME[k](s, r) for k in statistics})
-    return _percentile_intervals(values, reasons, n_resamples, confidence)
+    return percentile_intervals(values, reasons, n_resamples, confidence)

@@ -21,6 +21,7 @@ import numpy as np
 
 from bench.analysis.agreement import (
     BY_NAME, Interval, Measure, SeedStacks, Undefined, bootstrap_two_axes, masked_mean,
+    percentile_intervals,
 )
 from bench.analysis.rankings import CONFIDENCE, PRIMARY
 
@@ -338,8 +339,4 @@ def paired_difference(a: Rows, b: Rows, *, n_resamples: int, seed: int = 0,
             reason = diff.reason
             continue
         diffs.append(diff)
-    if not diffs:
-        return Undefined(f"every replicate undefined: {reason}")
-    alpha = (1 - confidence) / 2
-    return Interval(float(np.quantile(diffs, alpha)), float(np.quantile(diffs, 1 - alpha)),
-                    len(diffs), n_resamples - len(diffs))
+    return percentile_intervals({"d": diffs}, {"d": reason}, n_resamples, confidence)["d"]
