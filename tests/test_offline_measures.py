@@ -217,3 +217,24 @@ def test_the_verdict_reads_a_measure_only_where_it_agrees_measurably_better():
     assert by_name(flat)["critical interval"].versus_full == 0.0
     assert measure_verdict(flat).startswith(
         "Which offline measure to read: the **full chunk** MSE")
+
+
+def test_rollouts_from_two_machines_kernels_are_named_in_the_caveats(tmp_path):
+    from bench.report import build
+    from bench.report.closed_loop import rollout_hardware
+    from tests.test_report import write_grid
+
+    avx512, avx2 = (f"CPU X ({k} kernels), 2 cores, torch threads 1" for k in ("AVX512", "AVX2"))
+    records = [item("dinov2_s", np.full(N_WINDOWS, 0.1), 0.8, hardware=avx512),
+               item("pixels", np.full(N_WINDOWS, 0.2), 0.3, hardware=avx512),
+               make_record(encoder="blind", hardware=avx2)]  # no episodes: not a rollout
+    assert rollout_hardware(records) == {}
+    records.append(item("siglip_b", np.full(N_WINDOWS, 0.15), 0.5, hardware=avx2))
+    assert rollout_hardware(records) == {
+        avx2: ["smolvla-spatial-siglip_b-seed0"],
+        avx512: ["smolvla-spatial-dinov2_s-seed0", "smolvla-spatial-pixels-seed0"]}
+    text = build.build_report(write_grid(tmp_path / "report", records), tmp_path / "REPORT.md",
+                              n_resamples=20, plots=False).read_text()
+    assert (f"**Rollouts ran on 2 machines' kernels** ({avx2}: smolvla-spatial-siglip_b-seed0 "
+            f"(1 cell(s)); {avx512}: smolvla-spatial-dinov2_s-seed0, "
+            "smolvla-spatial-pixels-seed0 (2 cell(s)))") in text

@@ -97,6 +97,28 @@ def closed_loop_caveat(ctx: ReportContext) -> str:
             + "a pre-commitment diagnostic for choosing an encoder, not a deployment claim.")
 
 
+def rollout_hardware(records) -> dict[str, list[str]]:
+    """{hardware line: cell ids} of the records holding episodes, when they name more than one
+    (a closed-loop study continued on another CPU, kernel set or thread count); {} otherwise."""
+    found: dict[str, list[str]] = {}
+    for r in records:
+        if (r.run.rollouts or {}).get("episodes"):
+            found.setdefault(str(r.run.hardware), []).append(r.cell_id)
+    return dict(sorted(found.items())) if len(found) > 1 else {}
+
+
+def hardware_caveat(found: dict[str, list[str]]) -> str:
+    """The caveat naming each machine the episodes were rolled out on, and what that moves."""
+    parts = [f"{line}: {', '.join(sorted(ids)[:3])}{' ...' if len(ids) > 3 else ''} "
+             f"({len(ids)} cell(s))" for line, ids in found.items()]
+    # The figures: docs/sim/REBUILD.md, "A graft on other kernels" (issue 54).
+    return (f"**Rollouts ran on {len(found)} machines' kernels** ({'; '.join(parts)}). Episodes "
+            "do not rebuild across kernels: one pinned Lite0 graft rolled out under AVX2 instead "
+            "of AVX-512 kernels changed 12 of its 40 episodes' outcomes (28 -> 26 successes); "
+            "retrained on them, its offline MSE moved by 2.5e-7 relative (docs/sim/REBUILD.md). "
+            "Compare these items' success by its intervals, never episode by episode.")
+
+
 MEASURE_COLUMNS = {"tau_b": "Kendall tau-b", "spearman_rho": "Spearman", "pearson_r": "Pearson r",
                    "mmrv": "MMRV", "top1_regret": "top-1 regret"}
 MEASURES_INTRO = (

@@ -10,7 +10,7 @@ from bench.analysis.rankings import CONFIDENCE, PRIMARY
 from bench.analysis.controls import UNCHECKED_HINT, VISION_RULE, VisionCheck, VisionComparison
 from bench.analysis.transfer import SUPPORT_RULES, min_exact_kendall_p
 from bench.grid.kinds import get_kind
-from bench.report.closed_loop import closed_loop_caveat
+from bench.report.closed_loop import closed_loop_caveat, hardware_caveat, rollout_hardware
 from bench.report.context import ReportContext
 from bench.report.encoders import encoder_infos, encoders_caveat, encoders_table
 from bench.report.screen import SCATTER_TITLE
@@ -104,11 +104,20 @@ def caveats(ctx: ReportContext) -> str:
     if differ:
         lines.append(f"**Constants that differ from the published study's**: {', '.join(differ)} "
                      "(table 'Protocol constants: the study's and ours' under Provenance).")
+    return bullets(lines + mixed_warnings(ctx.records, hashes))
+
+
+def mixed_warnings(records, hashes: list[str]) -> list[str]:
+    """What a folder mixes: protocols, a backbone's releases, the machines episodes ran on."""
+    out = []
     if len(hashes) > 1:
-        lines.append(f"**Warning: records come from {len(hashes)} different protocols** "
-                     f"({', '.join(hashes)}); numbers measured under different rules are mixed.")
-    lines += [release_warning(b, cells) for b, cells in mixed_releases(ctx.records).items()]
-    return bullets(lines)
+        out.append(f"**Warning: records come from {len(hashes)} different protocols** "
+                   f"({', '.join(hashes)}); numbers measured under different rules are mixed.")
+    out += [release_warning(b, cells) for b, cells in mixed_releases(records).items()]
+    machines = rollout_hardware(records)
+    if machines:
+        out.append(hardware_caveat(machines))
+    return out
 
 
 def mixed_releases(records) -> dict[str, dict[str, list[str]]]:
