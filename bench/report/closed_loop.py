@@ -6,7 +6,7 @@ from bench.analysis.agreement import SPEARMAN_TIES, TIE_RULE, Interval, Undefine
 from bench.analysis.offline_measures import MEASURES, TABLE_STATISTICS, VERDICT_STATISTIC
 from bench.analysis.rankings import CONFIDENCE
 from bench.report.context import ReportContext
-from bench.report.format import interval, num, table
+from bench.report.format import cells_by, interval, num, table
 
 CLOSED_LOOP_INTRO = (
     "Cells run with `--rollouts N` are also rolled out in the LIBERO simulator from fixed init "
@@ -104,15 +104,13 @@ def rollout_hardware(records) -> dict[str, list[str]]:
     for r in records:
         if (r.run.rollouts or {}).get("episodes"):
             found.setdefault(str(r.run.hardware), []).append(r.cell_id)
-    return dict(sorted(found.items())) if len(found) > 1 else {}
+    return found if len(found) > 1 else {}
 
 
 def hardware_caveat(found: dict[str, list[str]]) -> str:
     """The caveat naming each machine the episodes were rolled out on, and what that moves."""
-    parts = [f"{line}: {', '.join(sorted(ids)[:3])}{' ...' if len(ids) > 3 else ''} "
-             f"({len(ids)} cell(s))" for line, ids in found.items()]
     # The figures: docs/sim/REBUILD.md, "A graft on other kernels" (issue 54).
-    return (f"**Rollouts ran on {len(found)} machines' kernels** ({'; '.join(parts)}). Episodes "
+    return (f"**Rollouts ran on {len(found)} machines' kernels** ({cells_by(found)}). Episodes "
             "do not rebuild across kernels: one pinned Lite0 graft rolled out under AVX2 instead "
             "of AVX-512 kernels changed 12 of its 40 episodes' outcomes (28 -> 26 successes); "
             "retrained on them, its offline MSE moved by 2.5e-7 relative (docs/sim/REBUILD.md). "

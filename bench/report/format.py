@@ -55,3 +55,10 @@ def table(rows: Sequence[Sequence[Any]], headers: Sequence[str]) -> str:
 
 def bullets(lines: Sequence[str]) -> str:
     return "\n".join(f"- {line}" for line in lines)
+
+
+def cells_by(groups: dict[str, list[str]], shown: int = 3) -> str:
+    """{key: cell ids} -> 'key: a, b, c ... (n cell(s)); key2: ...', the keys sorted: which cells
+    a caveat's groups (releases, machines) hold."""
+    return "; ".join(f"{key}: {', '.join(sorted(ids)[:shown])}{' ...' if len(ids) > shown else ''} "
+                     f"({len(ids)} cell(s))" for key, ids in sorted(groups.items()))

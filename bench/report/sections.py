@@ -14,7 +14,8 @@ from bench.report.closed_loop import closed_loop_caveat, hardware_caveat, rollou
 from bench.report.context import ReportContext
 from bench.report.encoders import encoder_infos, encoders_caveat, encoders_table
 from bench.report.screen import SCATTER_TITLE
-from bench.report.format import bullets, half_width, interval, num, pct, table, yes_no
+from bench.report.format import (bullets, cells_by, half_width, interval, num, pct, table,
+                               yes_no)
 from bench.report.study import DISAGREES, compare_records
 from bench.results.record import RAW
 
@@ -131,10 +132,8 @@ def mixed_releases(records) -> dict[str, dict[str, list[str]]]:
 
 def release_warning(backbone: str, cells: dict[str, list[str]]) -> str:
     """The caveat naming each release of `backbone` and the cells measured on it."""
-    parts = [f"{rev}: {', '.join(sorted(ids)[:3])}{' ...' if len(ids) > 3 else ''} "
-             f"({len(ids)} cell(s))" for rev, ids in sorted(cells.items())]
     return (f"**Warning: {backbone}'s records were measured on {len(cells)} different releases** "
-            f"({'; '.join(parts)}); their numbers are not comparable: measure them again on one "
+            f"({cells_by(cells)}); their numbers are not comparable: measure them again on one "
             "release, or pin it in the grid file's [releases] (docs/sim/REBUILD.md).")
 
 
