@@ -19,7 +19,8 @@ Rules (stated in the report):
   a fit on the others scaled as all training windows are (screen_version 4: exact grouped
   cross-validation through a full fit's hat matrix, bench.screen.spectral.fold_errors); then
   refitted on all training episodes and scored on the held-out windows. k-NN: k in KNN_GRID
-  (<= the fitting windows), chosen the same way; uniform mean of the k nearest (Euclidean, standardised).
+  (<= the fitting windows), chosen the same way; uniform mean of the k nearest (Euclidean,
+  standardised).
 - LogME (You et al., 2021) is the exact evidence, with every one of the D eigenvalues of
   F^T F in ln|A| (the reference's fast path drops (D - k) ln(alpha) and is wrong for D > N),
   maximised over (alpha, beta) in bounded work; a supremum at alpha/beta -> 0 or -> infinity is
