@@ -25,7 +25,8 @@ NOT_RECORDS = {
     "bench/grid/gridfile.py": {"camera_map", "profile", "protocol"},  # a grid file's own fields
     "bench/grid/protocol.py": {"protocol"},  # a profile's own dict
     "bench/grid/user_specs.py": {"camera_map"},  # a --policy's config
-    "bench/resources/releases.py": {"backbone", "loss_curve", "revision"},  # release metadata, checkpoint id
+    "bench/resources/releases.py": {"backbone", "loss_curve", "revision", "release"},  # release metadata, checkpoint id
+    "bench/analysis/hierarchy.py": {"release", "seed"},  # the variance budget's level names
     "bench/grid/pinned_release.py": {"backbone"},  # a pinned release's metadata
     "bench/resources/user_policies.py": {"revision"},  # a --policy's checkpoint id
     "bench/resources/features.py": {"encoder", "grid", "suite"},  # the feature store's manifest

@@ -1,13 +1,15 @@
-"""Encoder rankings per backbone x suite: means over seeds, window-bootstrap intervals, tie bands.
+"""Encoder rankings per backbone x suite: means over releases and seeds, hierarchical intervals,
+tie bands.
 
-Pure functions over arrays first (`paired_window_bootstrap`, `top_tier_mask`, `seed_winner_index`),
+Pure functions over arrays first (`paired_bootstrap`, `top_tier_mask`, `seed_winner_index`),
 then `rank_encoders` / `rank_all`, which turn stored records into `Ranking`s.
 
-Interval method (stated in the report): scipy.stats.bootstrap with paired=True over the held-out
-WINDOWS. One resample draws window indices once and applies them to every cell (all encoders, all
-seeds) of a backbone x suite, so encoder differences are paired on identical windows; seeds are
-not resampled (the interval is the evaluation-set uncertainty given the trained projectors).
-Percentile intervals, `n_resamples` replicates, fixed `random_seed`.
+Interval method (stated in the report, in the words of bench.analysis.hierarchy.levels_text):
+a paired hierarchical bootstrap that draws releases, seeds within a release, held-out episodes
+and windows within an episode, once per replicate for every encoder of a backbone x suite, so
+encoder differences are paired on the same releases, seeds, episodes and windows. Percentile
+intervals, `n_resamples` replicates, fixed `random_seed`. Cells of different releases are never
+pooled silently: each is its own (release, seed) cell of the draw.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from typing import Sequence
 import numpy as np
 import scipy.stats
 
+from bench.analysis.hierarchy import (Units, components, episode_means, expand, levels_text,
+                                      percentile, replicate_means, t_expansion, windows_as_units)
 from bench.grid.kinds import GRAFT
 from bench.results.record import NORMALIZED, RAW
 
@@ -104,6 +108,46 @@ def paired_window_bootstrap(per_window: np.ndarray, leader: int, *,
     return BootstrapResult(means, lo[:n_enc], hi[:n_enc], diffs, diff_lo, diff_hi)
 
 
+def paired_bootstrap(values: np.ndarray, units: Units, leader: int, *,
+                     n_resamples: int = DEFAULT_RESAMPLES, confidence_level: float = CONFIDENCE,
+                     random_seed: int = 0) -> BootstrapResult:
+    """Percentile intervals for encoder means and paired differences vs `leader`, drawing
+    releases, seeds, episodes and windows (bench.analysis.hierarchy).
+
+    values: (E, R, S, W) float, NaN rows for absent (encoder, release, seed) cells; windows
+    aligned across cells and grouped into episodes by `units`. With one window, NaN intervals."""
+    values = np.asarray(values, dtype=float)
+    reps = replicate_means(values, units, n_resamples=n_resamples, random_seed=random_seed)
+    diffs = reps.point - reps.point[leader]
+    nan = np.full(len(reps.point), np.nan)
+    if values.shape[-1] < 2:
+        return BootstrapResult(reps.point, nan, nan.copy(), diffs, nan.copy(), nan.copy())
+    per_episode = episode_means(values, units)  # (E, R, S, K)
+    lo, hi = expand(reps.point, *percentile(reps.draws, confidence_level),
+                    small_sample_factors(per_episode, confidence_level))
+    d_lo, d_hi = expand(diffs, *percentile(reps.draws - reps.draws[leader][None],
+                                           confidence_level),
+                        small_sample_factors(per_episode - per_episode[leader][None],
+                                             confidence_level))
+    return BootstrapResult(reps.point, lo, hi, diffs, d_lo, d_hi)
+
+
+def small_sample_factors(tables: np.ndarray, confidence_level: float = CONFIDENCE) -> np.ndarray:
+    """(E,) t-expansion factors (bench.analysis.hierarchy.t_expansion) of each row's
+    (R, S, K) table of per-episode scores, on its Satterthwaite degrees of freedom; a table with
+    absent cells on the top varying level's units - 1."""
+    out = np.ones(len(tables))
+    for i, table in enumerate(tables):
+        if np.all(np.isfinite(table)):
+            df = components(table).df
+        else:
+            present = np.isfinite(table).all(axis=-1)  # (R, S)
+            n_r, n_s = present.any(axis=1).sum(), present.sum(axis=1).max()
+            df = max((n_r if n_r > 1 else n_s if n_s > 1 else table.shape[-1]) - 1, 1)
+        out[i] = t_expansion(df, confidence_level)
+    return out
+
+
 def top_tier_mask(diff_lo: np.ndarray, diff_hi: np.ndarray, leader: int) -> np.ndarray:
     """(E,) bool: the leader, and every encoder whose paired-difference interval contains 0."""
     lo, hi = np.asarray(diff_lo, dtype=float), np.asarray(diff_hi, dtype=float)
@@ -130,17 +174,19 @@ def seed_winner_index(seed_means: np.ndarray) -> np.ndarray:
 
 @dataclass
 class EncoderResult:
-    """One encoder on one backbone x suite. Values are MSE; `diff` is encoder minus leader."""
+    """One encoder on one backbone x suite. Values are MSE; `diff` is encoder minus leader.
+    per_seed: metric -> cell -> MSE, the cell a seed (one release) or 'rel<r>-seed<s>'."""
 
     encoder: str
     rank: int
     seeds: list[int]
-    per_seed: dict[str, dict[int, float]]  # metric -> seed -> MSE
+    per_seed: dict[str, dict]  # metric -> cell key -> MSE
     mean: dict[str, float]
     ci: dict[str, tuple[float, float]]
     diff: dict[str, float]
     diff_ci: dict[str, tuple[float, float]]
     in_top_tier: bool
+    releases: list[int] = field(default_factory=lambda: [0])
 
 
 @dataclass
@@ -152,8 +198,11 @@ class Ranking:
     encoders: list[EncoderResult] = field(default_factory=list)
     seeds: list[int] = field(default_factory=list)
     n_windows: int = 0
-    seed_winners: dict[int, str] = field(default_factory=dict)
+    seed_winners: dict = field(default_factory=dict)  # cell key -> its best encoder
     error: str | None = None
+    releases: list[int] = field(default_factory=lambda: [0])
+    n_episodes: int = 0
+    interval: str = ""  # the levels the intervals draw (bench.analysis.hierarchy.levels_text)
 
     @property
     def leader(self) -> str | None:
@@ -165,7 +214,7 @@ class Ranking:
 
     @property
     def seed_sensitive(self) -> bool:
-        """True when different seeds are won by different encoders."""
+        """True when different cells (seeds, or release x seed) are won by different encoders."""
         return len(set(self.seed_winners.values())) > 1
 
     def to_dict(self) -> dict:
@@ -198,6 +247,55 @@ def align_windows(cells: Sequence[dict]) -> tuple[list[int], list[np.ndarray]]:
     return ref_ids, orders
 
 
+def record_units(record) -> Units:
+    """The episodes a record's windows come from (its window order): stored ids; for records
+    made before they were, the task ids where the protocol held out one episode per task (then
+    the task is the episode); else each window its own unit."""
+    sc = record.scores
+    if sc.window_episode is not None:
+        return Units(np.asarray(sc.window_episode), np.asarray(sc.window_task))
+    held = (record.measured.protocol or {}).get("heldout_episodes_per_task")
+    if sc.window_task is not None and held == 1:
+        return Units(np.asarray(sc.window_task), np.asarray(sc.window_task), source="task")
+    return windows_as_units(sc.n_windows)
+
+
+def cell_key(release: int, seed: int, releases: Sequence[int]) -> int | str:
+    """A cell's key in per-cell tables: its seed when one release is measured, else
+    'rel<r>-seed<s>'."""
+    return int(seed) if len(releases) == 1 else f"rel{release}-seed{seed}"
+
+
+@dataclass
+class CellArrays:
+    """Cells of one backbone x suite by item, release and seed: values[metric] (I, R, S, W)
+    with NaN for absent cells, windows in the first cell's order, grouped by `units`."""
+
+    items: list[str]
+    releases: list[int]
+    seeds: list[int]
+    window_ids: list[int]
+    units: Units
+    values: dict[str, np.ndarray]
+
+
+def cell_arrays(cells: Sequence, item_of, metrics: Sequence[str] = METRICS) -> CellArrays:
+    """Stack records (`item_of(record)` names each one's item) into CellArrays; raises
+    WindowMismatchError when their held-out windows differ."""
+    window_ids, orders = align_windows(cells)
+    items = sorted({item_of(c) for c in cells})
+    releases = sorted({int(c.release) for c in cells})
+    seeds = sorted({int(c.seed) for c in cells})
+    shape = (len(items), len(releases), len(seeds), len(window_ids))
+    values = {m: np.full(shape, np.nan) for m in metrics}
+    for cell, order in zip(cells, orders):
+        at = items.index(item_of(cell)), releases.index(int(cell.release)), seeds.index(int(cell.seed))
+        for m in metrics:
+            values[m][at] = np.asarray(cell.scores.per_window_in(m), dtype=float)[order]
+    units = record_units(cells[0])
+    return CellArrays(items, releases, seeds, window_ids, units, values)
+
+
 def graft_records(records: Sequence[dict], backbone: str, suite: str) -> list[dict]:
     return [r for r in records if r.kind == GRAFT and r.backbone == backbone
             and r.suite == suite]
@@ -205,41 +303,43 @@ def graft_records(records: Sequence[dict], backbone: str, suite: str) -> list[di
 
 def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
                   n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> Ranking:
-    """Rank the graft cells of `backbone` x `suite` by mean normalised MSE over seeds."""
+    """Rank the graft cells of `backbone` x `suite` by mean normalised MSE over releases and
+    seeds."""
     ranking = Ranking(backbone=backbone, suite=suite)
     cells = graft_records(records, backbone, suite)
     if not cells:
         ranking.error = "no graft cells"
         return ranking
-    window_ids, orders = align_windows(cells)
-    encoders = sorted({c.encoder for c in cells})
-    seeds = sorted({int(c.seed) for c in cells})
-    ranking.seeds, ranking.n_windows = seeds, len(window_ids)
-    arrays = {m: np.full((len(encoders), len(seeds), len(window_ids)), np.nan) for m in METRICS}
-    for cell, order in zip(cells, orders):
-        e, s = encoders.index(cell.encoder), seeds.index(int(cell.seed))
-        for m in METRICS:
-            arrays[m][e, s] = np.asarray(cell.scores.per_window_in(m), dtype=float)[order]
-    point, _ = encoder_means(arrays[PRIMARY], 0)
+    ca = cell_arrays(cells, lambda c: c.encoder)
+    encoders, releases, seeds = ca.items, ca.releases, ca.seeds
+    ranking.seeds, ranking.releases, ranking.n_windows = seeds, releases, len(ca.window_ids)
+    ranking.n_episodes = len(ca.units.episodes)
+    ranking.interval = levels_text(len(releases), len(seeds), ca.units)
+    cell_means = {m: ca.values[m].mean(axis=-1) for m in METRICS}  # (E, R, S)
+    point = np.nanmean(cell_means[PRIMARY].reshape(len(encoders), -1), axis=1)
     order_idx = sorted(range(len(encoders)), key=lambda i: (point[i], encoders[i]))
     leader = order_idx[0]
-    boot = {m: paired_window_bootstrap(arrays[m], leader, n_resamples=n_resamples,
-                                       random_seed=random_seed) for m in METRICS}
+    boot = {m: paired_bootstrap(ca.values[m], ca.units, leader, n_resamples=n_resamples,
+                                random_seed=random_seed) for m in METRICS}
     tier = top_tier_mask(boot[PRIMARY].diff_lo, boot[PRIMARY].diff_hi, leader)
-    seed_means = {m: arrays[m].mean(axis=-1) for m in METRICS}
+    keys = [(r, s) for r in releases for s in seeds]
+    flat = {m: cell_means[m].reshape(len(encoders), -1) for m in METRICS}  # (E, R*S)
     for rank, i in enumerate(order_idx, start=1):
-        present = [s for j, s in enumerate(seeds) if np.isfinite(seed_means[PRIMARY][i, j])]
+        present = [j for j in range(len(keys)) if np.isfinite(flat[PRIMARY][i, j])]
         ranking.encoders.append(EncoderResult(
-            encoder=encoders[i], rank=rank, seeds=present,
-            per_seed={m: {s: float(seed_means[m][i, seeds.index(s)]) for s in present}
+            encoder=encoders[i], rank=rank,
+            seeds=sorted({keys[j][1] for j in present}),
+            per_seed={m: {cell_key(*keys[j], releases): float(flat[m][i, j]) for j in present}
                       for m in METRICS},
             mean={m: float(boot[m].mean[i]) for m in METRICS},
             ci={m: (float(boot[m].mean_lo[i]), float(boot[m].mean_hi[i])) for m in METRICS},
             diff={m: float(boot[m].diff[i]) for m in METRICS},
             diff_ci={m: (float(boot[m].diff_lo[i]), float(boot[m].diff_hi[i])) for m in METRICS},
-            in_top_tier=bool(tier[i])))
-    winners = seed_winner_index(seed_means[PRIMARY])
-    ranking.seed_winners = {s: encoders[w] for s, w in zip(seeds, winners) if w >= 0}
+            in_top_tier=bool(tier[i]),
+            releases=sorted({keys[j][0] for j in present})))
+    winners = seed_winner_index(flat[PRIMARY])
+    ranking.seed_winners = {cell_key(*keys[j], releases): encoders[w]
+                            for j, w in enumerate(winners) if w >= 0}
     return ranking
 
 

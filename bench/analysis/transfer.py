@@ -62,8 +62,8 @@ class SeedCell:
     suite: str
     small: str
     large: str
-    small_seed: int
-    large_seed: int
+    small_seed: int | str  # a seed, or 'rel<r>-seed<s>' (bench.analysis.rankings.cell_key)
+    large_seed: int | str
     encoders: list[str]
     small_winner: str | None
     large_winner: str | None
@@ -100,10 +100,16 @@ class Transfer:
         return asdict(self)
 
 
+def _cell_keys(ranking: Ranking) -> list:
+    """The ranking's trained cells, as its per-cell tables key them (a seed, or
+    'rel<r>-seed<s>' when several releases were measured)."""
+    return list(dict.fromkeys(k for e in ranking.encoders for k in e.per_seed[PRIMARY]))
+
+
 def _seed_cells(suite: str, small: Ranking, large: Ranking) -> list[SeedCell]:
     cells = []
-    for s_small in small.seeds:
-        for s_large in large.seeds:
+    for s_small in _cell_keys(small):
+        for s_large in _cell_keys(large):
             pairs = []
             for enc in small.encoders:
                 other = next((e for e in large.encoders if e.encoder == enc.encoder), None)

@@ -55,7 +55,8 @@ def claim_mates(service, lead: CellPlan, claims: contextlib.ExitStack) -> list[C
         if len(mates) == wanted:
             break
         if (mate.id == cell.id or mate.id in service.records or mate.id in service.pack_failures
-                or (mate.backbone, mate.suite) != (cell.backbone, cell.suite)
+                or (mate.backbone, mate.suite, mate.release)
+                != (cell.backbone, cell.suite, cell.release)
                 or packable(mate) is not None or _takes_graft_projector(mate, service)):
             continue
         one = contextlib.ExitStack()
@@ -93,7 +94,7 @@ def _train_and_write(service, plans: list[CellPlan]) -> CellResult:
         if plan.discard:  # a degraded record never outlives its run
             ws.store.forget(plan.cell.id)
     lead = plans[0].cell
-    reset_peak_memory(next(ws.backbone(lead.backbone, lead.suite).policy.parameters()).device)
+    reset_peak_memory(next(ws.backbone(lead.backbone, lead.suite, lead.release).policy.parameters()).device)
     try:
         items = train_pack([p.cell for p in plans], ws, [p.context for p in plans],
                            label=f"{lead.backbone}-{lead.suite} pack")
@@ -120,6 +121,6 @@ def _score(ws, plan: CellPlan, item) -> CellResult:
     if item.error is not None:
         raise item.error
     cell, graft = plan.cell, item.graft
-    return score_cell(cell, ws, plan.context, ws.backbone(cell.backbone, cell.suite),
+    return score_cell(cell, ws, plan.context, ws.backbone(cell.backbone, cell.suite, cell.release),
                       graft.inputs, graft, item.fitted, dict(item.timings),
                       spent=sum(item.timings.values()))

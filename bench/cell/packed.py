@@ -196,7 +196,7 @@ def train_pack(cells: Sequence, ws, contexts: Sequence, label: str = "packed") -
     from bench.cell.runner import (Fitted, build_graft, cell_inputs, graft_fit_config,
                                   probe_frames, probe_loss)
 
-    worlds = {(c.backbone, c.suite) for c in cells}
+    worlds = {(c.backbone, c.suite, c.release) for c in cells}
     reasons = [f"{c.id}: {why}" for c in cells if (why := packable(c))]
     reasons += [f"{c.id}: it takes its graft's projector" for c, x in zip(cells, contexts)
                 if x.reuse is not None]
@@ -205,7 +205,7 @@ def train_pack(cells: Sequence, ws, contexts: Sequence, label: str = "packed") -
                          + ("; ".join(reasons) or f"{len(worlds)} backbone x suite pairs"))
     p = ws.profile.protocol
     cell0 = cells[0]
-    backbone, split = ws.backbone(cell0.backbone, cell0.suite), ws.split(cell0.suite)
+    backbone, split = ws.backbone(cell0.backbone, cell0.suite, cell0.release), ws.split(cell0.suite)
     device, probe = next(backbone.policy.parameters()).device, probe_frames(split.train_frames)
     packed, members = [], []
     for cell, context in zip(cells, contexts):
@@ -220,7 +220,7 @@ def train_pack(cells: Sequence, ws, contexts: Sequence, label: str = "packed") -
         timings = {"build": t1 - t0, "features": t2 - t1, "train": time.perf_counter() - t2}
         packed.append((PackedGraft(cell, graft, timings=timings), next_batch, before, cfg))
         members.append(PackedCell(cell.id, list(graft.projector.parameters()), graft.feed,
-                                  split.train_frames, next_batch, cell.seed, cfg))
+                                  split.train_frames, next_batch, cell.train_seed, cfg))
     t0 = time.perf_counter()
     fits = fit_packed(backbone, members, members[0].cfg, label=label, progress=ws.progress)
     share = (time.perf_counter() - t0) / len(members)

@@ -105,8 +105,8 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
     suite, split = ws.suite(cell.suite), ws.split(cell.suite)
-    backbone = (ws.fresh_backbone(cell.backbone, cell.suite) if kind.lora
-                else ws.backbone(cell.backbone, cell.suite))
+    backbone = (ws.fresh_backbone(cell.backbone, cell.suite, cell.release) if kind.lora
+                else ws.backbone(cell.backbone, cell.suite, cell.release))
     device = next(backbone.policy.parameters()).device
     reset_peak_memory(device)
     inputs = cell_inputs(cell, p, suite, split, backbone, device)
@@ -173,7 +173,7 @@ def cell_inputs(cell: CellSpec, p, suite, split, backbone, device) -> CellInputs
                       backbone.info.chunk_size, device,
                       cell.spec.grid(backbone.info.native_grid, cell.variant),
                       tower=cell.spec.tower, train_shift=p.graft_image_shift,
-                      shift_seed=stable_seed(cell.seed, "graft-image-shift"),
+                      shift_seed=stable_seed(cell.train_seed, "graft-image-shift"),
                       tune_encoder=cell.spec.tune_encoder)
 
 
@@ -195,12 +195,12 @@ def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
         channels = (int(next(iter(inputs.features.values())).shape[-1]) if inputs.features
                     else inputs.encoder.channels)
     with torch.random.fork_rng():
-        torch.manual_seed(stable_seed(cell.seed, "projector-init"))
+        torch.manual_seed(stable_seed(cell.train_seed, "projector-init"))
         projector = Projector(channels, info.lm_width).to(inputs.device)
     lora_params = 0
     if cell.spec.lora:
         with torch.random.fork_rng():  # peft draws lora_A's init from the global generator
-            torch.manual_seed(stable_seed(cell.seed, "lora-init"))
+            torch.manual_seed(stable_seed(cell.train_seed, "lora-init"))
             lora_params = _add_lora(backbone, p)
     encoder_params = trainable_parameters(inputs.encoder) if cell.spec.tune_encoder else 0
     frozen = [backbone.policy] + ([inputs.encoder] if inputs.encoder is not None else [])
@@ -240,7 +240,7 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
     fit_cfg = graft_fit_config(cell, p)
     # A tuned encoder trains at its own, lower rate (Protocol.encoder_lr), same schedule.
     tuned = ([(graft.inputs.encoder.parameters(), p.encoder_lr)] if graft.encoder_params else [])
-    curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.seed,
+    curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.train_seed,
                 feed=graft.feed, label=cell.id, progress=ws.progress, other_lrs=tuned)
     probe_losses = {"before": before,
                     "after": probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)}
@@ -256,8 +256,8 @@ def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
     camera_map, dataset = user_world_fields(cell, ws, backbone)
     return MeasuredUnder(
         profile=ws.profile.name, protocol=p.to_dict(), protocol_hash=p.hash,
-        checkpoint=checkpoint_of(ws.checkpoint(cell.backbone, cell.suite),
-                                 ws.normalizer(cell.backbone, cell.suite).source,
+        checkpoint=checkpoint_of(ws.checkpoint(cell.backbone, cell.suite, cell.release),
+                                 ws.normalizer(cell.backbone, cell.suite, cell.release).source,
                                  backbone.normalizer_fingerprint()),
         grid=list(inputs.grid),
         features_mode=features_mode if inputs.encoder is not None else None,

@@ -157,8 +157,8 @@ class CellService:
         from bench.results.record import checkpoint_revision
 
         ws = self.workspace()
-        return replace(run, revision=checkpoint_revision(ws.checkpoint(cell.backbone, cell.suite)),
-                       normalizer_fingerprint=ws.normalizer(cell.backbone, cell.suite).fingerprint)
+        return replace(run, revision=checkpoint_revision(ws.checkpoint(cell.backbone, cell.suite, cell.release)),
+                       normalizer_fingerprint=ws.normalizer(cell.backbone, cell.suite, cell.release).fingerprint)
 
     def _measure(self, cell_plan: CellPlan):
         cell = cell_plan.cell

@@ -87,8 +87,8 @@ def rebuild_cell(results_dir: str | Path, record: Record, progress: bool = False
                   and lend_from.profile.protocol.replace(steps=0) == protocol.replace(steps=0))
     ws = (dataclasses.replace(lend_from, profile=profile, store=store) if same_world
           else Workspace(profile, store, progress=progress))
-    backbone = ws.backbone(record.backbone, record.suite)
-    now = checkpoint_revision(ws.checkpoint(record.backbone, record.suite))
+    backbone = ws.backbone(record.backbone, record.suite, record.release)
+    now = checkpoint_revision(ws.checkpoint(record.backbone, record.suite, record.release))
     if measured.revision and now != measured.revision:
         raise ExportError(f"cell {record.cell_id} was measured on weights {measured.revision}, "
                           f"this machine has {now}: fetch that revision or run the cell again")

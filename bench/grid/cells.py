@@ -3,6 +3,7 @@ kind of cell means is declared once, in bench.grid.kinds."""
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 from bench.grid.kinds import (CELL_KINDS, GRAFT, NATIVE, CellKind, cell_id, encoder_slot,
@@ -25,6 +26,7 @@ class CellSpec:
     seed: int
     encoder: str | None = None  # None: the released policy's own tower
     variant: str | None = None
+    release: int = 0  # which independently trained release of the backbone (Profile)
 
     def __post_init__(self) -> None:
         get_kind(self.kind).check(self.encoder, self.variant)
@@ -34,6 +36,17 @@ class CellSpec:
         return get_kind(self.kind)
 
     @property
+    def train_seed(self) -> int:
+        """The seed of this cell's training streams (projector init, batches, flow noise): the
+        cell seed on release 0 (as before releases were a factor), one of its own on another
+        release, so that two releases' cells of one seed are independent trainings."""
+        if self.release == 0:
+            return self.seed
+        # bench.results.provenance.stable_seed's rule, spelt here: that module loads torch.
+        digest = hashlib.sha256(f"release:{self.release}:seed:{self.seed}".encode()).hexdigest()
+        return int(digest[:8], 16) & 0x7FFFFFFF
+
+    @property
     def trains_projector(self) -> bool:
         return self.spec.trains_projector(self.encoder)
 
@@ -41,7 +54,8 @@ class CellSpec:
     def id(self) -> str:
         """Reads as the cell: smolvla-spatial-dinov2_s-seed0, smolvla-spatial-native-seed0,
         smolvla-spatial-pixels-pool_half-seed0, smolvla-spatial-native-zero_image_eval-seed0."""
-        return cell_id(self.kind, self.backbone, self.suite, self.encoder, self.seed, self.variant)
+        return cell_id(self.kind, self.backbone, self.suite, self.encoder, self.seed, self.variant,
+                       self.release)
 
     @property
     def reference(self) -> "CellSpec | None":
@@ -51,14 +65,15 @@ class CellSpec:
             return None
         kind, variant = ref
         return CellSpec(kind, self.backbone, self.suite, self.seed,
-                        self.encoder if kind != NATIVE else None, variant)
+                        self.encoder if kind != NATIVE else None, variant, self.release)
 
 
 def graft_cells(profile: Profile) -> list[CellSpec]:
     return [
-        CellSpec(GRAFT, b, s, seed, e)
+        CellSpec(GRAFT, b, s, seed, e, release=r)
         for b in profile.backbones
         for s in profile.suites
+        for r in profile.release_indices
         for e in profile.encoders
         for seed in profile.seeds
     ]
@@ -73,17 +88,16 @@ def control_cells(profile: Profile) -> list[CellSpec]:
     tuned = (tunable_encoders(profile.encoders, profile.source)
              if any(k.tune_encoder for k in kinds) else ())
     cells: list[CellSpec] = []
-    for b in profile.backbones:
-        for s in profile.suites:
-            for seed in profile.seeds:
-                cells += [CellSpec(k.name, b, s, seed, None, v)
-                          for k in kinds if k.encoder != "required" for v in k.native_variants]
-                cells += [CellSpec(k.name, b, s, seed, e, v)
-                          for e in profile.control_encoders
-                          for k in kinds if k.encoder != "none" and not k.tune_encoder
-                          for v in k.variants]
-                cells += [CellSpec(k.name, b, s, seed, e, v)
-                          for k in kinds if k.tune_encoder for e in tuned for v in k.variants]
+    for b, s, r, seed in ((b, s, r, seed) for b in profile.backbones for s in profile.suites
+                          for r in profile.release_indices for seed in profile.seeds):
+        cells += [CellSpec(k.name, b, s, seed, None, v, r)
+                  for k in kinds if k.encoder != "required" for v in k.native_variants]
+        cells += [CellSpec(k.name, b, s, seed, e, v, r)
+                  for e in profile.control_encoders
+                  for k in kinds if k.encoder != "none" and not k.tune_encoder
+                  for v in k.variants]
+        cells += [CellSpec(k.name, b, s, seed, e, v, r)
+                  for k in kinds if k.tune_encoder for e in tuned for v in k.variants]
     return cells
 
 
@@ -106,9 +120,10 @@ def tunable_encoders(names: tuple[str, ...], source: str = "tiny") -> tuple[str,
 def tier_cells(profile: Profile) -> list[CellSpec]:
     """--screen only: each tier kind's cells (the short grafts) of every listed encoder, seed and
     variant, whatever the screen selects (a tier is measured against the graft on all of them)."""
-    return [CellSpec(k.name, b, s, seed, e, v)
-            for b in profile.backbones for s in profile.suites for e in profile.encoders
-            for seed in profile.seeds for k in tier_kinds() for v in k.variants]
+    return [CellSpec(k.name, b, s, seed, e, v, r)
+            for b in profile.backbones for s in profile.suites for r in profile.release_indices
+            for e in profile.encoders for seed in profile.seeds for k in tier_kinds()
+            for v in k.variants]
 
 
 def grid_cells(profile: Profile, screen: bool) -> list[CellSpec]:

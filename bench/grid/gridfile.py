@@ -39,6 +39,13 @@ A committed study's tiny releases, pinned (bench.grid.pinned_release; checked at
 
     [releases]                       # BACKBONE = "FOLDER": <backbone>-<content hash>, relative
     pi05 = "releases/pi05-0123456789abcdef"   # to the grid file's folder; tiny profiles only
+    smolvla = ["releases/smolvla-...", "releases/smolvla-..."]  # one per release, in order
+
+Several independently trained tiny releases per backbone (release r trains from seed r; every
+cell is measured on each, its id carrying `-rel<r>` for r > 0):
+
+    releases_per_backbone = 3
+    sim_demos = 6                    # sim profile: demonstrations per task (--sim-demos replaces it)
 
 Adding a key is one entry in `KEYS` or `TABLES` plus the line of `GridFile.apply` that passes it
 on. A key nothing can pass on yet is rejected, never silently ignored.
@@ -87,6 +94,13 @@ class GridFile:
             raise _fail(self.info.path, "[releases]", f"pins tiny releases, and profile "
                         f"{base.name!r} loads real checkpoints; drop [releases] or use a tiny "
                         "profile (tiny, tiny-full, sim)")
+        if dict(self.grid).get("sim_demos") and base.data_source != "sim":
+            raise _fail(self.info.path, "sim_demos", f"sets simulated demonstrations, and profile "
+                        f"{base.name!r} has no simulated suites; drop it or use profile sim")
+        if dict(self.grid).get("releases_per_backbone", 1) > 1 and base.source != "tiny":
+            raise _fail(self.info.path, "releases_per_backbone", f"> 1 trains tiny releases, and "
+                        f"profile {base.name!r} loads real checkpoints; name each independently "
+                        "trained checkpoint as its own backbone (--policy NAME=PATH) instead")
         return with_overrides(with_file, steps=self.steps, **dict(self.grid))
 
 
@@ -151,6 +165,21 @@ def _pack_grafts(where: str, key: str, value) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise _fail(where, key, f"= {value!r}: give a whole number of grafts per backbone pass "
                                 ">= 1, e.g. pack_grafts = 4 (1: one at a time, the default)")
+    return value
+
+
+def _releases_per_backbone(where: str, key: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 16:
+        raise _fail(where, key, f"= {value!r}: give a whole number of independently trained "
+                                "releases per backbone in [1, 16], e.g. releases_per_backbone = 3")
+    return value
+
+
+def _sim_demos(where: str, key: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 100:
+        raise _fail(where, key, f"= {value!r}: give successful scripted demonstrations per task "
+                                "in [1, 100] (held-out episodes are drawn from them), e.g. "
+                                "sim_demos = 6")
     return value
 
 
@@ -222,7 +251,10 @@ KEYS: dict[str, Callable] = {
     "steps": _steps,
     "robustness": _strings,  # perturbations, checked with --robustness's rules (bench.options)
     "pack_grafts": _pack_grafts,  # passed on by bench.options (a run setting), not by `apply`
+    "releases_per_backbone": _releases_per_backbone,
+    "sim_demos": _sim_demos,
 }
+
 def _named_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
     if not isinstance(table, dict) or not all(isinstance(v, str) and v for v in table.values()):
         raise _fail(where, key, f"= {table!r}: give a [{key}] table of NAME = \"REPO_ID_OR_PATH\"")
@@ -250,20 +282,30 @@ def _camera_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
 
 def _releases_table(where: str, key: str, table) -> tuple[tuple[str, str], ...]:
     """[releases]: each folder checked now (its content hash), so a tampered pin stops the run
-    at start-up instead of measuring on other weights."""
+    at start-up instead of measuring on other weights. A list pins releases 0, 1, ... in order."""
     from bench.grid.pinned_release import check_pinned
 
-    if not isinstance(table, dict) or not all(isinstance(v, str) and v for v in table.values()):
-        raise _fail(where, key, f"= {table!r}: give a [{key}] table of BACKBONE = \"FOLDER\"")
+    def folders(value) -> list | None:
+        if isinstance(value, str) and value:
+            return [value]
+        if isinstance(value, list) and value and all(isinstance(v, str) and v for v in value):
+            return value
+        return None
+
+    if not isinstance(table, dict) or any(folders(v) is None for v in table.values()):
+        raise _fail(where, key, f"= {table!r}: give a [{key}] table of BACKBONE = \"FOLDER\" "
+                                "or BACKBONE = [\"FOLDER_0\", \"FOLDER_1\", ...] (one per release)")
     out = []
-    for backbone, target in table.items():
-        folder = Path(where).parent / Path(target).expanduser()
-        try:
-            pinned = check_pinned(backbone, folder, f"{where}: [{key}]")
-            out.append((backbone, str(pinned.resolve())))
-        except ValueError as e:
-            raise GridFileError(str(e)) from None
+    for backbone, value in table.items():
+        for target in folders(value):
+            folder = Path(where).parent / Path(target).expanduser()
+            try:
+                pinned = check_pinned(backbone, folder, f"{where}: [{key}]")
+                out.append((backbone, str(pinned.resolve())))
+            except ValueError as e:
+                raise GridFileError(str(e)) from None
     return tuple(out)
+
 
 
 TABLES: dict[str, Callable] = {"protocol": _protocol, "policies": _named_table,
@@ -271,7 +313,7 @@ TABLES: dict[str, Callable] = {"protocol": _protocol, "policies": _named_table,
                                "releases": _releases_table}
 USER_WORLD_TABLES = {"policies": "policies", "datasets": "datasets", "camera_map": "camera_map"}
 PROFILE_FIELDS = ("backbones", "suites", "encoders", "seeds", "controls", "control_encoders",
-                  "robustness", "releases")
+                  "robustness", "releases", "releases_per_backbone", "sim_demos")
 
 
 def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
@@ -285,6 +327,7 @@ def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
             raise _unknown_key(where, key, key, known)
         values[key] = check(where, key, value)
     protocol = values.get("protocol", ())
+    _check_release_pins(where, values)
     if "steps" in values and "steps" in dict(protocol):
         raise _fail(where, "steps", "is given twice (top level and [protocol]); keep one")
     return GridFile(info=info, profile=values.get("profile"),
@@ -293,6 +336,18 @@ def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
                     user_world=tuple((field, values[t]) for t, field in USER_WORLD_TABLES.items()
                                      if t in values),
                     pack_grafts=values.get("pack_grafts"))
+
+
+def _check_release_pins(where: str, values: dict) -> None:
+    """Every pinned backbone pins all its releases: a study never mixes pinned releases with
+    ones trained on this machine (other kernels give other weights, docs/sim/REBUILD.md)."""
+    count = values.get("releases_per_backbone", 1)
+    for backbone in dict(values.get("releases", ())):
+        pinned = sum(1 for name, _ in values["releases"] if name == backbone)
+        if pinned != count:
+            raise _fail(where, "[releases]", f"{backbone} pins {pinned} release(s) and "
+                        f"releases_per_backbone = {count}; pin one folder per release (a list "
+                        "in release order) or set releases_per_backbone to match")
 
 
 def read_grid_file(path: str | Path) -> GridFile:

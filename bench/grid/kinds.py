@@ -243,10 +243,13 @@ def encoder_slot(encoder: str) -> str:
 
 
 def cell_id(kind: str, backbone: str, suite: str, encoder: str | None, seed: int,
-            variant: str | None = None) -> str:
+            variant: str | None = None, release: int = 0) -> str:
     """smolvla-spatial-dinov2_s-seed0, smolvla-spatial-native-seed0,
-    smolvla-spatial-pixels-pool_half-seed0, smolvla-spatial-native-zero_image_eval-seed0."""
-    parts = [backbone, suite, *get_kind(kind).id_parts(encoder, variant), f"seed{seed}"]
+    smolvla-spatial-pixels-pool_half-seed0, smolvla-spatial-native-zero_image_eval-seed0;
+    on a backbone's release r > 0: smolvla-spatial-dinov2_s-rel2-seed0 (release 0 keeps the
+    ids it had before releases were a factor, so its records resume)."""
+    parts = [backbone, suite, *get_kind(kind).id_parts(encoder, variant),
+             *([f"rel{release}"] if release else []), f"seed{seed}"]
     return "-".join(parts)
 
 

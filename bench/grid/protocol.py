@@ -200,11 +200,25 @@ class Profile:
     # Pinned tiny releases (the grid file's [releases], bench.grid.pinned_release): (BACKBONE,
     # FOLDER) pairs loaded instead of training or reusing the cached release. Not part of
     # `protocol`: the records carry the weights' sha256 (checkpoint revision) instead.
+    # A backbone named several times holds its releases in order (release 0 first).
     releases: tuple[tuple[str, str], ...] = ()
+    # Independently seeded native trainings of the same recipe per tiny backbone (the grid file's
+    # `releases_per_backbone`): release r trains from seed r, and every cell is measured on each,
+    # so intervals can draw what two trainings of one choice move. 1: today's single release.
+    releases_per_backbone: int = 1
 
     @property
     def data_source(self) -> str:
         return self.suite_source or self.source
+
+    @property
+    def release_indices(self) -> tuple[int, ...]:
+        return tuple(range(self.releases_per_backbone))
+
+    def pinned_release(self, backbone: str, release: int = 0) -> str | None:
+        """The pinned folder of `backbone`'s release `release` (None: trained or cached here)."""
+        folders = [folder for name, folder in self.releases if name == backbone]
+        return folders[release] if release < len(folders) else None
 
 
 TINY_FULL = Profile(

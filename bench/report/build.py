@@ -23,6 +23,7 @@ from bench.analysis.rollouts import closed_loop_all
 from bench.analysis.transfer import support_counts, transfer_all
 from bench.grid.kinds import GRAFT
 from bench.results.store import Results, load_results
+from bench.report.budget import TITLE as BUDGET_TITLE, budget_section, budgets
 from bench.report.closed_loop import closed_loop_section
 from bench.report.context import ReportContext
 from bench.report.lead import answer_lines
@@ -42,6 +43,7 @@ from bench.results.record import NORMALIZED, RAW
 SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
     ("Caveats", caveats),
     ("Encoder rankings", rankings_section),
+    (BUDGET_TITLE, budget_section),
     ("Vision use", vision_section),
     ("Rank transfer between backbones", transfer_section),
     ("Tie bands", tie_section),
@@ -176,8 +178,21 @@ def summary(ctx: ReportContext) -> dict:
         "protocol_constants": protocol_constants(ctx.records),
         "cells": {"finished": len(ctx.records), "failed": [f.cell_id for f in res.failed],
                   "missing": res.missing, "skipped": res.skipped},
-        "bootstrap": {"n_resamples": ctx.n_resamples, "method": "percentile, paired windows"},
+        "releases": releases_per_backbone(ctx.records),
+        "variance_budget": [b.to_dict() for b in budgets(ctx)],
+        "bootstrap": {"n_resamples": ctx.n_resamples,
+                      "method": "paired hierarchical: releases, seeds, episodes, windows "
+                                "(n - 1 of n), percentile widened by t / z",
+                      "levels": {f"{r.backbone} x {r.suite}": r.interval for r in ctx.rankings}},
     })
+
+
+def releases_per_backbone(records) -> dict[str, dict[int, str]]:
+    """{backbone: {release index: its weights' revision}}: the releases the records name."""
+    out: dict[str, dict[int, str]] = {}
+    for r in records:
+        out.setdefault(r.backbone, {})[int(r.release)] = str(r.measured.revision)
+    return {b: dict(sorted(v.items())) for b, v in sorted(out.items())}
 
 
 def _figures(ctx: ReportContext, folder: Path) -> list[tuple[str, Path]]:

@@ -20,15 +20,23 @@ from bench.report.study import DISAGREES, compare_records
 from bench.results.record import RAW
 
 TIER_RULE = (
-    f"**Top tier (near-tie band)**: the leader (lowest mean normalised MSE over seeds) plus every "
-    f"encoder whose paired difference to the leader (encoder minus leader, same windows, mean "
-    f"over the seeds both have) has a {CONFIDENCE:.0%} bootstrap interval that contains 0."
+    f"**Top tier (near-tie band)**: the leader (lowest mean normalised MSE over releases and "
+    f"seeds) plus every encoder whose paired difference to the leader (encoder minus leader, "
+    f"same releases, seeds, episodes and windows) has a {CONFIDENCE:.0%} interval that contains 0."
 )
 INTERVAL_METHOD = (
-    "Intervals: scipy.stats.bootstrap (percentile, paired=True) over held-out **windows**: each "
-    "replicate draws one set of window indices and applies it to every cell (all encoders, all "
-    "seeds) of the backbone x suite, so differences are paired; seeds are kept, not resampled."
+    "Intervals: a paired hierarchical bootstrap (bench/analysis/hierarchy.py) that draws "
+    "releases, seeds within a release, held-out episodes, then windows within each episode, "
+    "n - 1 of n units at each level (Rao and Wu's rescaling), one draw for every cell of the "
+    "backbone x suite so differences are paired; percentile intervals widened by t / z on the "
+    "Satterthwaite degrees of freedom of the levels' mean squares (few releases or seeds: wider). "
+    "Each backbone x suite below names the levels its intervals drew."
 )
+
+
+def cell_label(key) -> str:
+    """A ranking's per-cell key as printed: 's0' for a seed, 'rel1-seed0' as it is."""
+    return f"s{key}" if isinstance(key, int) else str(key)
 
 
 def _gap(c: VisionComparison) -> str:
@@ -122,11 +130,14 @@ def mixed_warnings(records, hashes: list[str]) -> list[str]:
 
 
 def mixed_releases(records) -> dict[str, dict[str, list[str]]]:
-    """{backbone: {revision: cell ids}} for each backbone whose records were measured on more
-    than one release (weights sha256 or hub commit): a study continued on another machine."""
+    """{backbone: {revision: cell ids}} for each backbone release (release 0: the backbone's
+    name; release r: 'backbone release r') whose records were measured on more than one set of
+    weights (sha256 or hub commit): a study continued on another machine. Releases measured on
+    purpose (Profile.releases_per_backbone) are each their own and never flagged."""
     found: dict[str, dict[str, list[str]]] = {}
     for r in records:
-        found.setdefault(r.backbone, {}).setdefault(str(r.measured.revision), []).append(r.cell_id)
+        name = r.backbone if not r.release else f"{r.backbone} release {r.release}"
+        found.setdefault(name, {}).setdefault(str(r.measured.revision), []).append(r.cell_id)
     return {b: revs for b, revs in sorted(found.items()) if len(revs) > 1}
 
 
@@ -140,7 +151,8 @@ def release_warning(backbone: str, cells: dict[str, list[str]]) -> str:
 def rankings_section(ctx: ReportContext) -> str:
     if not ctx.rankings:
         return "No graft cells in the results: nothing to rank."
-    parts = [f"Ranked by mean normalised MSE over seeds (lower is better); raw MSE beside it. "
+    parts = [f"Ranked by mean normalised MSE over releases and seeds (lower is better); raw MSE "
+             f"beside it. "
              f"{INTERVAL_METHOD} {ctx.n_resamples} replicates. Differences in raw units are "
              f"against the normalised leader. {TIER_RULE}",
              "The encoders ranked: where each comes from, its weights (the records' "
@@ -156,16 +168,17 @@ def rankings_section(ctx: ReportContext) -> str:
             continue
         rows = []
         for e in r.encoders:
-            seeds = ", ".join(f"s{s}: {num(v)}" for s, v in e.per_seed[PRIMARY].items())
+            seeds = ", ".join(f"{cell_label(s)}: {num(v)}" for s, v in e.per_seed[PRIMARY].items())
             rows.append([e.rank, e.encoder, num(e.mean[PRIMARY]), half_width(e.ci[PRIMARY]),
                          interval(e.ci[PRIMARY]), num(e.mean[RAW]), interval(e.ci[RAW]),
                          seeds, num(e.diff[PRIMARY], 3), interval(e.diff_ci[PRIMARY], 3),
                          yes_no(e.in_top_tier)])
         parts.append(table(rows, ["rank", "encoder", "norm. MSE", "±", "95% CI", "raw MSE",
-                                  "raw 95% CI", "per seed (norm.)", "Δ vs leader",
+                                  "raw 95% CI", "per cell (norm.)", "Δ vs leader",
                                   "Δ 95% CI", "top tier"]))
-        parts.append(f"{r.n_windows} held-out windows; seeds {r.seeds}; per-seed winners: "
-                     + ", ".join(f"s{s}: {w}" for s, w in r.seed_winners.items())
+        parts.append(f"{r.n_windows} held-out windows from {r.n_episodes} episodes; releases "
+                     f"{r.releases}; seeds {r.seeds}; intervals: {r.interval}. Per-cell winners: "
+                     + ", ".join(f"{cell_label(s)}: {w}" for s, w in r.seed_winners.items())
                      + (" (**seed-sensitive**)" if r.seed_sensitive else "") + ".")
     return "\n\n".join(parts)
 
@@ -222,7 +235,7 @@ def tie_section(ctx: ReportContext) -> str:
         return "_No ranking: no tie band._"
     rows = [[r.backbone, r.suite, r.leader, ", ".join(r.top_tier), len(r.top_tier),
              yes_no(len(r.top_tier) > 1),
-             ", ".join(f"s{s}: {w}" for s, w in r.seed_winners.items()),
+             ", ".join(f"{cell_label(s)}: {w}" for s, w in r.seed_winners.items()),
              yes_no(r.seed_sensitive)] for r in ctx.rankings if r.encoders]
     return "\n\n".join([TIER_RULE, table(rows, ["backbone", "suite", "leader", "top tier",
                                                 "tier size", "near-tie", "per-seed winners",

@@ -63,7 +63,8 @@ def architecture_fingerprint(backbone) -> str:
     return hashlib.sha256(repr(shapes).encode()).hexdigest()[:12]
 
 
-def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str) -> str:
+def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str,
+                release: int = 0) -> str:
     p = profile.protocol
     blob = json.dumps({
         "v": RELEASE_VERSION, "backbone": name, "chunk": chunk_size, "arch": arch,
@@ -73,6 +74,7 @@ def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str)
         "split_seed": p.split_seed, "heldout": p.heldout_episodes_per_task,
         # Only when set: the releases trained before the field existed keep their keys.
         **({"image_shift": p.native_image_shift} if p.native_image_shift else {}),
+        **({"release": release} if release else {}),
     }, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
@@ -90,9 +92,16 @@ def drop_states(states: torch.Tensor, rate: float, mean: torch.Tensor,
     return torch.where(drop[:, None], mean.to(states.dtype), states)
 
 
+def release_seed(name: str, stream: str, release: int) -> int:
+    """The seed of one random stream of `name`'s native training: release 0 keeps the streams
+    it had before releases were a factor (its weights unchanged), release r > 0 its own."""
+    return stable_seed(stream, name) if release == 0 else stable_seed(stream, name, release)
+
+
 def train_tiny_release(name: str, backbone, profile: Profile, suites, train_frames, folder: Path,
-                       chunk_size: int, progress: ProgressSink) -> None:
-    """Train ALL of the untrained tiny `backbone` with its own loss, save it into `folder`."""
+                       chunk_size: int, progress: ProgressSink, release: int = 0) -> None:
+    """Train ALL of the untrained tiny `backbone` with its own loss, save it into `folder`.
+    Release r draws its batches, dropout and shifts from seed r (its init: the caller's)."""
     from bench.suites.windows import raw_batch
 
     module = adapter_module(name)
@@ -108,8 +117,8 @@ def train_tiny_release(name: str, backbone, profile: Profile, suites, train_fram
 
     p = profile.protocol
     state_mean = torch.cat([s.state[train_frames[s.name]] for s in suites]).mean(0)
-    dropout = torch.Generator().manual_seed(stable_seed("native-state-dropout", name))
-    shifts = torch.Generator().manual_seed(stable_seed("native-image-shift", name))
+    dropout = torch.Generator().manual_seed(release_seed(name, "native-state-dropout", release))
+    shifts = torch.Generator().manual_seed(release_seed(name, "native-image-shift", release))
     calls = [0]
 
     def next_batch(rows):
@@ -129,8 +138,9 @@ def train_tiny_release(name: str, backbone, profile: Profile, suites, train_fram
     cfg = FitConfig(steps=p.native_steps, batch_size=p.batch_size, lr=p.native_lr,
                     weight_decay=0.0, warmup_steps=max(1, p.native_steps // 20), grad_clip=1.0,
                     log_every=max(1, p.native_steps // 20))
-    curve = fit(backbone, list(policy.parameters()), tagged, next_batch, cfg, seed=0,
-                label=f"native training of tiny {name}", progress=progress)
+    curve = fit(backbone, list(policy.parameters()), tagged, next_batch, cfg, seed=release,
+                label=f"native training of tiny {name}" + (f" release {release}" if release else ""),
+                progress=progress)
     policy.eval()
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -138,6 +148,7 @@ def train_tiny_release(name: str, backbone, profile: Profile, suites, train_fram
     (tmp / "graftbench_release.json").write_text(json.dumps({
         "backbone": name, "loss_curve": curve, "suites": [s.name for s in suites],
         "fingerprints": [s.fingerprint for s in suites], "native_steps": p.native_steps,
+        **({"release": release} if release else {}),
     }, indent=1))
     if folder.exists():
         shutil.rmtree(folder)
@@ -154,11 +165,12 @@ class Normalizer:
     fingerprint: str
 
 
-def normalizer_for(name: str, profile: Profile, suites, train_frames) -> Normalizer:
-    """The normaliser of backbone `name` on `suites` (hub "dataset" stats: ONE suite, so that its
-    numbers do not depend on which other suites a run selects)."""
+def normalizer_for(name: str, profile: Profile, suites, train_frames,
+                   release: int = 0) -> Normalizer:
+    """The normaliser of backbone `name` (its release `release`) on `suites` (hub "dataset"
+    stats: ONE suite, so that its numbers do not depend on which other suites a run selects)."""
     entry = get_entry(name)
-    pinned = dict(profile.releases).get(name)
+    pinned = profile.pinned_release(name, release)
     if pinned is not None:  # its own stats: this machine's suites may render other frames
         return Normalizer("checkpoint", None, stats_fingerprint(saved_normalizer_stats(pinned)))
     if profile.source != "hub":  # the tiny release keeps what it was trained with: all suites
@@ -200,10 +212,11 @@ def checkpoint_id(name: str, profile: Profile, release_dir: Path | None = None) 
 
 
 def load_released(name: str, profile: Profile, suites, train_frames, cache: Path,
-                  chunk_size: int = 10, *, progress: ProgressSink, stats: dict | None = None):
+                  chunk_size: int = 10, *, progress: ProgressSink, stats: dict | None = None,
+                  release: int = 0):
     """(the released policy for `name` in this profile's world, loaded with from_pretrained;
     its checkpoint_id). Hub: `stats` are the dataset stats to normalise with (None: the
-    checkpoint's own)."""
+    checkpoint's own). Tiny: `release` r is trained from seed r (init and batches)."""
     module = adapter_module(name)
     if profile.source == "hub":
         entry = get_entry(name)
@@ -211,12 +224,12 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
         say(progress, f"policy {name}: loading {entry.repo_id} from the hub cache")
         backbone = module.load_policy(entry.repo_id, stats=stats, revision=entry.revision)
         return backbone, checkpoint_id(name, profile)
-    if name in dict(profile.releases):
-        return load_pinned(name, profile, progress)
-    # The untrained build (seed 0) both keys the cache and, on a miss, is what gets trained.
+    if profile.pinned_release(name, release) is not None:
+        return load_pinned(name, profile, progress, release)
+    # The untrained build (seed r) both keys the cache and, on a miss, is what gets trained.
     side, tiny_stats = profile.protocol.tiny_image_size, union_stats(suites, train_frames)
     untrained = module.build_tiny_policy(tiny_stats, suites[0].camera_keys, image_hw=(side, side),
-                                         chunk_size=chunk_size, seed=0)
+                                         chunk_size=chunk_size, seed=release)
     if side != Protocol.tiny_image_size:
         default = module.build_tiny_policy(tiny_stats, suites[0].camera_keys, chunk_size=chunk_size,
                                            seed=0)
@@ -224,22 +237,23 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
             raise ValueError(f"[protocol] tiny_image_size = {side}: the tiny {name} reads "
                              f"{default.info.native_grid} image tokens at any size; remove it "
                              "for this backbone")
-    key = release_key(name, profile, suites, chunk_size, architecture_fingerprint(untrained))
+    key = release_key(name, profile, suites, chunk_size, architecture_fingerprint(untrained),
+                      release)
     folder = tiny_release_dir(cache, name, key)
     if not (folder / "graftbench_release.json").exists():
         # xdist workers and array tasks sharing a cache: one trains, the others wait and load it.
         with exclusive(folder.with_name(folder.name + ".lock")):
             if not (folder / "graftbench_release.json").exists():
-                say(progress, f"training the tiny released {name} natively ({profile.protocol.native_steps} "
-                              f"steps, once; cached in {folder})")
+                say(progress, f"training the tiny released {name} (release {release}) natively "
+                              f"({profile.protocol.native_steps} steps, once; cached in {folder})")
                 train_tiny_release(name, untrained, profile, suites, train_frames, folder,
-                                   chunk_size, progress)
+                                   chunk_size, progress, release)
     return module.load_policy(str(folder)), checkpoint_id(name, profile, folder)
 
 
-def load_pinned(name: str, profile: Profile, progress: ProgressSink):
-    """(the pinned release of `name` (the grid file's [releases]), its checkpoint_id), its
-    content hash checked again: the folder may have changed since start-up."""
-    folder = check_pinned(name, dict(profile.releases)[name], "[releases]")
+def load_pinned(name: str, profile: Profile, progress: ProgressSink, release: int = 0):
+    """(the pinned release `release` of `name` (the grid file's [releases]), its checkpoint_id),
+    its content hash checked again: the folder may have changed since start-up."""
+    folder = check_pinned(name, profile.pinned_release(name, release), "[releases]")
     say(progress, f"policy {name}: the pinned release {folder} (not trained, not the cache's)")
     return adapter_module(name).load_policy(str(folder)), checkpoint_id(name, profile, folder)

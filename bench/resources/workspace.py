@@ -53,8 +53,8 @@ class Workspace:
     cache: Path = field(default_factory=cache_dir)
     _suites: dict = field(default_factory=dict)
     _splits: dict = field(default_factory=dict)
-    _released: dict = field(default_factory=dict)  # name -> loaded policy adapter
-    _checkpoints: dict = field(default_factory=dict)  # name -> its checkpoint_id
+    _released: dict = field(default_factory=dict)  # (name, release) -> policy adapter
+    _checkpoints: dict = field(default_factory=dict)  # (name, release) -> checkpoint_id
     _backbones: dict = field(default_factory=dict)  # (name, normaliser fingerprint) -> adapter
     _normalizers: dict = field(default_factory=dict)
     _encoders: dict = field(default_factory=dict)
@@ -114,8 +114,9 @@ class Workspace:
             )
         return self._splits[name]
 
-    def normalizer(self, name: str, suite: str | None) -> Normalizer:
-        """Which stats backbone `name` normalises `suite` with (no policy is loaded for this)."""
+    def normalizer(self, name: str, suite: str | None, release: int = 0) -> Normalizer:
+        """Which stats backbone `name` (its release `release`) normalises `suite` with (no policy
+        is loaded for this)."""
         if self.is_user_policy(name):  # its own saved stats, whatever the suite
             if (name, None) not in self._normalizers:
                 self._normalizers[(name, None)] = user_normalizer(self.profile, name)
@@ -124,32 +125,33 @@ class Workspace:
         if per_suite and suite is None:
             raise ValueError(f"backbone {name!r} normalises per suite: name the suite")
         names = (suite,) if per_suite else self.released_suites()
-        key = (name, names)
+        key = (name, names, release)
         if key not in self._normalizers:
             suites = [self.suite(s) for s in names]
             train = {s.name: self.split(s.name).train_frames for s in suites}
-            self._normalizers[key] = normalizer_for(name, self.profile, suites, train)
+            self._normalizers[key] = normalizer_for(name, self.profile, suites, train, release)
         return self._normalizers[key]
 
-    def backbone(self, name: str, suite: str | None = None):
-        """The released policy (frozen, eval), normalising `suite` as `normalizer` says. The
-        policy is loaded once per backbone; per-suite dataset stats only swap its processors."""
-        norm = self.normalizer(name, suite)
+    def backbone(self, name: str, suite: str | None = None, release: int = 0):
+        """The released policy (frozen, eval; its release `release`), normalising `suite` as
+        `normalizer` says. The policy is loaded once per backbone and release; per-suite dataset
+        stats only swap its processors."""
+        norm = self.normalizer(name, suite, release)
         if self.is_user_policy(name):  # loaded per suite: the camera rule pairs per dataset
             return self._user_backbone(name, suite, norm)
-        if name not in self._released:
+        if (name, release) not in self._released:
             suites = [self.suite(s) for s in self.released_suites()]
             train = {s.name: self.split(s.name).train_frames for s in suites}
             chunk = TINY_CHUNK if self.profile.source == "tiny" else None
             kwargs = {"chunk_size": chunk} if chunk else {}
-            bb, self._checkpoints[name] = load_released(
+            bb, self._checkpoints[(name, release)] = load_released(
                 name, self.profile, suites, train, self.cache, progress=self.progress,
-                stats=norm.stats, **kwargs)
+                stats=norm.stats, release=release, **kwargs)
             bb.freeze()
-            self._released[name] = bb
-        key = (name, norm.fingerprint)
+            self._released[(name, release)] = bb
+        key = (name, norm.fingerprint, release)
         if key not in self._backbones:
-            bb = self._released[name]
+            bb = self._released[(name, release)]
             if bb.normalizer_fingerprint() != norm.fingerprint and norm.stats is not None:
                 bb = bb.with_stats(norm.stats)
             if bb.normalizer_fingerprint() != norm.fingerprint:
@@ -160,14 +162,14 @@ class Workspace:
             self._backbones[key] = bb
         return self._backbones[key]
 
-    def checkpoint(self, name: str, suite: str | None = None) -> dict:
-        """{repo_id, revision} of the policy `name` is measured on (loading it when needed: a tiny
-        release's revision is its weights' hash)."""
+    def checkpoint(self, name: str, suite: str | None = None, release: int = 0) -> dict:
+        """{repo_id, revision} of the policy `name` (release `release`) is measured on (loading
+        it when needed: a tiny release's revision is its weights' hash)."""
         if self.is_user_policy(name):
             return checkpoint_id(name, self.profile)
-        if name not in self._checkpoints:
-            self.backbone(name, suite)
-        return self._checkpoints[name]
+        if (name, release) not in self._checkpoints:
+            self.backbone(name, suite, release)
+        return self._checkpoints[(name, release)]
 
     def is_user_policy(self, name: str) -> bool:
         return name in dict(self.profile.policies)
@@ -185,9 +187,9 @@ class Workspace:
             self._backbones[key] = bb
         return self._backbones[key]
 
-    def fresh_backbone(self, name: str, suite: str | None = None):
+    def fresh_backbone(self, name: str, suite: str | None = None, release: int = 0):
         """A private copy (the LoRA control modifies the LM in place)."""
-        return copy.deepcopy(self.backbone(name, suite))
+        return copy.deepcopy(self.backbone(name, suite, release))
 
     def released_suites(self) -> tuple[str, ...]:
         # The tiny release is trained on both tiny suites whatever -k selects, so its cache key

@@ -15,7 +15,7 @@ _OMITTED_WHEN_NONE = {"feature_dtype", "feature_transform", "grid_file", "camera
                       "feature_runtime",
                       "rollouts", "projector_file", "projector_sha256", "train_steps",
                       "chunk_length", "n_action_steps", "per_window_executed", "window_critical",
-                      "critical_rule"}
+                      "critical_rule", "window_episode"}
 
 
 def flat(part) -> dict:
@@ -36,18 +36,23 @@ class Identity:
     seed: int
     variant: str | None = None
     reference: str | None = None  # the cell id a control is compared against
+    # Which independently trained release of the backbone (0 in records made before releases
+    # were a factor: they had one).
+    release: int = 0
 
     @classmethod
     def of(cls, cell) -> Identity:
         """A bench.grid.cells.CellSpec's identity."""
         ref = cell.reference
         return cls(cell.id, cell.kind, cell.backbone, cell.suite, cell.encoder, cell.seed,
-                   cell.variant, ref.id if ref else None)
+                   cell.variant, ref.id if ref else None, cell.release)
 
     @property
     def group(self) -> str:
-        """The backbone x suite x seed a ranking is made in: smolvla-spatial-seed0."""
-        return f"{self.backbone}-{self.suite}-seed{self.seed}"
+        """The backbone x suite x (release x) seed a ranking is made in: smolvla-spatial-seed0,
+        smolvla-spatial-rel1-seed0."""
+        rel = f"-rel{self.release}" if self.release else ""
+        return f"{self.backbone}-{self.suite}{rel}-seed{self.seed}"
 
 
 @dataclass(frozen=True)
@@ -95,6 +100,9 @@ class Scores:
     window_ids: list[int]
     n_windows: int
     window_task: list[int] | None = None
+    # (n_windows,) the held-out episode (the suite's episode index) each window comes from: the
+    # unit the intervals draw (bench.analysis.hierarchy); None in records made before it.
+    window_episode: list[int] | None = None
     tasks: list[str] | None = None
     per_task: dict[str, dict] | None = None  # task -> {space: mse, "n": windows}
     per_horizon: dict[str, list[float]] | None = None  # space -> (chunk,) per step

@@ -53,6 +53,7 @@ class _IdentityFields:
     encoder = property(lambda self: self.identity.encoder)
     seed = property(lambda self: self.identity.seed)
     variant = property(lambda self: self.identity.variant)
+    release = property(lambda self: self.identity.release)
 
 
 @dataclass(frozen=True)
@@ -173,8 +174,10 @@ def validate_record(record: dict) -> None:
         raise ValueError(f"missing keys {missing}")
     ident = _part(Identity, record)
     get_kind(ident.kind).check(ident.encoder, ident.variant)
+    if isinstance(ident.release, bool) or not isinstance(ident.release, int) or ident.release < 0:
+        raise ValueError(f"release {ident.release!r} is not a release index (an integer >= 0)")
     expected_id = cell_id(ident.kind, ident.backbone, ident.suite, ident.encoder, ident.seed,
-                          ident.variant)
+                          ident.variant, ident.release)
     if ident.cell_id != expected_id:
         raise ValueError(f"cell_id {ident.cell_id!r} is not what its fields say "
                          f"({expected_id!r})")

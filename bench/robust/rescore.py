@@ -167,7 +167,7 @@ class _Scorer:
         self.cell, self.ws, self.windows, self.noise_seed = cell, ws, windows, p.eval_noise_seed
         self.batch = EVAL_BATCH_FACTOR * p.eval_batch_size
         self.suite = ws.suite(cell.suite)
-        self.backbone = ws.backbone(cell.backbone, cell.suite)
+        self.backbone = ws.backbone(cell.backbone, cell.suite, cell.release)
         device = next(self.backbone.policy.parameters()).device
         self.inputs = cell_inputs(cell, p, self.suite, ws.split(cell.suite), self.backbone,
                                   device)
