@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from bench.analysis.tuning import HELPS, HURTS, UNCLEAR, tuned_vs_frozen
+from bench.analysis.tuning import HELPS, HURTS, ONE_SEED, UNCLEAR, tuned_vs_frozen
 from bench.grid.cells import CellSpec, control_cells, tunable_encoders
 from bench.grid.kinds import CELL_KINDS, GRAFT, SAME, control_kinds
 from bench.grid.protocol import PROFILES, TINY, with_overrides
@@ -146,14 +146,19 @@ def _pair(encoder: str, frozen: list[float], tuned: list[float], seed: int = 0, 
             make_record(kind=TUNED, encoder=encoder, seed=seed, per_window=tuned, **kw)]
 
 
+def _seeds(encoder: str, frozen: list[float], tuned: list[float], **kw):
+    """The same pair on seeds 0 and 1: a verdict needs two seeds."""
+    return [r for seed in (0, 1) for r in _pair(encoder, frozen, tuned, seed=seed, **kw)]
+
+
 def test_tuned_minus_frozen_known_answers_and_the_ranking_change():
     """A constant per-window gap is the difference and its whole interval; a gap that flips
     sign across windows is unclear; tuning reverses A and B: the ranking (and leader) change."""
     base = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
-    records = (_pair("dinov2_s", base, [v - 0.5 for v in base])  # helps: -0.5 everywhere
-               + _pair("siglip", [v - 0.2 for v in base], [v + 0.3 for v in base])  # hurts
-               + _pair("fastvit", base, [v + (0.4 if i % 2 else -0.4)
-                                         for i, v in enumerate(base)]))  # unclear
+    records = (_seeds("dinov2_s", base, [v - 0.5 for v in base])  # helps: -0.5 everywhere
+               + _seeds("siglip", [v - 0.2 for v in base], [v + 0.3 for v in base])  # hurts
+               + _seeds("fastvit", base, [v + (0.4 if i % 2 else -0.4)
+                                          for i, v in enumerate(base)]))  # unclear
     study = tuned_vs_frozen(records, n_resamples=200)
     got = {c.encoder: c for c in study.comparisons}
     assert got["dinov2_s"].diff == pytest.approx(-0.5)
@@ -165,6 +170,14 @@ def test_tuned_minus_frozen_known_answers_and_the_ranking_change():
     assert ranking.frozen_order == ["siglip", "dinov2_s", "fastvit"]  # 3.3 < 3.5 = 3.5 (names)
     assert ranking.tuned_order == ["dinov2_s", "fastvit", "siglip"]  # 3.0 < 3.5 < 3.8
     assert ranking.changed and ranking.leader_changed
+
+
+def test_one_seed_gives_no_verdict():
+    """The same -0.5 everywhere on one seed: the difference is reported, the verdict is not."""
+    base = [1.0, 2.0, 3.0, 4.0]
+    (only,) = tuned_vs_frozen(_pair("dinov2_s", base, [v - 0.5 for v in base]),
+                              n_resamples=50).comparisons
+    assert only.diff == pytest.approx(-0.5) and only.verdict == ONE_SEED
 
 
 def test_pairs_only_common_seeds_and_says_what_it_cannot_pair():
@@ -220,8 +233,8 @@ def test_report_section_renders_the_verdicts_and_is_left_out_without_tuned_cells
     from bench.results.store import Results
 
     base = [1.0, 2.0, 3.0, 4.0]
-    records = (_pair("dinov2_s", base, [v - 0.5 for v in base])
-               + _pair("siglip", [v - 0.2 for v in base], [v + 0.3 for v in base]))
+    records = (_seeds("dinov2_s", base, [v - 0.5 for v in base])
+               + _seeds("siglip", [v - 0.2 for v in base], [v + 0.3 for v in base]))
 
     def ctx(recs):
         return ReportContext(Results(tmp_path, records=recs), tmp_path / "R.md", [], [], {}, {},

@@ -14,7 +14,7 @@ import numpy as np
 
 from bench.analysis.rankings import (
     DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, graft_records,
-    paired_window_bootstrap,
+    paired_bootstrap, record_units,
 )
 from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, NATIVE_SLOT, ZERO, get_kind, is_native_like, kind_of
 from bench.results.record import NORMALIZED, RAW
@@ -133,11 +133,11 @@ VISION_RULE = (
     "normalised MSE over seeds, `blind` excluded) is better than every blind or zero-image "
     "control present: the blind graft (same seeds), a zero_image control of the best encoder "
     "(each variant) or of the native policy. Better = the 95% interval of (control - best "
-    "graft) lies above 0. Pooling over seeds: per seed, the mean over identical held-out "
+    "graft) lies above 0. Pooling over releases and seeds: per (release, seed) cell, the mean over identical held-out "
     "windows of the per-window difference; these are averaged over the seeds both cells have "
     "(a native-policy control does not depend on the seed: its cell is paired with every graft "
-    "seed); the interval is the paired window bootstrap of the rankings (one window resample "
-    "per replicate shared by all seeds; seeds kept, not resampled)."
+    "seed of its release); the interval is the rankings' paired hierarchical bootstrap "
+    "(releases, seeds, held-out episodes, windows: bench/analysis/hierarchy.py)."
 )
 
 
@@ -231,11 +231,16 @@ def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
     check.best_encoder = min(means, key=lambda e: (means[e], e))
     check.best_mse = means[check.best_encoder]
     best_cells = sorted((r for r in grafts if r.encoder == check.best_encoder),
-                        key=lambda r: int(r.seed))
+                        key=lambda r: (int(r.release), int(r.seed)))
     for label, controls, seed_free in _no_vision_controls(records, backbone, suite,
                                                           check.best_encoder):
-        by_seed = {int(r.seed): r for r in sorted(controls, key=lambda r: r.cell_id)}
-        pairs = [(g, by_seed.get(int(g.seed), controls[0] if seed_free else None))
+        by_cell = {(int(r.release), int(r.seed)): r
+                   for r in sorted(controls, key=lambda r: r.cell_id)}
+        by_release = {int(r.release): r for r in sorted(controls, key=lambda r: r.cell_id,
+                                                        reverse=True)}
+        # a seed-free control (the released policy's own) pairs with each seed of its release
+        pairs = [(g, by_cell.get((int(g.release), int(g.seed)),
+                                 by_release.get(int(g.release)) if seed_free else None))
                  for g in best_cells]
         pairs = [(g, c) for g, c in pairs if c is not None]
         if not pairs:
@@ -250,10 +255,15 @@ def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
             continue
         values = [np.asarray(c.scores.per_window_in(NORMALIZED), dtype=float)[o]
                   for c, o in zip(cells, orders)]
-        # (2, S, W): row 0 the best graft, row 1 the control, seed s paired with seed s
-        per_window = np.stack([values[:len(pairs)], values[len(pairs):]])
-        boot = paired_window_bootstrap(per_window, leader=0, n_resamples=n_resamples,
-                                       random_seed=random_seed)
+        # (2, R, S, W): row 0 the best graft, row 1 the control, each (release, seed) paired
+        releases = sorted({int(g.release) for g, _ in pairs})
+        seeds = sorted({int(g.seed) for g, _ in pairs})
+        per_window = np.full((2, len(releases), len(seeds), len(values[0])), np.nan)
+        for i, (g, _) in enumerate(pairs):
+            at = releases.index(int(g.release)), seeds.index(int(g.seed))
+            per_window[(0, *at)], per_window[(1, *at)] = values[i], values[len(pairs) + i]
+        boot = paired_bootstrap(per_window, record_units(best_cells[0]), leader=0,
+                                n_resamples=n_resamples, random_seed=random_seed)
         check.comparisons.append(VisionComparison(
             control=label, cell_ids=sorted({c.cell_id for _, c in pairs}),
             seeds=[int(g.seed) for g, _ in pairs], control_mse=float(boot.mean[1]),

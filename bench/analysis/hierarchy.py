@@ -227,8 +227,10 @@ def components(table: np.ndarray) -> Components:
     below = ms_seed if ms_seed is not None else ms_res
     var_a = max(((ms_rel if ms_rel is not None else below) - below) / (n_s * n_k), 0.0)
     # Var(grand mean) = (MS_top + MS_ep - MS_res) / (R S K), MS_top the highest cell level that
-    # varies; Satterthwaite's df for that sum of mean squares.
-    terms = [(ms_ep, n_k - 1), (-ms_res, df_res)]
+    # varies; Satterthwaite's df taken on MS_top + MS_ep (a bound on that sum): with the
+    # subtracted MS_res in it the df collapses whenever MS_ep ~ MS_res, i.e. when episodes
+    # carry nothing beyond the residual.
+    terms = [(ms_ep, n_k - 1)]
     if ms_rel is not None:
         terms.append((ms_rel, n_r - 1))
     elif ms_seed is not None:

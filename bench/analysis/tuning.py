@@ -5,9 +5,10 @@ A tuned cell is any kind of the table with `tune_encoder` (bench.grid.kinds); it
 the cell of the same backbone, suite, encoder and seed that trained the projector alone for the
 same number of steps: the graft for a full-length tuned cell, the short_1_8 graft for
 tuned_encoder_1_8 (both schedules compressed alike). diff = tuned - frozen on normalised
-MSE (negative: tuning helps), averaged over the seeds both have, with the paired window bootstrap
-of the rankings (bench.analysis.rankings: one window resample per replicate shared by every cell;
-seeds kept, not resampled).
+MSE (negative: tuning helps), averaged over the (release, seed) cells both have, with the
+rankings' paired hierarchical bootstrap (releases, seeds, held-out episodes, windows:
+bench.analysis.hierarchy). A verdict needs at least two seeds: one seed's difference is one
+training's, and training noise moves grafts more than many of the gaps (docs/INTERVALS.md).
 """
 
 from __future__ import annotations
@@ -18,12 +19,14 @@ from typing import Sequence
 import numpy as np
 
 from bench.analysis.rankings import (
-    DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, paired_window_bootstrap,
+    DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, paired_bootstrap,
+    record_units,
 )
 from bench.grid.kinds import GRAFT, SHORT_GRAFT, kind_of
 from bench.results.record import NORMALIZED
 
 HELPS, HURTS, UNCLEAR = "tuning helps", "tuning hurts", "no clear difference"
+ONE_SEED = "no verdict: one seed (an interval must draw seeds)"
 
 
 @dataclass
@@ -50,6 +53,8 @@ class TunedComparison:
 
     @property
     def verdict(self) -> str:
+        if len(self.seeds) < 2:
+            return ONE_SEED
         lo, hi = self.diff_ci
         if np.isfinite(hi) and hi < 0:
             return HELPS
@@ -96,30 +101,36 @@ def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, st
     cannot be compared."""
     here = [r for r in records if (r.backbone, r.suite, r.encoder) == (backbone, suite, encoder)
             and r.training.train_steps == steps]
-    tuned = {int(r.seed): r for r in sorted(here, key=lambda r: r.cell_id) if is_tuned(r)}
-    frozen = {int(r.seed): r for r in here if r.kind in (GRAFT, SHORT_GRAFT)}
-    seeds = sorted(set(tuned) & set(frozen))
-    if not seeds:
+    tuned = {(int(r.release), int(r.seed)): r
+             for r in sorted(here, key=lambda r: r.cell_id) if is_tuned(r)}
+    frozen = {(int(r.release), int(r.seed)): r for r in here if r.kind in (GRAFT, SHORT_GRAFT)}
+    keys = sorted(set(tuned) & set(frozen))
+    seeds = sorted({s for _, s in keys})
+    if not keys:
         at = f" at {steps} steps" if steps else ""
         return (f"{encoder}{at}: no seed with both a tuned cell and a frozen graft of as many "
-                f"steps (tuned seeds {sorted(tuned)}, frozen seeds {sorted(frozen)})")
-    cells = [frozen[s] for s in seeds] + [tuned[s] for s in seeds]
+                f"steps (tuned (release, seed) {sorted(tuned)}, frozen {sorted(frozen)})")
+    cells = [frozen[k] for k in keys] + [tuned[k] for k in keys]
     try:
         _, orders = align_windows(cells)
     except WindowMismatchError as err:
         return f"{encoder}: not compared: {err}"
     values = [np.asarray(c.scores.per_window_in(NORMALIZED), dtype=float)[o]
               for c, o in zip(cells, orders)]
-    # (2, S, W): row 0 frozen, row 1 tuned, seed s paired with seed s
-    per_window = np.stack([values[:len(seeds)], values[len(seeds):]])
-    boot = paired_window_bootstrap(per_window, leader=0, n_resamples=n_resamples,
-                                   random_seed=random_seed)
+    # (2, R, S, W): row 0 frozen, row 1 tuned, each (release, seed) cell paired
+    releases = sorted({r for r, _ in keys})
+    per_window = np.full((2, len(releases), len(seeds), len(values[0])), np.nan)
+    for i, (r, s) in enumerate(keys):
+        at = releases.index(r), seeds.index(s)
+        per_window[(0, *at)], per_window[(1, *at)] = values[i], values[len(keys) + i]
+    boot = paired_bootstrap(per_window, record_units(cells[0]), leader=0,
+                            n_resamples=n_resamples, random_seed=random_seed)
     return TunedComparison(
         backbone, suite, encoder, steps, seeds, frozen_mse=float(boot.mean[0]),
         tuned_mse=float(boot.mean[1]), diff=float(boot.diff[1]),
         diff_ci=(float(boot.diff_lo[1]), float(boot.diff_hi[1])),
-        tuned_step_s=float(np.mean([_step_seconds(tuned[s]) for s in seeds])),
-        frozen_step_s=float(np.mean([_step_seconds(frozen[s]) for s in seeds])))
+        tuned_step_s=float(np.mean([_step_seconds(tuned[k]) for k in keys])),
+        frozen_step_s=float(np.mean([_step_seconds(frozen[k]) for k in keys])))
 
 
 def tuned_ranking(comparisons: Sequence[TunedComparison]) -> TunedRanking:
