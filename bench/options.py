@@ -59,6 +59,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--report", help="where REPORT.md goes (default: REPORT.md in --results-dir when "
                                  "given; else at the repo root for --profile tiny, else in the "
                                  "profile's results dir)")
+    g.addoption("--replace-report", action="store_true",
+                help="let the report replace one that holds more cells than it will (bench.outputs)")
     g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
     g.addoption("--features", default="cache", metavar="cache|loop",
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
@@ -355,6 +357,7 @@ class RunOptions:
     baseline: object = None  # bench.regression.run.BaselineOptions
     screen: object = None  # bench.screen.selection.ScreenOptions; None without --screen
     pack_grafts: int = 1  # graft cells per backbone pass (bench.cell.pack_run); 1: unpacked
+    replace_report: bool = False  # --replace-report: a report with fewer cells may replace one
 
 
 def parse_options(config: pytest.Config) -> RunOptions:
@@ -394,4 +397,5 @@ def parse_options(config: pytest.Config) -> RunOptions:
         feature_dtype=opt("--feature-dtype"), rollouts=rollouts,
         rollout_batching=Batching(rollout_batch, opt("--rollout-envs")), executor=opt("--executor"),
         slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen,
-        pack_grafts=pack_grafts(opt("--pack-grafts"), profile.grid_file, opt("--executor")))
+        pack_grafts=pack_grafts(opt("--pack-grafts"), profile.grid_file, opt("--executor")),
+        replace_report=bool(opt("--replace-report")))

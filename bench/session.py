@@ -92,7 +92,7 @@ class GraftSession:
         if self._names_checked:
             self.startup_lines += check_startup(self.profile, options.labels)
             self.store  # opens (creates, probes) the results dir
-            check_writable("--report", self.report_path.parent)
+            self.check_report()
 
     def use_seams(self, **changes) -> None:
         """Replace seams (Seams' fields) before the first cell: after it, they would apply to
@@ -110,10 +110,22 @@ class GraftSession:
         if hasattr(self.config, "workerinput") or not (selection.cells or selection.screens):
             return
         self.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
-        check_writable("--report", self.report_path.parent)
+        self.check_report(len(self.store.stored_ids() | set(selection.cells)))
         self.preflight(list(cells))
         if selection.cells and self.screen_options is None:
             self._write_grid()  # with --screen: at the end, once the screen's drops are known
+
+    def check_report(self, cells_after: int | None = None) -> None:
+        """--report by bench.outputs' rule (a UsageError, before any cell): its folder writable,
+        nothing but a graftbench report replaced, and, once the selection is known
+        (`cells_after`: the cells the report can hold at most), none shrunk silently."""
+        from bench.outputs import report_refusal
+
+        check_writable("--report", self.report_path.parent)
+        problem = report_refusal("--report", self.report_path, cells_after=cells_after,
+                                 replace=self.options.replace_report)
+        if problem:
+            raise pytest.UsageError(problem)
 
     def _write_grid(self) -> None:
         """grid.json: the cells this run meant to measure (the report lists those missing)."""

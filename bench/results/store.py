@@ -234,6 +234,10 @@ class ResultStore:
                 "pass a writable folder with --results-dir PATH"
             ) from None
 
+    def stored_ids(self) -> set[str]:
+        """Ids of the cells with a record or a failure here, by file name (none is read)."""
+        return {p.stem for folder in (CELLS, FAILED) for p in (self.root / folder).glob("*.json")}
+
     def cell_path(self, cell_id: str) -> Path:
         return self.root / CELLS / f"{cell_id}.json"
 
