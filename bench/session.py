@@ -90,9 +90,15 @@ class GraftSession:
         # xdist worker's controller checked them); else at collection (bench.plugin).
         self._names_checked = collects_grid(config) and not hasattr(config, "workerinput")
         if self._names_checked:
-            self.startup_lines += check_startup(self.profile, options.labels)
+            self.startup_lines += check_startup(self.profile, options.labels,
+                                                options.screen is not None, self._workers())
             self.store  # opens (creates, probes) the results dir
             self.check_report()
+
+    def _workers(self) -> int:
+        """Processes that will measure cells here: xdist's -n (resolved by now), else one."""
+        n = getattr(self.config.option, "numprocesses", None)
+        return n if isinstance(n, int) and n > 0 and self.options.executor == "local" else 1
 
     def use_seams(self, **changes) -> None:
         """Replace seams (Seams' fields) before the first cell: after it, they would apply to
