@@ -6,8 +6,10 @@ them pushed a 24 GB machine into thrash).
 The estimate, per process that measures cells (each xdist worker, or this one):
 
     PROCESS_BYTES                      torch, LeRobot and timm imported, a tiny release, a batch
-  + each backbone's weights            hub releases: parameters x 4 bytes (they load in fp32);
-                                       your --policy folder: its *.safetensors bytes
+  + its backbones' weights             hub releases: parameters x 4 bytes (they load in fp32);
+                                       your --policy folder: its *.safetensors bytes. Under -n
+                                       a worker takes one backbone's cells (bench.scheduling):
+                                       the largest ceil(backbones / workers) count
   + the data held                      suites decoded into memory (generated and simulated:
                                        frames x cameras x 3 x side^2 bytes, uint8); hub suites
                                        are read per batch; pooled features are read per batch
@@ -93,15 +95,25 @@ def data_bytes(profile, suite: str) -> int:
 def estimate(profile, workers: int) -> MemoryEstimate:
     """The run's estimate (module docstring) for `workers` processes measuring cells."""
     parts = [("process", PROCESS_BYTES)]
-    weights = sum(backbone_bytes(profile, b) for b in profile.backbones)
+    held = -(-len(profile.backbones) // max(1, workers))  # backbones a worker loads
+    weights = sum(sorted((backbone_bytes(profile, b) for b in profile.backbones),
+                         reverse=True)[:held])
     if weights:
-        parts.append((f"{len(profile.backbones)} backbone(s)", weights))
+        parts.append((f"{held} backbone(s)", weights))
     data = sum(data_bytes(profile, s) for s in profile.suites)
     if profile.source == "hub":
         data += FEATURE_BATCH_BYTES
     if data:
         parts.append(("data", data))
     return MemoryEstimate(max(1, workers), tuple(parts))
+
+
+def measuring_processes(config: pytest.Config, options) -> int:
+    """Processes that measure cells on this machine: xdist's -n (resolved by its
+    pytest_cmdline_main before the session starts), else one; a job array's tasks run
+    elsewhere, one cell each."""
+    n = getattr(config.option, "numprocesses", None)
+    return n if isinstance(n, int) and n > 0 and options.executor == "local" else 1
 
 
 def machine_memory() -> tuple[int, int]:

@@ -19,8 +19,8 @@ from bench.robust.cases import add_robustness_option, with_robustness
 from bench.screen.proxies import PROXIES, proxy_names
 from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
                                     parse_screen_by, parse_screen_keep)
-from bench.option_values import (listed, pack_grafts, positive, protocol_value, refuse_empty,
-                                 report_file, seeds, typed_options)
+from bench.option_values import (control_list, listed, pack_grafts, positive, protocol_value,
+                                 refuse_empty, report_file, seeds, typed_options)
 from bench.sim.batching import IN_PROCESS, Batching
 from bench.startup import (check_environment, check_rollout_batch, check_rollouts_possible,
                            check_sim_suites_possible)
@@ -215,14 +215,7 @@ def build_profile(config: pytest.Config):
         if grid is not None:
             profile = grid.apply(profile)
         profile = _user_world(profile, opt)
-        controls = listed("--controls", opt("--controls"))
-        if controls == ("none",):
-            controls = ()
-        valid = control_kinds()
-        bad = [c for c in controls or () if c not in valid]
-        if bad:
-            raise ValueError(f"--controls {opt('--controls')}: unknown control kind(s) {bad}; "
-                             f"valid: {', '.join(valid)} (or none)")
+        controls = control_list(opt("--controls"))
         return with_overrides(
             profile,
             backbones=listed("--backbones", opt("--backbones")),

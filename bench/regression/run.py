@@ -83,6 +83,19 @@ def _parse_degrade(value: str) -> tuple[str, float]:
     return name, f
 
 
+def _check_degraded_encoder(degrade: tuple[str, float], encoders: tuple[str, ...]) -> None:
+    """--degrade-encoder names an encoder of this run, else nothing would be degraded."""
+    import difflib
+
+    name, factor = degrade
+    if name not in encoders:
+        close = difflib.get_close_matches(name, encoders, n=1, cutoff=0.5)
+        raise pytest.UsageError(
+            f"--degrade-encoder {name}:{factor:g}: {name!r} is not an encoder of this run "
+            f"({', '.join(encoders)}), so nothing would be degraded; fix: --degrade-encoder "
+            f"{close[0] if close else encoders[0]}:{factor:g}")
+
+
 @dataclass(frozen=True)
 class BaselineOptions:
     """The regression options of one run, parsed and checked at start-up (bench.options)."""
@@ -127,12 +140,14 @@ class BaselineOptions:
 class BaselineRun:
     """This session's baseline work: what to save, what to compare with, and what happened."""
 
-    def __init__(self, options: BaselineOptions, protocol_hash: str) -> None:
+    def __init__(self, options: BaselineOptions, protocol_hash: str, profile=None) -> None:
         self.dir = options.dir
         self.strict = options.strict
         self.compare_name = options.compare_name
         self.save_name = options.save_name
         self.degrade = options.degrade
+        if self.degrade is not None and profile is not None:
+            _check_degraded_encoder(self.degrade, profile.encoders)
         self.warned: set[str] = set()
         self.comparison: B.Comparison | None = None
         self.saved: tuple[Path, int, list[str]] | None = None
