@@ -81,6 +81,17 @@ def _check_not_blank(option: str, value) -> None:
                                 f"leave {option} out for the default")
 
 
+def wrong_case(option: str, value: str, keywords: tuple[str, ...]) -> str | None:
+    """The refusal of a keyword written in another case (`--screen-keep ALL`), else None. Every
+    keyword and choice is lower case and exact, as --executor's and --features' are: one rule
+    for every option, never read one way here and refused there."""
+    text = str(value).strip()
+    for keyword in keywords:
+        if text != keyword and text.lower() == keyword:
+            return f"{option} {value}: keywords are lower case; give {option} {keyword}"
+    return None
+
+
 def listed(option: str, value: str | None) -> tuple[str, ...] | None:
     """A comma list's items (None: not given). One with no item in it, `--encoders ,`, is a
     ValueError naming the option: the default grid is never what an empty list means."""
@@ -92,6 +103,28 @@ def listed(option: str, value: str | None) -> tuple[str, ...] | None:
                          f"(e.g. {option} {LIST_EXAMPLES[option]}), or leave {option} out for "
                          "the default")
     return items
+
+
+def control_list(given: str | None) -> tuple[str, ...] | None:
+    """--controls as kinds (None: not given; `none`: ()), each known, in lower case; a
+    ValueError naming the nearest kind otherwise."""
+    import difflib
+
+    from bench.grid.kinds import control_kinds
+
+    controls = listed("--controls", given)
+    for c in controls or ():
+        if problem := wrong_case("--controls", c, ("none",) + control_kinds()):
+            raise ValueError(problem)
+    if controls == ("none",):
+        return ()
+    bad = [c for c in controls or () if c not in control_kinds()]
+    if bad:
+        close = difflib.get_close_matches(bad[0], control_kinds(), n=1, cutoff=0.6)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise ValueError(f"--controls {given}: unknown control kind(s) {bad}{hint}; valid: "
+                         f"{', '.join(control_kinds())} (or none)")
+    return controls
 
 
 def seeds(values: tuple[str, ...] | None) -> tuple[int, ...] | None:

@@ -19,8 +19,8 @@ from bench.robust.cases import add_robustness_option, with_robustness
 from bench.screen.proxies import PROXIES, proxy_names
 from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, ScreenOptions,
                                     parse_screen_by, parse_screen_keep)
-from bench.option_values import (listed, pack_grafts, positive, protocol_value, refuse_empty,
-                                 report_file, seeds, typed_options)
+from bench.option_values import (control_list, listed, pack_grafts, positive, protocol_value,
+                                 refuse_empty, report_file, seeds, typed_options)
 from bench.sim.batching import IN_PROCESS, Batching
 from bench.startup import (check_environment, check_rollout_batch, check_rollouts_possible,
                            check_sim_suites_possible)
@@ -59,6 +59,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     g.addoption("--report", help="where REPORT.md goes (default: REPORT.md in --results-dir when "
                                  "given; else at the repo root for --profile tiny, else in the "
                                  "profile's results dir)")
+    g.addoption("--replace-report", action="store_true",
+                help="let the report replace one that holds more cells than it will (bench.outputs)")
     g.addoption("--rerun", action="store_true", help="recompute cells that already have a record")
     g.addoption("--features", default="cache", metavar="cache|loop",
                 help="pooled features from the on-disk cache (default) or the encoder in the loop")
@@ -213,14 +215,7 @@ def build_profile(config: pytest.Config):
         if grid is not None:
             profile = grid.apply(profile)
         profile = _user_world(profile, opt)
-        controls = listed("--controls", opt("--controls"))
-        if controls == ("none",):
-            controls = ()
-        valid = control_kinds()
-        bad = [c for c in controls or () if c not in valid]
-        if bad:
-            raise ValueError(f"--controls {opt('--controls')}: unknown control kind(s) {bad}; "
-                             f"valid: {', '.join(valid)} (or none)")
+        controls = control_list(opt("--controls"))
         return with_overrides(
             profile,
             backbones=listed("--backbones", opt("--backbones")),
@@ -355,6 +350,7 @@ class RunOptions:
     baseline: object = None  # bench.regression.run.BaselineOptions
     screen: object = None  # bench.screen.selection.ScreenOptions; None without --screen
     pack_grafts: int = 1  # graft cells per backbone pass (bench.cell.pack_run); 1: unpacked
+    replace_report: bool = False  # --replace-report: a report with fewer cells may replace one
 
 
 def parse_options(config: pytest.Config) -> RunOptions:
@@ -394,4 +390,5 @@ def parse_options(config: pytest.Config) -> RunOptions:
         feature_dtype=opt("--feature-dtype"), rollouts=rollouts,
         rollout_batching=Batching(rollout_batch, opt("--rollout-envs")), executor=opt("--executor"),
         slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen,
-        pack_grafts=pack_grafts(opt("--pack-grafts"), profile.grid_file, opt("--executor")))
+        pack_grafts=pack_grafts(opt("--pack-grafts"), profile.grid_file, opt("--executor")),
+        replace_report=bool(opt("--replace-report")))

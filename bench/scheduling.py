@@ -70,3 +70,16 @@ def backbone_scheduler(config: pytest.Config, log, gs):
             return f"{backbone_of[cell_id]}:{position % groups}"
 
     return BackboneScheduling(config, log)
+
+
+def serial_threads() -> tuple[int, str]:
+    """Torch threads for a serial run, and why: OMP_NUM_THREADS when set, else the CPUs the
+    1-minute load leaves free (at least 1). torch's default (every CPU) against one other busy
+    process made the tiny grid's steps 20x slower (docs/SCALING.md: 4.3 s -> 88-99 s)."""
+    cpus = len(os.sched_getaffinity(0))
+    if os.environ.get("OMP_NUM_THREADS"):
+        return max(1, int(os.environ["OMP_NUM_THREADS"])), "OMP_NUM_THREADS"
+    load = os.getloadavg()[0]
+    # Whole busy CPUs only: the load a finished job leaves behind decays over minutes.
+    free = max(1, min(cpus, cpus - int(load)))
+    return free, f"{cpus} CPUs, 1-min load {load:.1f}; set OMP_NUM_THREADS to choose"

@@ -76,7 +76,7 @@ class GraftSession:
         self.startup_lines = list(options.startup_lines)  # printed at the session's start
         offline_env(self.profile.offline)
         self.seams = Seams()  # module docstring; replaced only through use_seams
-        self.baseline = BaselineRun(options.baseline, self.profile.protocol.hash)
+        self.baseline = BaselineRun(options.baseline, self.profile.protocol.hash, self.profile)
         self._workspace = None
         self._store = None
         self._cells = None  # the cell service (bench.cell.service), built on first use
@@ -90,9 +90,12 @@ class GraftSession:
         # xdist worker's controller checked them); else at collection (bench.plugin).
         self._names_checked = collects_grid(config) and not hasattr(config, "workerinput")
         if self._names_checked:
-            self.startup_lines += check_startup(self.profile, options.labels)
+            from bench.memory import measuring_processes
+
+            self.startup_lines += check_startup(self.profile, options.labels, options.screen is
+                                                not None, measuring_processes(config, options))
             self.store  # opens (creates, probes) the results dir
-            check_writable("--report", self.report_path.parent)
+            self.check_report()
 
     def use_seams(self, **changes) -> None:
         """Replace seams (Seams' fields) before the first cell: after it, they would apply to
@@ -110,10 +113,22 @@ class GraftSession:
         if hasattr(self.config, "workerinput") or not (selection.cells or selection.screens):
             return
         self.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
-        check_writable("--report", self.report_path.parent)
+        self.check_report(len(self.store.stored_ids() | set(selection.cells)))
         self.preflight(list(cells))
         if selection.cells and self.screen_options is None:
             self._write_grid()  # with --screen: at the end, once the screen's drops are known
+
+    def check_report(self, cells_after: int | None = None) -> None:
+        """--report by bench.outputs' rule, a UsageError before any cell (`cells_after`: the
+        most cells the report holds, once the selection is known)."""
+        from bench.outputs import report_refusal
+
+        check_writable("--report", self.report_path.parent)
+        problem = report_refusal("--report", self.report_path, cells_after=cells_after,
+                                 replace=self.options.replace_report)
+        if problem:
+            self.store.remove_if_unused()  # stopped before any cell: no empty folders left
+            raise pytest.UsageError(problem)
 
     def _write_grid(self) -> None:
         """grid.json: the cells this run meant to measure (the report lists those missing)."""
@@ -294,6 +309,7 @@ class GraftSession:
         else:
             sys.stderr.write(screen + "\n")
         if any(not a.present for a in artifacts) and not self.config.option.collectonly:
+            self.store.remove_if_unused()
             raise pytest.UsageError(missing_summary(artifacts))
 
     @property
@@ -374,22 +390,11 @@ def _default_workspace(session: GraftSession):
     if not hasattr(session.config, "workerinput"):  # workers: bench.plugin split the CPUs
         import torch
 
+        from bench.scheduling import serial_threads
+
         threads, why = serial_threads()
         torch.set_num_threads(threads)
         say(sink, f"torch threads: {threads} ({why})")
     return Workspace(session.profile, session.store, progress=sink, rollouts=session.rollouts,
                      feature_dtype=session.feature_dtype,
                      rollout_batching=session.rollout_batching)
-
-
-def serial_threads() -> tuple[int, str]:
-    """Torch threads for a serial run, and why: OMP_NUM_THREADS when set, else the CPUs the
-    1-minute load leaves free (at least 1). torch's default (every CPU) against one other busy
-    process made the tiny grid's steps 20x slower (docs/SCALING.md: 4.3 s -> 88-99 s)."""
-    cpus = len(os.sched_getaffinity(0))
-    if os.environ.get("OMP_NUM_THREADS"):
-        return max(1, int(os.environ["OMP_NUM_THREADS"])), "OMP_NUM_THREADS"
-    load = os.getloadavg()[0]
-    # Whole busy CPUs only: the load a finished job leaves behind decays over minutes.
-    free = max(1, min(cpus, cpus - int(load)))
-    return free, f"{cpus} CPUs, 1-min load {load:.1f}; set OMP_NUM_THREADS to choose"

@@ -26,14 +26,44 @@ def collects_grid(config: pytest.Config) -> bool:
     return False
 
 
-def check_startup(profile, labels: dict[str, str] | None = None) -> list[str]:
-    """Every name and user path of the grid, before collection: each bad one a one-line
-    UsageError (exit 4, no cell run). Returns the camera pairing lines to print. The output
-    folders come after (the session opens --results-dir, then probes --report: the report
-    defaults to a folder inside the results dir, whose own error names the right option)."""
+def check_startup(profile, labels: dict[str, str] | None = None, screen: bool = False,
+                  workers: int = 1) -> list[str]:
+    """Every name and user path of the grid, the data-sized numbers against the suites and the
+    run's memory (`workers`: processes measuring cells), before collection: each bad one a
+    one-line UsageError (exit 4, no cell run). Returns the lines to print (camera pairings, the
+    memory estimate). The output folders come after (the session opens --results-dir, then
+    probes --report: the report defaults to a folder inside the results dir, whose own error
+    names the right option)."""
+    from bench.data_bounds import check_data_bounds
+    from bench.memory import check_memory
+
     validate_names(profile, labels)
     check_tuned_encoders(profile, labels)
-    return check_user_world(profile)
+    check_references(profile, screen, labels)
+    check_data_bounds(profile)
+    lines = check_user_world(profile)
+    return lines + check_memory(profile, workers, "-n")
+
+
+def check_references(profile, screen: bool, labels: dict[str, str] | None = None) -> None:
+    """A control whose comparison cell is a tier of the --screen ladder (tuned_encoder_1_8's
+    frozen twin is the short_1_8 graft) runs only beside --screen: without it the control
+    would train (hours on a real encoder) with nothing to be compared against."""
+    from bench.grid.kinds import get_kind
+
+    if screen:
+        return
+    for name in profile.controls:
+        kind = get_kind(name)
+        for variant in kind.variants or (None,):
+            reference = kind.reference_cell("encoder", variant)
+            if reference is not None and get_kind(reference[0]).tier:
+                twin = f"{reference[0]}[{reference[1]}]" if reference[1] else reference[0]
+                raise pytest.UsageError(
+                    f"{(labels or {}).get('controls', '--controls')}: {name} is compared with "
+                    f"the {twin} graft, a tier of the --screen ladder that runs only under "
+                    f"--screen, so its frozen twin would never exist; fix: add --screen, or "
+                    f"drop {name} (tuned_encoder compares at the full steps)")
 
 
 def check_tuned_encoders(profile, labels: dict[str, str] | None = None) -> None:

@@ -297,19 +297,29 @@ def test_lerobot_eval_runs_one_short_libero_episode_of_the_export(world):
 
 # --- the command line without a world: records alone (no projector is read) ---------------
 
-def test_list_says_when_nothing_exports_and_why(tmp_path, capsys):
-    """Before: `--list` printed nothing, exit 0. A user encoder's and a known-answer graft."""
+def test_list_names_every_cell_with_why_it_does_not_export(tmp_path, capsys):
+    """Before: `--list` printed nothing, exit 0; then only a summary of reasons, no cell named
+    (docs/EXPORT.md says each is named). A user encoder's and a known-answer graft, a control
+    and a failed cell."""
     from bench.export.__main__ import main
 
     save_record(tmp_path, make_record(encoder="mypkg.effl:pretrained"))
     save_record(tmp_path, make_record(encoder="pixels"))
+    save_record(tmp_path, make_record(encoder="pixels", kind="shuffled_image"))
+    save_record(tmp_path, make_failed(encoder="dinov2_s"))
     assert main(["--list", "--results-dir", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
-    assert out.startswith(f"bench.export: nothing to export in {tmp_path}: 2 graft cell(s), none "
-                          "exportable (its encoder 'mypkg.effl:pretrained' is your own module's "
-                          "(PKG.MODULE:FACTORY), and the LeRobot plugin rebuilds encoders from "
-                          "timm by name only;"), out
-    assert "its encoder 'pixels' is a known-answer function" in out
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [
+        "smolvla-spatial-mypkg.effl_pretrained-seed0  not exportable: its encoder "
+        "'mypkg.effl:pretrained' is your own module's (PKG.MODULE:FACTORY), and the LeRobot "
+        "plugin rebuilds encoders from timm by name only; export a graft of a registry or timm: "
+        "encoder (docs/EXPORT.md)",
+        "smolvla-spatial-pixels-seed0  not exportable: its encoder 'pixels' is a known-answer "
+        "function, not a timm architecture: nothing for the plugin to rebuild",
+        "smolvla-spatial-pixels-shuffled_image-seed0  not exportable: a shuffled_image cell: "
+        "only graft cells export",
+        "smolvla-spatial-dinov2_s-seed0  not exportable: it failed (RuntimeError: boom)",
+        f"bench.export: nothing to export in {tmp_path}: 4 cell(s), none exportable"], lines
 
 
 def test_a_user_encoders_graft_is_refused_before_anything_is_written(tmp_path, capsys):

@@ -14,7 +14,7 @@ def test_lr_schedule_warms_up_then_decays_to_zero():
 
 
 def test_batch_order_depends_on_the_seed_only():
-    a, b, c = batch_order(10, CFG, 0), batch_order(10, CFG, 0), batch_order(10, CFG, 1)
+    a, b, c = (list(batch_order(10, CFG, seed)) for seed in (0, 0, 1))
     assert all(torch.equal(x, y) for x, y in zip(a, b))
     assert not all(torch.equal(x, y) for x, y in zip(a, c))
     assert len(a) == 10 and all(len(x) == 4 for x in a)

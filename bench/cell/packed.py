@@ -94,7 +94,7 @@ class _Run:
         self.cell, self.cfg = cell, cfg
         self.optimizer, self.scheduler, self.params = make_optimizer(cell.params, cfg)
         self.noise_gen = noise_generator(cell.seed)
-        self.order = batch_order(len(cell.frames), cfg, cell.seed)
+        self.order = batch_order(len(cell.frames), cfg, cell.seed)  # one draw per step trained
         self.result = PackedFit(cell.label)
 
     def trains_at(self, step: int) -> bool:
@@ -144,7 +144,7 @@ def fit_packed(backbone: Backbone, cells: Sequence[PackedCell], cfg: FitConfig,
 def _packed_losses(backbone: Backbone, active: list[_Run], step: int,
                    device: torch.device) -> list[Tensor]:
     """Each active cell's mean loss of `step`, from one backbone pass over their stacked draws."""
-    draws = [draw_step(backbone, run.cell.frames[run.order[step]], run.cell.next_batch,
+    draws = [draw_step(backbone, run.cell.frames[next(run.order)], run.cell.next_batch,
                        run.noise_gen) for run in active]
     sizes = [len(noise) for _, _, noise, _ in draws]
     for run, (_, features, _, _) in zip(active, draws):

@@ -24,7 +24,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
                         help="export the report's winner on BACKBONE x SUITE instead")
     parser.add_argument("--results-dir", required=True, help="the results dir of the run")
     parser.add_argument("--out", help="the folder to write (must not exist)")
-    parser.add_argument("--list", action="store_true", help="list the exportable graft cells")
+    parser.add_argument("--list", action="store_true", help="list every cell: the exportable ones with their MSE, the others with why not")
     args = parser.parse_args(argv)
     if not args.list and (bool(args.cell_id) == bool(args.best)):
         parser.error("name one CELL_ID or --best BACKBONE SUITE")
@@ -34,20 +34,28 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def list_cells(results_dir: str) -> int:
-    """Each exportable graft cell with its MSE; the others with why not; a line when none is."""
+    """Every cell of the results dir, one line each: an exportable graft with its MSE, any
+    other with why it cannot export (not a graft, its encoder, failed); a last line when none
+    can."""
     from bench.export.locate import results_of, why_not_exportable
     from bench.grid.kinds import GRAFT
 
-    grafts = [r for r in results_of(results_dir).records if r.kind == GRAFT]
-    why = {r.cell_id: why_not_exportable(r) for r in grafts}
-    for record in grafts:
-        if why[record.cell_id] is None:
-            print(f"{record.cell_id}  mse {record.mse_in('normalized'):.6g}")
-    if not any(w is None for w in why.values()):
-        reasons = sorted({w for w in why.values() if w})
-        print(f"bench.export: nothing to export in {results_dir}: {len(grafts)} graft cell(s)"
-              + (f", none exportable ({'; '.join(reasons)})" if grafts else
-                 " (run `pytest bench` with --results-dir there first)"))
+    results = results_of(results_dir)
+    lines, exportable = [], 0
+    for record in sorted(results.records, key=lambda r: r.cell_id):
+        why = (why_not_exportable(record) if record.kind == GRAFT else
+               f"a {record.kind} cell: only graft cells export")
+        exportable += why is None
+        lines.append(f"{record.cell_id}  mse {record.mse_in('normalized'):.6g}" if why is None
+                     else f"{record.cell_id}  not exportable: {why}")
+    lines += [f"{f.cell_id}  not exportable: it failed ({f.error})"
+              for f in sorted(results.failed, key=lambda f: f.cell_id)]
+    for line in lines:
+        print(line)
+    if not exportable:
+        why = (f"{len(lines)} cell(s), none exportable" if lines else
+               "no cells (run `pytest bench` with --results-dir there first)")
+        print(f"bench.export: nothing to export in {results_dir}: {why}")
     return 0
 
 

@@ -29,9 +29,12 @@ def export_cell(results_dir: str | Path, cell_id: str, out: str | Path, *,
                 note: str | None = None, progress: bool = False, lend_from=None) -> Path:
     """Export graft cell `cell_id` of `results_dir` to the new folder `out`; returns `out`.
     `lend_from`: a Workspace of the same world whose loaded suites and releases are reused."""
+    from bench.outputs import export_refusal
+
     out = Path(out)
-    if out.exists():
-        raise ExportError(f"--out {out} already exists: pass a new folder (or remove it)")
+    problem = export_refusal("--out", out)
+    if problem:
+        raise ExportError(problem)
     if not out.parent.is_dir():
         raise ExportError(f"--out {out}: its parent folder {out.parent} does not exist")
     record = find_record(results_dir, cell_id)

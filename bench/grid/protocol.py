@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 
 from backbones import BACKBONES
@@ -96,8 +97,11 @@ class Range:
     low: float | None = None
     high: float | None = None
     low_open: bool = False
+    why: str = ""  # why the top is where it is, for the message
 
     def __contains__(self, value) -> bool:
+        if isinstance(value, float) and not math.isfinite(value):  # NaN passes every comparison
+            return False
         if self.low is not None and (value <= self.low if self.low_open else value < self.low):
             return False
         return self.high is None or value <= self.high
@@ -114,16 +118,27 @@ class Range:
 # (bench.option_values.protocol_value), a grid file's `steps` and `[protocol]`
 # (bench.grid.gridfile), each with range_error's one message.
 # Adding a numeric field to Protocol: add its range here, in the same commit.
+# A value whose cost grows with it has a top (steps run one after another; a LoRA rank or an
+# image shift sizes tensors; a seed beyond 2**63 - 1 is refused by torch's generators).
+# Held-out episodes and the batch are checked against the suite's data at start-up
+# (bench.data_bounds). Infinity and NaN are outside every range.
+MAX_STEPS = 1_000_000
+_STEPS_WHY = "500x the study's 2,000 steps, which run one after another"
+MAX_SEED = 2**63 - 1
 PROTOCOL_RANGES: dict[str, Range] = {
-    "steps": Range(1), "batch_size": Range(1), "lr": Range(0, low_open=True),
-    "weight_decay": Range(0), "warmup_steps": Range(0), "grad_clip": Range(0),  # 0: no clipping
-    "loss_log_every": Range(1), "split_seed": Range(0), "heldout_episodes_per_task": Range(1),
-    "eval_stride": Range(1), "eval_batch_size": Range(1), "eval_noise_seed": Range(0),
-    "lora_rank": Range(1), "lora_alpha": Range(1),
+    "steps": Range(1, MAX_STEPS, why=_STEPS_WHY), "batch_size": Range(1),
+    "lr": Range(0, low_open=True), "weight_decay": Range(0),
+    "warmup_steps": Range(0, MAX_STEPS, why=_STEPS_WHY), "grad_clip": Range(0),  # 0: no clipping
+    "loss_log_every": Range(1), "split_seed": Range(0, MAX_SEED),
+    "heldout_episodes_per_task": Range(1),
+    "eval_stride": Range(1), "eval_batch_size": Range(1), "eval_noise_seed": Range(0, MAX_SEED),
+    "lora_rank": Range(1, 4096), "lora_alpha": Range(1),  # a rank above any LM's width
     "encoder_lr": Range(0, low_open=True),  # 0 would train nothing: the frozen graft
-    "native_steps": Range(0), "native_lr": Range(0, low_open=True),  # 0 steps: no native training
-    "native_state_dropout": Range(0, 1), "native_state_dropout_warmup": Range(0),
-    "native_image_shift": Range(0), "graft_image_shift": Range(0),
+    "native_steps": Range(0, MAX_STEPS, why=_STEPS_WHY),  # 0 steps: no native training
+    "native_lr": Range(0, low_open=True),
+    "native_state_dropout": Range(0, 1),
+    "native_state_dropout_warmup": Range(0, MAX_STEPS, why=_STEPS_WHY),
+    "native_image_shift": Range(0, 512), "graft_image_shift": Range(0, 512),  # <= image side
     "tiny_image_size": Range(16, 512),
 }
 
@@ -134,7 +149,12 @@ def range_error(field: str, value, where: str) -> str | None:
     allowed = PROTOCOL_RANGES.get(field)
     if allowed is None or value in allowed:
         return None
-    return f"{where}: {field} = {value!r} is out of range; give {field} {allowed.text()}"
+    why = f" ({allowed.why})" if allowed.why else ""
+    what = "is not a finite number" if value != value or value in (_INF, -_INF) else "is out of range"
+    return f"{where}: {field} = {value!r} {what}; give {field} {allowed.text()}{why}"
+
+
+_INF = float("inf")
 
 
 PAPER_ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")

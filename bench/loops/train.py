@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import torch
 from torch import Tensor
@@ -45,18 +45,17 @@ def lr_factor(step: int, cfg: FitConfig) -> float:
     return 0.5 * (1.0 + math.cos(math.pi * (step - cfg.warmup_steps) / span))
 
 
-def batch_order(n_frames: int, cfg: FitConfig, seed: int) -> list[Tensor]:
-    """Frame positions of each step: seeded permutations, epoch after epoch. (steps, B) long."""
+def batch_order(n_frames: int, cfg: FitConfig, seed: int) -> Iterator[Tensor]:
+    """Frame positions of each step, (B,) long, one step at a time: seeded permutations, epoch
+    after epoch. Streamed: memory stays one permutation whatever cfg.steps is."""
     gen = torch.Generator().manual_seed(stable_seed(seed, "data-order"))
-    order: list[Tensor] = []
     perm = torch.randperm(n_frames, generator=gen)
     cursor = 0
     for _ in range(cfg.steps):
         if cursor + cfg.batch_size > n_frames:
             perm, cursor = torch.randperm(n_frames, generator=gen), 0
-        order.append(perm[cursor : cursor + cfg.batch_size])
+        yield perm[cursor : cursor + cfg.batch_size]
         cursor += cfg.batch_size
-    return order
 
 
 def frozen_autocast(device: torch.device):

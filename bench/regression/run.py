@@ -34,7 +34,10 @@ class BaselineMismatchWarning(pytest.PytestWarning):
 def add_baseline_options(parser: pytest.Parser) -> None:
     g = parser.getgroup("graftbench-baseline", "graftbench CI regression mode")
     g.addoption("--save-baseline", metavar="NAME",
-                help="at session end, snapshot the selected cells' stored records as baseline NAME")
+                help="at session end, snapshot the selected cells' stored records as baseline "
+                     "NAME (NAME.json in --baseline-dir)")
+    g.addoption("--replace-baseline", action="store_true",
+                help="let --save-baseline replace a saved baseline of that name")
     g.addoption("--baseline-dir", metavar="DIR",
                 help=f"where baselines live (default {DEFAULT_BASELINE_DIR})")
     g.addoption("--compare", metavar="NAME",
@@ -80,6 +83,19 @@ def _parse_degrade(value: str) -> tuple[str, float]:
     return name, f
 
 
+def _check_degraded_encoder(degrade: tuple[str, float], encoders: tuple[str, ...]) -> None:
+    """--degrade-encoder names an encoder of this run, else nothing would be degraded."""
+    import difflib
+
+    name, factor = degrade
+    if name not in encoders:
+        close = difflib.get_close_matches(name, encoders, n=1, cutoff=0.5)
+        raise pytest.UsageError(
+            f"--degrade-encoder {name}:{factor:g}: {name!r} is not an encoder of this run "
+            f"({', '.join(encoders)}), so nothing would be degraded; fix: --degrade-encoder "
+            f"{close[0] if close else encoders[0]}:{factor:g}")
+
+
 @dataclass(frozen=True)
 class BaselineOptions:
     """The regression options of one run, parsed and checked at start-up (bench.options)."""
@@ -99,12 +115,21 @@ class BaselineOptions:
                       opt("--save-baseline"), bool(opt("--compare-strict")),
                       tuple(opt("--compare-fail") or ()),
                       _parse_degrade(opt("--degrade-encoder")) if opt("--degrade-encoder") else None)
+        from bench.outputs import baseline_refusal
+
+        replace = bool(opt("--replace-baseline"))
         problem = None
-        if (options.compare_fail or options.strict) and not options.compare_name:
+        if options.save_name is not None:
+            problem = baseline_refusal("--save-baseline", options.save_name, options.dir, replace)
+        elif replace:
+            problem = ("--replace-baseline: it lets --save-baseline replace a saved baseline, and "
+                       "--save-baseline is not given; fix: add --save-baseline NAME or drop it")
+        needs_compare = (options.compare_fail or options.strict) and not options.compare_name
+        if problem is None and needs_compare:
             problem = "--compare-fail / --compare-strict need --compare NAME"
-        elif options.degrade and executor != "local":
+        elif problem is None and options.degrade and executor != "local":
             problem = "--degrade-encoder acts on this process's workspace: it needs --executor local"
-        elif options.degrade and options.save_name:
+        elif problem is None and options.degrade and options.save_name:
             problem = ("--degrade-encoder plants a regression: never save it as a baseline (drop "
                        "--save-baseline)")
         if problem:
@@ -115,12 +140,14 @@ class BaselineOptions:
 class BaselineRun:
     """This session's baseline work: what to save, what to compare with, and what happened."""
 
-    def __init__(self, options: BaselineOptions, protocol_hash: str) -> None:
+    def __init__(self, options: BaselineOptions, protocol_hash: str, profile=None) -> None:
         self.dir = options.dir
         self.strict = options.strict
         self.compare_name = options.compare_name
         self.save_name = options.save_name
         self.degrade = options.degrade
+        if self.degrade is not None and profile is not None:
+            _check_degraded_encoder(self.degrade, profile.encoders)
         self.warned: set[str] = set()
         self.comparison: B.Comparison | None = None
         self.saved: tuple[Path, int, list[str]] | None = None
@@ -129,7 +156,8 @@ class BaselineRun:
         self.baseline: B.Baseline | None = None
         try:
             self.checks = [B.parse_compare_fail(s) for s in options.compare_fail]
-            self.save_path = B.baseline_path(self.dir, self.save_name) if self.save_name else None
+            # a name, checked at start-up (bench.outputs): never a path
+            self.save_path = self.dir / f"{self.save_name}.json" if self.save_name else None
             if self.compare_name:
                 self.compare_path = B.baseline_path(self.dir, self.compare_name)
                 self.baseline = B.load_baseline(self.compare_path)

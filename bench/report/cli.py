@@ -3,9 +3,12 @@ REPORT.md from stored records (bench.report.build).
 
 Every input is checked before anything is written: a folder that holds no records is refused
 (the report, its CSV and JSON beside it are left as they were, never overwritten with "No
-finished cells"), and so are a file given as the folder, a folder given as --report and a
-replicate count below 2. Bad input is one line on stderr with the fix, exit 4 (pytest bench's
-usage error). Files the store could not read are counted in the terminal, not only in the file.
+finished cells"), and so are a file given as the folder, a replicate count below 2, a record
+that cannot be read (unless --skip-unreadable: the report then holds what was readable and the
+terminal names what was not), and a report path bench.outputs does not allow (a folder, a file
+that is not a graftbench report, the record tree, fewer cells than the report there holds
+without --replace-report). Bad input is one line on stderr with the fix, exit 4 (pytest bench's
+usage error).
 """
 
 from __future__ import annotations
@@ -32,6 +35,11 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--resamples", type=whole_at_least(LEAST_RESAMPLES, "2000"),
                         help="bootstrap replicates (default: bench.analysis.rankings's, 2000)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--skip-unreadable", action="store_true",
+                        help="write the report from the readable records when some cannot be "
+                             "read (default: stop, naming them, the existing report kept)")
+    parser.add_argument("--replace-report", action="store_true",
+                        help="replace a report that holds more cells than this one will")
     return parser.parse_args(argv)
 
 
@@ -66,17 +74,29 @@ def check_results_dir(folder: Path):
                  f"were{hint}")
 
 
-def check_out(out: Path | None) -> None:
-    if out is None:
-        return
-    if out.is_dir() or str(out).endswith(("/", "\\")):
-        refuse(PROG, f"--report {out}: a folder; --report names the report's file (its CSV, "
-                     f"JSON and plots go beside it), e.g. --report {out / 'REPORT.md'}")
+def check_out(out: Path, results, replace: bool) -> None:
+    """The report path, by the one rule of bench.outputs: refused in one line, nothing written."""
+    from bench.outputs import report_refusal
+
+    problem = report_refusal("--report", out, cells_after=len(results.records) +
+                             len(results.failed), replace=replace)
+    if problem:
+        refuse(PROG, problem)
     for parent in out.parents:
         if parent.exists():
             if not parent.is_dir():
                 refuse(PROG, f"--report {out}: {parent} is a file; give a path in a folder")
             break
+
+
+def check_readable(folder: Path, results, skip: bool) -> None:
+    """Records that cannot be read stop the report (it would shrink without a word), unless
+    the user asked to write what was readable."""
+    if results.skipped and not skip:
+        refuse(PROG, f"RESULTS_DIR {folder}: {len(results.skipped)} record file(s) cannot be "
+                     f"read: {_skipped_text(results.skipped)}; nothing written, the existing "
+                     "report kept; fix: repair or remove them, or add --skip-unreadable to "
+                     "report the readable ones")
 
 
 def _skipped_text(skipped: list[tuple[str, str]], shown: int = 3) -> str:
@@ -87,13 +107,15 @@ def _skipped_text(skipped: list[tuple[str, str]], shown: int = 3) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse(argv)
     results = check_results_dir(args.results_dir)
-    check_out(args.out)
+    check_readable(args.results_dir, results, args.skip_unreadable)
+    out = args.out if args.out is not None else args.results_dir / "REPORT.md"
+    check_out(out, results, args.replace_report)
     from bench.report.build import build_report  # the analyses' imports: only once checked
 
     from bench.analysis.rankings import DEFAULT_RESAMPLES
 
     resamples = DEFAULT_RESAMPLES if args.resamples is None else args.resamples
-    path = build_report(args.results_dir, args.out, n_resamples=resamples,
+    path = build_report(args.results_dir, out, n_resamples=resamples,
                         plots=not args.no_plots)
     print(f"wrote {path} ({len(results.records)} finished, {len(results.failed)} failed cell(s))")
     if results.skipped:

@@ -53,6 +53,8 @@ def _not_a_repo_id(source: str) -> str | None:
     from huggingface_hub.errors import HFValidationError
     from huggingface_hub.utils import validate_repo_id
 
+    if Path(source).expanduser().is_file():
+        return "a file, not a folder (a checkpoint is the folder holding config.json)"
     if source.startswith(("/", "./", "../", "~")) or source.count("/") > 1:
         return "no such folder"
     try:

@@ -220,6 +220,9 @@ class ResultStore:
 
     def __init__(self, root: Path | str) -> None:
         self.root = Path(root)
+        # What opening makes, deepest first: removed again, while empty, by remove_if_unused.
+        wanted = [self.root / CELLS, self.root / FAILED, self.root, *self.root.absolute().parents]
+        self.made = [p for p in wanted if not p.exists()]
         try:
             (self.root / CELLS).mkdir(parents=True, exist_ok=True)
             (self.root / FAILED).mkdir(parents=True, exist_ok=True)
@@ -233,6 +236,17 @@ class ResultStore:
                 f"results dir {self.root} is not writable ({e.strerror}); "
                 "pass a writable folder with --results-dir PATH"
             ) from None
+
+    def remove_if_unused(self) -> None:
+        """Remove the folders opening the store made, those still empty: a run stopped at
+        start-up leaves nothing behind."""
+        for folder in self.made:
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+
+    def stored_ids(self) -> set[str]:
+        """Ids of the cells with a record or a failure here, by file name (none is read)."""
+        return {p.stem for folder in (CELLS, FAILED) for p in (self.root / folder).glob("*.json")}
 
     def cell_path(self, cell_id: str) -> Path:
         return self.root / CELLS / f"{cell_id}.json"

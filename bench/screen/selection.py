@@ -53,7 +53,11 @@ def _shown(by: str, score: float) -> str:
 
 def parse_screen_keep(value: str) -> int | None:
     """`--screen-keep` as a count (None: "all"); ValueError with one line for anything else."""
-    text = str(value).strip().lower()
+    from bench.option_values import wrong_case
+
+    text = str(value).strip()
+    if problem := wrong_case("--screen-keep", value, ("all",)):
+        raise ValueError(problem)
     if text == "all":
         return None
     try:
