@@ -20,7 +20,7 @@ from bench.grid.kinds import GRAFT, NATIVE, record_label
 
 
 @lru_cache(maxsize=None)
-def _source(profile: str | None) -> str | None:
+def profile_source(profile: str | None) -> str | None:
     """The encoder source ("tiny" or "hub") of a registered profile; None when unknown."""
     from bench.grid.protocol import get_profile
 
@@ -51,7 +51,7 @@ def is_candidate(record) -> bool:
     if record.kind == NATIVE:
         return True
     return (record.kind == GRAFT and record.encoder is not None
-            and pretrained_encoder(record.encoder, _source(record.measured.profile)))
+            and pretrained_encoder(record.encoder, profile_source(record.measured.profile)))
 
 
 def candidate_items(records: Iterable) -> frozenset[str]:

@@ -138,9 +138,9 @@ def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: s
         return out
     _items(out, scores, per_window, items)
     if len(out.encoders) < MIN_ITEMS[item_set]:
-        out.missing = (f"not measured: {len(out.encoders)} of the {item_set} have both the "
-                       f"{tier} score and a graft on {backbone} x {suite} ({out.encoders}); "
-                       f"needs {MIN_ITEMS[item_set]}")
+        out.missing = (f"not measured: {len(out.encoders)} encoder(s) have both the {tier} "
+                       f"score and a graft on {backbone} x {suite} ({out.encoders}; items: "
+                       f"{item_set}); needs {MIN_ITEMS[item_set]}")
         return out
     out.predicted = [float(scores[e]) for e in out.encoders]
     windows = np.array([per_window[e] for e in out.encoders])  # (n, W)
