@@ -36,11 +36,11 @@ def test_a_perfect_naive_baseline_keeps_a_noisy_proxy_from_being_recommended():
     """Parameter count orders the grafts exactly, the proxy swaps two pairs: its tau-b minus the
     baseline's is negative in every replicate, so it is not recommended."""
     noisy = _planted([1, 0, 2, 3, 5, 4, 6])  # tau-b (21 - 2*2) / 21
-    baselines = {"params": GOOD, "resolution": _planted([6, 0, 5, 1, 4, 2, 3])}
+    baselines = {"param_count": GOOD, "resolution": _planted([6, 0, 5, 1, 4, 2, 3])}
     out = tier_agreement(noisy, grafts(), "smolvla", "spatial", "logme", n_resamples=200,
                          baselines=baselines)
     assert out.point.tau_b == pytest.approx(17 / 21)
-    assert out.best_naive == "params" and out.naive_tau_b["params"] == pytest.approx(1.0)
+    assert out.best_naive == "param_count" and out.naive_tau_b["param_count"] == pytest.approx(1.0)
     assert out.naive_gap == pytest.approx(17 / 21 - 1)
     gap = out.naive_gap_interval
     assert isinstance(gap, Interval) and gap.high < 0
@@ -50,7 +50,7 @@ def test_a_perfect_naive_baseline_keeps_a_noisy_proxy_from_being_recommended():
 def test_an_exact_proxy_beats_an_unrelated_parameter_count_and_is_recommended():
     unrelated = _planted([3, 6, 0, 5, 2, 4, 1])
     out = tier_agreement(GOOD, grafts(), "smolvla", "spatial", "ridge", n_resamples=200,
-                         baselines={"params": unrelated})
+                         baselines={"param_count": unrelated})
     assert out.point.tau_b == pytest.approx(1.0)
     expected = 1.0 - kendall_tau_b([unrelated[e] for e in ENCODERS], [GOOD[e] for e in ENCODERS])
     assert out.naive_gap == pytest.approx(expected) and expected > 0.5
@@ -58,11 +58,14 @@ def test_an_exact_proxy_beats_an_unrelated_parameter_count_and_is_recommended():
 
 
 def test_the_difference_is_drawn_on_the_same_replicates_as_the_tier():
-    """A baseline equal to the proxy differs from it by exactly 0 in every replicate: only
-    draws shared by both give a degenerate [0, 0] interval."""
+    """Grafts noisy enough that their order moves from draw to draw, a baseline equal to the
+    proxy: the two differ by exactly 0 only where both meet the same draw of the graft."""
     noisy = _planted([1, 0, 2, 3, 5, 4, 6])
-    out = tier_agreement(noisy, grafts(), "smolvla", "spatial", "logme", n_resamples=100,
-                         baselines={"params": noisy})
+    records = [make_record(encoder=e, level=level, seed=s, noise=0.05)
+               for e, level in LEVELS.items() for s in (0, 1)]
+    out = tier_agreement(noisy, records, "smolvla", "spatial", "logme", n_resamples=100,
+                         baselines={"param_count": noisy})
+    assert out.intervals["tau_b"].high - out.intervals["tau_b"].low > 0.2  # the order moves
     ci = out.naive_gap_interval
     assert (ci.low, ci.high, ci.undefined) == (0.0, 0.0, 0) and not out.recommended
 

@@ -52,6 +52,8 @@ def candidate_clause(cl) -> str:
     """'on the k candidates Kendall tau-b x [lo, hi]; ' (the question a team asks), or ''."""
     if "tau_b" not in cl.candidate_agreement:
         return ""
+    if isinstance(cl.candidate_agreement["tau_b"], Undefined):
+        return f"on the candidates no agreement ({cl.candidate_agreement['tau_b'].reason}); "
     return (f"on the {len(cl.candidates)} candidates ({', '.join(cl.candidates)}) Kendall tau-b "
             f"{stat_text(cl.candidate_agreement['tau_b'])} "
             f"{interval(cl.candidate_interval_of('tau_b'), 2)}; ")

