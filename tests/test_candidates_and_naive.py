@@ -138,3 +138,18 @@ def test_the_encoders_cost_is_counted_from_the_module_built():
     blind = encoder_cost(build_encoder("pixels", "tiny"))
     assert (blind.params, blind.flops, blind.input_size) == (0, 0, 64)
     assert np.isclose(encoder_cost(build_encoder("effnet_lite0", "tiny")).params, 3_371_008)
+
+
+def test_the_bootstraps_pair_count_is_scipys_tau_b():
+    """naive_gap counts pairs itself (speed); it must be Kendall tau-b, ties and all."""
+    from bench.analysis.agreement import Undefined, pairwise_tau_b
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        n = int(rng.integers(2, 12))
+        x, y = rng.integers(0, 4, n).astype(float), np.round(rng.normal(size=n), 1)
+        mine, scipys = pairwise_tau_b(x, y), kendall_tau_b(x, y)
+        if isinstance(scipys, Undefined):
+            assert mine == scipys
+        else:
+            assert mine == pytest.approx(scipys, abs=1e-12)

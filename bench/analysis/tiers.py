@@ -17,7 +17,7 @@ the screen recommends it only where that interval lies above 0 (`recommended`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Collection, Mapping, Sequence
 
 import numpy as np
@@ -66,6 +66,11 @@ class TierAgreement:
         """Beats the best naive baseline: the paired interval of the difference lies above 0."""
         ci = self.naive_gap_interval
         return isinstance(ci, Interval) and ci.low > 0
+
+    def to_dict(self) -> dict:
+        """Every field (the report's JSON makes values plain), and `recommended`."""
+        return {f.name: getattr(self, f.name) for f in fields(self)} | {
+            "recommended": self.recommended}
 
 
 def graft_per_window(records: Sequence, backbone: str, suite: str, kind: str = GRAFT,
