@@ -113,6 +113,9 @@ def test_the_closed_loop_agreement_on_the_candidates():
     assert out.candidate_agreement["tau_b"] == pytest.approx(1.0)
     assert out.agreement["tau_b"] == pytest.approx(0.0)  # pixels first offline, last in success
     assert out.candidate_interval_of("tau_b")[0] > 0
+    full = out.measures[0]  # the offline measures' table, on the candidates' rows as well
+    assert full.on_candidates.labels == out.candidates
+    assert full.on_candidates.value["tau_b"] == pytest.approx(1.0)
 
 
 class _Patchify(torch.nn.Module):

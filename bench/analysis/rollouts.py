@@ -181,7 +181,8 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
                                                           n_resamples, random_seed)
     if candidates is not None:
         _on_candidates(out, per_window, per_episode, full.seeds, candidates, random_seed)
-    out.measures = measure_agreements(rolled_items, n_resamples=n_resamples, seed=random_seed)
+    out.measures = measure_agreements(rolled_items, candidates, n_resamples=n_resamples,
+                                      seed=random_seed)
     return out
 
 

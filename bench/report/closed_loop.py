@@ -145,16 +145,28 @@ def measures_table(cl) -> str:
     rows = []
     for m in cl.measures:
         if m.missing:
-            rows.append([m.name, "not measured", *[""] * (len(TABLE_STATISTICS) + 1), m.missing])
+            rows.append([m.name, "not measured", *[""] * (len(TABLE_STATISTICS) + 2), m.missing])
             continue
         cells = [stat_text(m.value[k]) + " " + (interval(m.interval_of(k), 2)
                                                 if m.interval_of(k) else
                                                 f"({stat_text(m.intervals.get(k))})")
                  for k in TABLE_STATISTICS]
         rows.append([m.name, len(m.labels), *cells,
-                     "" if m.versus_full is None else _versus(m), m.note])
+                     "" if m.versus_full is None else _versus(m), _on_candidates(m), m.note])
     return table(rows, ["measure", "rows", *(MEASURE_COLUMNS[k] for k in TABLE_STATISTICS),
-                        "tau-b minus the full chunk's (paired)", "note"])
+                        "tau-b minus the full chunk's (paired)", "tau-b on the candidates",
+                        "note"])
+
+
+def _on_candidates(m) -> str:
+    """A measure's Kendall tau-b over the candidate items' rows, with its interval."""
+    c = m.on_candidates
+    if c is None:
+        return "n/a"
+    if c.missing:
+        return f"not measured ({c.missing})"
+    return (f"{stat_text(c.value[VERDICT_STATISTIC])} "
+            f"{interval(c.interval_of(VERDICT_STATISTIC), 2)} ({len(c.labels)} rows)")
 
 
 def _stat_cells(value, ci, n_resamples: int) -> list[str]:
