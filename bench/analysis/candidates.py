@@ -34,8 +34,11 @@ def profile_source(profile: str | None) -> str | None:
 def pretrained_encoder(encoder: str, source: str | None) -> bool:
     """Does `encoder` run trained weights when built for `source`? An unknown source counts only
     weights trained in every profile; a name the registry does not know is no candidate."""
-    from encoders import UnknownEncoder, get_spec, is_user_encoder
-    from encoders.base import PRETRAINED
+    try:
+        from encoders import UnknownEncoder, get_spec, is_user_encoder
+        from encoders.base import PRETRAINED
+    except ImportError:  # a report read where the encoders cannot load: no candidate claimed
+        return False
 
     if is_user_encoder(encoder):  # getting its spec would build it: a team's own is a candidate
         return True
