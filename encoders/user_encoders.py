@@ -44,7 +44,7 @@ import torch
 from graftcore.encoder import FrozenEncoder  # what a timm encoder is, frozen
 from torch import Tensor
 
-from encoders.base import Encoder, EncoderSpec, UnknownEncoder
+from encoders.base import PRETRAINED, Encoder, EncoderSpec, UnknownEncoder
 
 FACTORY_SEED = 0
 CONTRACT = ("input_size: int, mean and std: 3 floats each, channels: int, weights_id: str; "
@@ -202,7 +202,8 @@ def build_module_encoder(name: str, source: str) -> ModuleEncoder:
         std=found["std"], layout="map",
         description=f"user encoder {module_path}.{factory_name}() ({where}): "
                     f"{found['channels']} ch at {found['input_size']} px, weights "
-                    f"{found['weights_id']!r}")
+                    f"{found['weights_id']!r}",
+        weights=PRETRAINED)  # a team's own encoder is one of its candidates
     encoder = ModuleEncoder(spec, obj, found["channels"], found["weights_id"])
     _probe(encoder, name)
     _BUILT[(name, source)] = encoder

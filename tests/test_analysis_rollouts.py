@@ -152,9 +152,11 @@ def test_report_has_the_closed_loop_table_plot_and_the_measured_caveat(tmp_path)
     section = text.split("## Closed loop: success beside offline MSE")[1].split("\n## ")[0]
     assert re.search(r"\| a +\| 0 +\| 0.1 +\| 60.0% +\| \[0.31, 0.83\] +\| 10 ", section)
     assert re.search(r"\| MMRV +\| 0.1 +\| \[[0-9.]+, [0-9.]+\] +\| \d+ of 100 ", section)
-    assert "Agreement over 4 items (Kendall p=" in section
+    assert "Agreement (Kendall p over all items = " in section
     first_caveat = text.split("## Caveats")[1].split("\n- ")[1]
-    assert re.search(r"measured \('Closed loop'\): smolvla x spatial \(4 items\): Kendall "
-                     r"tau-b 0.55 \[[-0-9.]+, [-0-9.]+\], weighted tau [-0-9.]+ \[.*\], MMRV 0.1 "
+    # a, b, c, d are no registered encoders: no candidate among them, and that is said.
+    assert re.search(r"measured \('Closed loop'\): smolvla x spatial: on the candidates no "
+                     r"agreement \(0 candidate item\(s\) rolled out: fewer than 2, nothing to "
+                     r"rank\); over all 4 items Kendall tau-b 0.55 \[[-0-9.]+, [-0-9.]+\], weighted tau [-0-9.]+ \[.*\], MMRV 0.1 "
                      r"\[.*\], Pearson r 0.67 \[", first_caveat), first_caveat
     assert (tmp_path / "REPORT_plots" / "closed_loop.png").exists()

@@ -37,9 +37,11 @@ def test_the_table_and_its_readers_import_without_torch():
 
 def test_screen_by_offers_the_table_and_names_it_when_refused():
     assert screen_by_choices() == proxy_names() + ("short",)
-    assert proxy_names() == ("logme", "ridge", "knn", "entropy")  # the table's order
+    assert proxy_names() == ("logme", "ridge", "knn", "entropy", "param_count", "flops",
+                             "resolution")  # the table's order: the naive baselines last
     with pytest.raises(ValueError, match=r"^--screen-by toy: unknown proxy; choose one of "
-                                         r"logme, ridge, knn, entropy, short$"):
+                                         r"logme, ridge, knn, entropy, param_count, flops, "
+                                         r"resolution, short$"):
         parse_screen_by("toy")
     with pytest.raises(ValueError, match="unknown screen proxy 'toy'; valid proxies: logme,"):
         get_proxy("toy")

@@ -172,12 +172,19 @@ def test_a_screen_names_the_runtime_of_the_store_it_read(tmp_path):
     from bench.screen.measure import measure_screen
 
     stored, suite, split, backbone = _small_world(tmp_path)
+    import torch
+
+    encoder = torch.nn.Conv2d(3, 3, 4, stride=4)  # what the naive baselines count
+    encoder.input_size = 8
     ws = SimpleNamespace(backbone=lambda b, s: backbone, suite=lambda s: suite,
                          split=lambda s: split,
                          features=lambda e, s, grid: {c: PooledView(stored, c, grid,
                                                                     runtime="ort==t/opset17")
-                                                      for c in stored.layout.cameras})
+                                                      for c in stored.layout.cameras},
+                         encoder=lambda e: encoder)
     record = measure_screen(ws, "enc", "smolvla", "spatial", CONDITIONS)
+    assert record.scores.score("resolution") == 8.0
+    assert record.scores.score("param_count") == 3 * 3 * 16 + 3
     assert record.extraction_runtime == "ort==t/opset17"
     assert record.extraction_seconds == stored.manifest["build_s"]
 

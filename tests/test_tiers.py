@@ -63,8 +63,8 @@ def test_report_tables_print_numbers_intervals_and_reasons():
     short = tier_agreement({ENCODERS[0]: 1.0}, grafts(), "pi05", "spatial", "knn")
     text = agreement_table([ok, short])
     row = next(line for line in text.splitlines() if "smolvla" in line)
-    assert [c.strip() for c in row.strip("|").split("|")][:5] == [
-        "smolvla", "spatial", "ridge", "7", "1 [1, 1]"]
+    assert [c.strip() for c in row.strip("|").split("|")][:6] == [
+        "smolvla", "spatial", "all", "ridge", "7", "1 [1, 1]"]
     assert "not measured: 0 encoder(s)" in text and "Ties: Scores tie when exactly equal" in text
     screen = ScreenScores("blind", "smolvla", "spatial", seconds=0.4,
                           entropy=Undefined("every token norm is 0"))
@@ -111,7 +111,8 @@ def test_a_top_k_run_quotes_the_calibration_study_it_names_or_why_not(tmp_path):
     assert f"the calibration study `{study}` over its 7 encoder(s)" in smolvla
     assert "1 of this run's 4 encoder(s) are among them" in smolvla
     logme = next(line for line in smolvla.splitlines() if "| logme " in line)
-    assert [c.strip() for c in logme.strip("|").split("|")][3:5] == ["7", "1 [1, 1]"]  # tau-b
+    assert [c.strip() for c in logme.strip("|").split("|")][2:6] == ["all", "logme", "7",
+                                                                      "1 [1, 1]"]  # tau-b
     assert "has no screen on pi05 x spatial" in pi05 and "[" not in pi05
     moved = [ScreenSelection("smolvla", "spatial", "logme", 2, (), (),
                              calibration=str(tmp_path / "gone"))]

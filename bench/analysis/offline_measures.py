@@ -238,6 +238,9 @@ class MeasureAgreement:
     # chunk itself, Undefined where the two rank other rows.
     versus_full: Measure | None = None
     versus_full_interval: Interval | Undefined | None = None
+    # The same over the candidate items' rows alone (bench.analysis.candidates); None when no
+    # candidate set was given.
+    on_candidates: "MeasureAgreement | None" = None
 
     def interval_of(self, name: str) -> tuple[float, float] | None:
         ci = self.intervals.get(name)
@@ -255,7 +258,8 @@ class MeasureAgreement:
                 "intervals": {k: plain(v) for k, v in self.intervals.items()},
                 f"{VERDICT_STATISTIC}_minus_full_chunk": plain(self.versus_full),
                 f"{VERDICT_STATISTIC}_minus_full_chunk_interval":
-                    plain(self.versus_full_interval)}
+                    plain(self.versus_full_interval),
+                "on_candidates": self.on_candidates.to_dict() if self.on_candidates else None}
 
 
 def measure_agreement(measure: OfflineMeasure, rolled: Rolled | Rows | Undefined, *,
@@ -280,14 +284,36 @@ def measure_agreement(measure: OfflineMeasure, rolled: Rolled | Rows | Undefined
     return out
 
 
-def measure_agreements(rolled: Rolled, **kwargs) -> list[MeasureAgreement]:
+def candidate_rows(rolled: Rolled, rows: Rows, candidates: frozenset[str]) -> Rows | Undefined:
+    """`rows` kept where their item (rows.seeds.item, an index of rolled.items) is a candidate;
+    Undefined when fewer than 2 candidate items remain."""
+    keep = np.array([i for i, item in enumerate(rows.seeds.item)
+                     if rolled.items[item] in candidates], dtype=int)
+    items = sorted({rolled.items[rows.seeds.item[i]] for i in keep})
+    if len(items) < 2:
+        return Undefined(f"{len(items)} candidate item(s) rolled out: fewer than 2, nothing to "
+                         "rank")
+    s = rows.seeds
+    return replace(rows, labels=[rows.labels[i] for i in keep], errors=rows.errors[keep],
+                   success=rows.success[keep],
+                   masks=None if rows.masks is None else tuple(m[keep] for m in rows.masks),
+                   seeds=SeedStacks(s.predicted[keep], s.actual[keep], s.count[keep],
+                                    s.item[keep]))
+
+
+def measure_agreements(rolled: Rolled, candidates: frozenset[str] | None = None,
+                       **kwargs) -> list[MeasureAgreement]:
     """Every registered measure's agreement with success (MEASURES' order), each after the
-    first (the full chunk, the offline score) with its difference from the full chunk's."""
+    first (the full chunk, the offline score) with its difference from the full chunk's; given
+    `candidates` (item labels), each also over the candidate items' rows (`on_candidates`)."""
     base = MEASURES[0].rows(rolled)
     out = []
     for m in MEASURES:
         rows = base if m is MEASURES[0] else m.rows(rolled)
         agreed = measure_agreement(m, rows, **kwargs)
+        if candidates is not None and not isinstance(rows, Undefined):
+            agreed.on_candidates = measure_agreement(m, candidate_rows(rolled, rows, candidates),
+                                                     **kwargs)
         if out and not agreed.missing and not out[0].missing:
             agreed.versus_full = _difference(out[0].value[VERDICT_STATISTIC],
                                              agreed.value[VERDICT_STATISTIC])

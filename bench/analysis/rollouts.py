@@ -15,6 +15,10 @@ and, independently, the rollout episodes (identical init states across cells) wi
 once for all items, and recomputes every statistic; percentile interval over the replicates
 where it is defined. With a handful of items and few episodes the interval is wide: that is the
 honest answer at small N.
+
+Given the candidates (bench.analysis.candidates: the native policy and grafts of trained
+encoders), the same agreement is computed again over the candidate items alone: telling working
+items from failing ones is the easy half, ordering the plausible ones the question.
 """
 
 from __future__ import annotations
@@ -25,8 +29,8 @@ from typing import Sequence
 import numpy as np
 
 from bench.analysis.agreement import (
-    Interval, Measure, Undefined, WITH_PEARSON, agreement, bootstrap_two_axes, kendall_p_value,
-    pearson_r,
+    Interval, Measure, SeedStacks, Undefined, WITH_PEARSON, agreement, bootstrap_two_axes,
+    kendall_p_value, pearson_r,
 )
 from bench.analysis.offline_measures import (MeasureAgreement, Rolled, full_chunk,
                                              measure_agreements, seed_stack)
@@ -75,6 +79,11 @@ class ClosedLoop:
     missing: str | None = None
     # Every offline measure's agreement with success (bench.analysis.offline_measures).
     measures: list[MeasureAgreement] = field(default_factory=list)
+    # The same agreement over the candidate items alone (empty: no candidate set given; a
+    # "missing" key says why it was not computed).
+    candidates: list[str] = field(default_factory=list)
+    candidate_agreement: dict[str, Measure] = field(default_factory=dict)
+    candidate_intervals: dict[str, Interval | Undefined] = field(default_factory=dict)
 
     @property
     def measured(self) -> bool:
@@ -90,14 +99,49 @@ class ClosedLoop:
         out = {k: v for k, v in asdict(self).items()
                if k not in ("agreement", "intervals", "measures")}
         out["measures"] = [m.to_dict() for m in self.measures]
-        out["agreement"] = {k: _jsonable(v) for k, v in self.agreement.items()}
-        out["intervals"] = {k: _jsonable(v) for k, v in self.intervals.items()}
+        for name in ("agreement", "intervals", "candidate_agreement", "candidate_intervals"):
+            out[name] = {k: _jsonable(v) for k, v in getattr(self, name).items()}
         return out
+
+    def candidate_interval_of(self, name: str) -> tuple[float, float] | None:
+        ci = self.candidate_intervals.get(name)
+        return (ci.low, ci.high) if isinstance(ci, Interval) else None
+
+
+def agreement_with_success(per_window: np.ndarray, per_episode: np.ndarray, seeds: SeedStacks,
+                           n_resamples: int, random_seed: int
+                           ) -> tuple[dict[str, Measure], dict[str, Interval | Undefined]]:
+    """(statistics, intervals) of -MSE against success over the rows given: per_window (I, W)
+    MSE and per_episode (I, E) success, means over seeds; seeds: their per-seed stacks."""
+    predicted, actual = -per_window.mean(axis=1), per_episode.mean(axis=1)
+    point = agreement(predicted, actual)
+    stats = {k: pearson_r(predicted, actual) if k == "pearson_r" else getattr(point, k)
+             for k in WITH_PEARSON}
+    stats["p_value"] = kendall_p_value(predicted, actual)
+    return stats, bootstrap_two_axes(-per_window, per_episode, n_resamples=n_resamples,
+                                     seed=random_seed, confidence=CONFIDENCE, seeds=seeds)
+
+
+def _on_candidates(out: ClosedLoop, per_window: np.ndarray, per_episode: np.ndarray,
+                   seeds: SeedStacks, candidates: frozenset[str], random_seed: int) -> None:
+    """The agreement again over the candidate items (rows of `per_window` in out.items' order)."""
+    rows = np.array([i for i, item in enumerate(out.items) if item in candidates], dtype=int)
+    out.candidates = [out.items[i] for i in rows]
+    if len(rows) < 2:
+        out.candidate_agreement = {"tau_b": Undefined(
+            f"{len(rows)} candidate item(s) rolled out: fewer than 2, nothing to rank")}
+        return
+    kept = SeedStacks(seeds.predicted[rows], seeds.actual[rows], seeds.count[rows],
+                      seeds.item[rows])
+    out.candidate_agreement, out.candidate_intervals = agreement_with_success(
+        per_window[rows], per_episode[rows], kept, out.n_resamples, random_seed)
 
 
 def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
-                      n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0) -> ClosedLoop:
-    """Agreement of offline MSE and success over the rolled-out cells of backbone x suite."""
+                      n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0,
+                      candidates: frozenset[str] | None = None) -> ClosedLoop:
+    """Agreement of offline MSE and success over the rolled-out cells of backbone x suite, and
+    over the `candidates` (item labels) among them when given."""
     out = ClosedLoop(backbone, suite, n_resamples=n_resamples)
     rolled = [r for r in records if r.backbone == backbone and r.suite == suite
               and rolled_out(r)]
@@ -133,14 +177,12 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     if len(out.items) < 2:
         out.missing = f"only one rolled-out item ({out.items[0]}): nothing to rank"
         return out
-    predicted, actual = -np.asarray(out.mse), np.asarray(out.success)
-    point = agreement(predicted, actual)
-    out.agreement = {k: pearson_r(predicted, actual) if k == "pearson_r" else getattr(point, k)
-                     for k in WITH_PEARSON}
-    out.agreement["p_value"] = kendall_p_value(predicted, actual)
-    out.intervals = bootstrap_two_axes(-per_window, per_episode, n_resamples=n_resamples,
-                                       seed=random_seed, confidence=CONFIDENCE, seeds=full.seeds)
-    out.measures = measure_agreements(rolled_items, n_resamples=n_resamples, seed=random_seed)
+    out.agreement, out.intervals = agreement_with_success(per_window, per_episode, full.seeds,
+                                                          n_resamples, random_seed)
+    if candidates is not None:
+        _on_candidates(out, per_window, per_episode, full.seeds, candidates, random_seed)
+    out.measures = measure_agreements(rolled_items, candidates, n_resamples=n_resamples,
+                                      seed=random_seed)
     return out
 
 

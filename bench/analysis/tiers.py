@@ -6,21 +6,34 @@ backbone x suite. The graft's score of an
 encoder is its normalised held-out MSE averaged over its seeds, per window, so the paired window
 bootstrap (bench.analysis.agreement.bootstrap_agreement) draws the same windows for every
 encoder. Fewer than MIN_ENCODERS such encoders: "not measured", with the reason.
+
+Two sets of items (`item_set`): ALL of them, and the CANDIDATES a team would choose between
+(bench.analysis.candidates: pretrained encoders; never random twins or known-answer encoders),
+which need MIN_CANDIDATES. Given the naive baselines' scores (bench.screen.proxies: parameter
+count, FLOPs, input resolution), a tier also gets its tau-b minus the best baseline's on the
+same items, with the interval of that difference on the same replicates as its own statistics;
+the screen recommends it only where that interval lies above 0 (`recommended`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Collection, Mapping, Sequence
 
 import numpy as np
 
-from bench.analysis.agreement import (Agreement, Interval, Measure, Undefined, agreement,
-                                      bootstrap_agreement, is_defined)
+from bench.analysis.agreement import (NAIVE_GAP, Agreement, Interval, Measure, Undefined,
+                                      agreement, bootstrap_agreement, is_defined, kendall_tau_b,
+                                      naive_gap)
 from bench.analysis.rankings import PRIMARY
 from bench.grid.kinds import GRAFT, SHORT_GRAFT, get_kind
 
 MIN_ENCODERS = 6
+# The candidates a team weighs are few (docs/real: 5 pretrained encoders); 4 items give 6 pairs,
+# the fewest whose tau-b can tell a fair order from a coin (and its interval says how little).
+MIN_CANDIDATES = 4
+ALL, CANDIDATES = "all", "candidates"
+MIN_ITEMS = {ALL: MIN_ENCODERS, CANDIDATES: MIN_CANDIDATES}
 
 
 @dataclass
@@ -37,6 +50,27 @@ class TierAgreement:
     intervals: dict[str, Interval | Undefined] = field(default_factory=dict)
     left_out: dict[str, str] = field(default_factory=dict)  # encoder -> why it is not an item
     missing: str | None = None
+    item_set: str = ALL  # ALL or CANDIDATES
+    # tau-b minus the best naive baseline's on these items (None: no baselines given, or the
+    # tier is one); which baseline was best at the point; each baseline's tau-b here.
+    naive_gap: Measure | None = None
+    best_naive: str | None = None
+    naive_tau_b: dict[str, Measure] = field(default_factory=dict)
+
+    @property
+    def naive_gap_interval(self) -> Interval | Undefined | None:
+        return self.intervals.get(NAIVE_GAP)
+
+    @property
+    def recommended(self) -> bool:
+        """Beats the best naive baseline: the paired interval of the difference lies above 0."""
+        ci = self.naive_gap_interval
+        return isinstance(ci, Interval) and ci.low > 0
+
+    def to_dict(self) -> dict:
+        """Every field (the report's JSON makes values plain), and `recommended`."""
+        return {f.name: getattr(self, f.name) for f in fields(self)} | {
+            "recommended": self.recommended}
 
 
 def graft_per_window(records: Sequence, backbone: str, suite: str, kind: str = GRAFT,
@@ -58,40 +92,75 @@ def graft_per_window(records: Sequence, backbone: str, suite: str, kind: str = G
     return {e: np.mean(v, axis=0) for e, v in by_encoder.items()}, None
 
 
-def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: str, suite: str,
-                   tier: str, n_resamples: int = 1000, seed: int = 0,
-                   scores_per_window: Mapping[str, np.ndarray] | None = None) -> TierAgreement:
-    """Agreement of the cheaper tier's `scores` {encoder: score, higher is better} with the
-    graft records of backbone x suite, with paired window bootstrap intervals.
-    `scores_per_window` {encoder: (W,)}, higher is better, on the graft's windows: a tier scored
-    per window (a short graft), resampled with the graft's windows instead of held fixed."""
-    out = TierAgreement(backbone, suite, tier)
-    per_window, problem = graft_per_window(records, backbone, suite)
-    if problem:
-        out.missing = problem
-        return out
+def _items(out: TierAgreement, scores: Mapping[str, Measure], per_window: Mapping,
+           items: Collection[str] | None) -> None:
+    """The tier's items into `out.encoders`, each encoder left out with why into `left_out`."""
     for encoder in sorted(set(scores) | set(per_window)):
         score = scores.get(encoder)
         if encoder not in per_window:
             out.left_out[encoder] = "no graft record"
+        elif items is not None and encoder not in items:
+            out.left_out[encoder] = f"not among the {out.item_set}"
         elif score is None:
-            out.left_out[encoder] = f"no {tier} score"
+            out.left_out[encoder] = f"no {out.tier} score"
         elif not is_defined(score):
-            out.left_out[encoder] = f"{tier} {score}"
+            out.left_out[encoder] = f"{out.tier} {score}"
         else:
             out.encoders.append(encoder)
-    if len(out.encoders) < MIN_ENCODERS:
-        out.missing = (f"not measured: {len(out.encoders)} encoder(s) have both the {tier} score "
-                       f"and a graft on {backbone} x {suite} ({out.encoders}); needs "
-                       f"{MIN_ENCODERS}")
+
+
+def _baseline_scores(out: TierAgreement, baselines: Mapping[str, Mapping[str, Measure]]
+                     ) -> dict[str, np.ndarray]:
+    """{baseline: (n,) scores on the tier's items} of the baselines that score every item (the
+    others' tau-b here says why not)."""
+    kept = {}
+    for name, by_encoder in baselines.items():
+        bad = next((f"{e}: {by_encoder.get(e, 'no score')}" for e in out.encoders
+                    if not is_defined(by_encoder.get(e, Undefined("no score")))), None)
+        if bad is not None:
+            out.naive_tau_b[name] = Undefined(f"{name} undefined for {bad}")
+            continue
+        kept[name] = np.array([float(by_encoder[e]) for e in out.encoders])
+    return kept
+
+
+def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: str, suite: str,
+                   tier: str, n_resamples: int = 1000, seed: int = 0,
+                   scores_per_window: Mapping[str, np.ndarray] | None = None, *,
+                   baselines: Mapping[str, Mapping[str, Measure]] | None = None,
+                   items: Collection[str] | None = None, item_set: str = ALL) -> TierAgreement:
+    """Agreement of the cheaper tier's `scores` {encoder: score, higher is better} with the
+    graft records of backbone x suite, with paired window bootstrap intervals.
+    `scores_per_window` {encoder: (W,)}, higher is better, on the graft's windows: a tier scored
+    per window (a short graft), resampled with the graft's windows instead of held fixed.
+    `baselines` {naive baseline: {encoder: score}}: the tier's tau-b minus the best of theirs,
+    point and interval on the same replicates. `items`: only these encoders (the set
+    `item_set` names), at least MIN_ITEMS[item_set] of them."""
+    out = TierAgreement(backbone, suite, tier, item_set=item_set)
+    per_window, problem = graft_per_window(records, backbone, suite)
+    if problem:
+        out.missing = problem
+        return out
+    _items(out, scores, per_window, items)
+    if len(out.encoders) < MIN_ITEMS[item_set]:
+        out.missing = (f"not measured: {len(out.encoders)} encoder(s) have both the {tier} "
+                       f"score and a graft on {backbone} x {suite} ({out.encoders}; items: "
+                       f"{item_set}); needs {MIN_ITEMS[item_set]}")
         return out
     out.predicted = [float(scores[e]) for e in out.encoders]
     windows = np.array([per_window[e] for e in out.encoders])  # (n, W)
     out.graft_mse = windows.mean(axis=1).tolist()
-    out.point = agreement(out.predicted, [-m for m in out.graft_mse])
+    actual = [-m for m in out.graft_mse]
+    out.point = agreement(out.predicted, actual)
     predicted = (np.array([scores_per_window[e] for e in out.encoders])
                  if scores_per_window is not None else np.array(out.predicted))
-    out.intervals = bootstrap_agreement(predicted, -windows, n_resamples, seed)
+    base = None if baselines is None else _baseline_scores(out, baselines)
+    if base is not None:
+        out.naive_tau_b |= {k: kendall_tau_b(v, actual) for k, v in base.items()}
+        out.naive_gap = naive_gap(np.array(out.predicted), np.array(actual), base)
+        defined = {k: v for k, v in out.naive_tau_b.items() if is_defined(v)}
+        out.best_naive = max(defined, key=defined.get) if defined else None
+    out.intervals = bootstrap_agreement(predicted, -windows, n_resamples, seed, baselines=base)
     return out
 
 
@@ -101,19 +170,22 @@ def short_tier(variant: str) -> str:
 
 
 def short_graft_agreement(records: Sequence, backbone: str, suite: str, variant: str,
-                          n_resamples: int = 1000, seed: int = 0) -> TierAgreement:
+                          n_resamples: int = 1000, seed: int = 0, **kwargs) -> TierAgreement:
     """The short-graft tier at `variant` against the full graft: score -MSE (mean over seeds),
-    per window when both were scored on the same windows (the paired bootstrap draws both)."""
+    per window when both were scored on the same windows (the paired bootstrap draws both).
+    kwargs: tier_agreement's (baselines, items, item_set)."""
     tier = short_tier(variant)
+    item_set = kwargs.get("item_set", ALL)
     short, problem = graft_per_window(records, backbone, suite, SHORT_GRAFT, variant)
     if problem:
-        return TierAgreement(backbone, suite, tier, missing=problem)
+        return TierAgreement(backbone, suite, tier, missing=problem, item_set=item_set)
     grafts = [r for r in records if r.kind == GRAFT and (r.backbone, r.suite) == (backbone, suite)]
     shorts = [r for r in records if r.kind == SHORT_GRAFT and r.variant == variant
               and (r.backbone, r.suite) == (backbone, suite)]
     if grafts and shorts and grafts[0].scores.window_ids != shorts[0].scores.window_ids:
-        return TierAgreement(backbone, suite, tier, missing=(
+        return TierAgreement(backbone, suite, tier, item_set=item_set, missing=(
             f"{shorts[0].cell_id} was scored on other windows than {grafts[0].cell_id}: "
             "not paired, no agreement computed"))
     return tier_agreement({e: -float(v.mean()) for e, v in short.items()}, records, backbone,
-                          suite, tier, n_resamples, seed, {e: -v for e, v in short.items()})
+                          suite, tier, n_resamples, seed, {e: -v for e, v in short.items()},
+                          **kwargs)

@@ -91,6 +91,10 @@ class Transfer:
     large_winner_in_small_tier: bool | None = None
     seed_cells: list[SeedCell] = field(default_factory=list)
     missing: str | None = None
+    # The same agreement over the candidates among `encoders` (bench.analysis.candidates);
+    # empty when no candidate set was given.
+    candidates: list[str] = field(default_factory=list)
+    candidate_agreement: dict = field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -131,9 +135,19 @@ def _seed_cells(suite: str, small: Ranking, large: Ranking) -> list[SeedCell]:
     return cells
 
 
+def _on_candidates(t: Transfer, candidates: frozenset[str]) -> None:
+    """t's agreement again over the candidates among its common encoders."""
+    keep = [i for i, e in enumerate(t.encoders) if e in candidates]
+    t.candidates = [t.encoders[i] for i in keep]
+    t.candidate_agreement = rank_agreement([t.small_mse[i] for i in keep],
+                                           [t.large_mse[i] for i in keep])
+
+
 def transfer_pair(suite: str, small: Ranking | None, large: Ranking | None,
-                  small_name: str, large_name: str) -> Transfer:
-    """Compare the rankings of two backbones on one suite; partial inputs set `missing`."""
+                  small_name: str, large_name: str,
+                  candidates: frozenset[str] | None = None) -> Transfer:
+    """Compare the rankings of two backbones on one suite, over every common encoder and, given
+    `candidates` (labels), over the candidates among them; partial inputs set `missing`."""
     t = Transfer(suite=suite, small=small_name, large=large_name)
     problems = []
     for name, ranking in ((small_name, small), (large_name, large)):
@@ -152,6 +166,8 @@ def transfer_pair(suite: str, small: Ranking | None, large: Ranking | None,
     t.small_ranks = {e.encoder: e.rank for e in small.encoders}
     t.large_ranks = {e.encoder: e.rank for e in large.encoders}
     t.agreement = rank_agreement(t.small_mse, t.large_mse)
+    if candidates is not None:
+        _on_candidates(t, candidates)
     t.min_p = min_exact_kendall_p(len(common))
     t.small_winner, t.large_winner = small.leader, large.leader
     if small.leader in large_by_name:
@@ -168,10 +184,12 @@ def transfer_pair(suite: str, small: Ranking | None, large: Ranking | None,
 
 
 def transfer_all(rankings: Sequence[Ranking], backbones: Sequence[str] | None = None,
-                 suites: Sequence[str] | None = None) -> list[Transfer]:
+                 suites: Sequence[str] | None = None,
+                 candidates: frozenset[str] | None = None) -> list[Transfer]:
     """One Transfer per suite and backbone pair (smaller backbone first).
 
-    `backbones`/`suites` name what the grid should hold, so absent ones are reported as missing."""
+    `backbones`/`suites` name what the grid should hold, so absent ones are reported as missing;
+    `candidates`: the candidate labels, each transfer's agreement also given over them."""
     by_key = {(r.backbone, r.suite): r for r in rankings}
     backbones = backbone_order(list(backbones or []) + [r.backbone for r in rankings])
     suites = sorted(set(suites or []) | {r.suite for r in rankings})
@@ -184,7 +202,7 @@ def transfer_all(rankings: Sequence[Ranking], backbones: Sequence[str] | None = 
             continue
         for small, large in combinations(backbones, 2):
             out.append(transfer_pair(suite, by_key.get((small, suite)),
-                                     by_key.get((large, suite)), small, large))
+                                     by_key.get((large, suite)), small, large, candidates))
     return out
 
 

@@ -17,6 +17,7 @@ import traceback
 from pathlib import Path
 from typing import Callable, Sequence
 
+from bench.analysis.candidates import candidate_items
 from bench.analysis.rankings import DEFAULT_RESAMPLES, rank_all
 from bench.analysis.controls import control_deltas, vision_checks, wrapper_neutrality
 from bench.analysis.rollouts import closed_loop_all
@@ -27,6 +28,7 @@ from bench.report.budget import TITLE as BUDGET_TITLE, budget_section, budgets
 from bench.report.closed_loop import closed_loop_section
 from bench.report.context import ReportContext
 from bench.report.lead import answer_lines
+from bench.report.naive import with_naive_baselines
 from bench.report.provenance import per_task_section, protocol_constants, provenance_section
 from bench.report.robustness import robustness_section
 from bench.report.tuning import TITLE as TUNING_TITLE, tuning_section
@@ -68,21 +70,25 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
     expected_backbones = {r.backbone for r in records} | {f.backbone
                                                              for f in results.failed}
     expected_suites = {r.suite for r in records if r.kind == GRAFT}
+    candidates = candidate_items(records)
     transfers = transfer_all(rankings, backbones=[b for b in expected_backbones if b],
-                             suites=sorted(expected_suites)) if rankings else []
+                             suites=sorted(expected_suites),
+                             candidates=candidates) if rankings else []
+    screens, filled = with_naive_baselines([r.scores for r in results.screens], records)
     return ReportContext(results=results, out_path=out_path, rankings=rankings,
                          transfers=transfers, support=support_counts(transfers),
                          wrapper=wrapper_neutrality(records), controls=control_deltas(records),
                          n_resamples=n_resamples,
                          closed_loop=closed_loop_all(records, n_resamples=n_resamples,
-                                                     random_seed=random_seed),
+                                                     random_seed=random_seed,
+                                                     candidates=candidates),
                          vision=vision_checks(records, n_resamples=n_resamples,
                                               random_seed=random_seed),
                          screen_agreements=screen_agreements(
-                             [r.scores for r in results.screens], records, n_resamples,
-                             random_seed),
+                             screens, records, n_resamples, random_seed, candidates),
                          screen_calibrations=calibrations(results.selections, n_resamples,
-                                                          random_seed))
+                                                          random_seed),
+                         screens=screens, naive_filled=filled, candidates=candidates)
 
 
 def _guarded(name: str, render: Callable[[ReportContext], str | None],
@@ -203,7 +209,7 @@ def _figures(ctx: ReportContext, folder: Path) -> list[tuple[str, Path]]:
 
         written = write_plots(ctx.rankings, ctx.transfers, ctx.records, folder,
                               closed_loop=ctx.closed_loop)
-        points = scatter_points([r.scores for r in ctx.results.screens], ctx.records)
+        points = scatter_points(ctx.screens, ctx.records)
         scatter = plot_proxy_scatter(points, folder / "screen_scatter.png")
         return written + ([(SCATTER_TITLE, scatter)] if scatter is not None else [])
     except Exception:  # noqa: BLE001 - the report stays useful without figures

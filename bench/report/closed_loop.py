@@ -44,8 +44,19 @@ def agreement_summary(cl) -> str:
         return f"{where}: Kendall tau-b {tau} over {len(cl.items)} items"
     shown = [f"{label.split(' (')[0]} {stat_text(cl.agreement[k])} "
              f"{interval(cl.interval_of(k), 2)}" for k, label in AGREEMENT_ROWS[:4]]
-    return (f"{where} ({len(cl.items)} items): " + ", ".join(shown) + ". "
-            + measure_verdict(cl).rstrip("."))
+    return (f"{where}: {candidate_clause(cl)}over all {len(cl.items)} items " + ", ".join(shown)
+            + ". " + measure_verdict(cl).rstrip("."))
+
+
+def candidate_clause(cl) -> str:
+    """'on the k candidates Kendall tau-b x [lo, hi]; ' (the question a team asks), or ''."""
+    if "tau_b" not in cl.candidate_agreement:
+        return ""
+    if isinstance(cl.candidate_agreement["tau_b"], Undefined):
+        return f"on the candidates no agreement ({cl.candidate_agreement['tau_b'].reason}); "
+    return (f"on the {len(cl.candidates)} candidates ({', '.join(cl.candidates)}) Kendall tau-b "
+            f"{stat_text(cl.candidate_agreement['tau_b'])} "
+            f"{interval(cl.candidate_interval_of('tau_b'), 2)}; ")
 
 
 def _versus(m) -> str:
@@ -134,16 +145,56 @@ def measures_table(cl) -> str:
     rows = []
     for m in cl.measures:
         if m.missing:
-            rows.append([m.name, "not measured", *[""] * (len(TABLE_STATISTICS) + 1), m.missing])
+            rows.append([m.name, "not measured", *[""] * (len(TABLE_STATISTICS) + 2), m.missing])
             continue
         cells = [stat_text(m.value[k]) + " " + (interval(m.interval_of(k), 2)
                                                 if m.interval_of(k) else
                                                 f"({stat_text(m.intervals.get(k))})")
                  for k in TABLE_STATISTICS]
         rows.append([m.name, len(m.labels), *cells,
-                     "" if m.versus_full is None else _versus(m), m.note])
+                     "" if m.versus_full is None else _versus(m), _on_candidates(m), m.note])
     return table(rows, ["measure", "rows", *(MEASURE_COLUMNS[k] for k in TABLE_STATISTICS),
-                        "tau-b minus the full chunk's (paired)", "note"])
+                        "tau-b minus the full chunk's (paired)", "tau-b on the candidates",
+                        "note"])
+
+
+def _on_candidates(m) -> str:
+    """A measure's Kendall tau-b over the candidate items' rows, with its interval."""
+    c = m.on_candidates
+    if c is None:
+        return "n/a"
+    if c.missing:
+        return f"not measured ({c.missing})"
+    return (f"{stat_text(c.value[VERDICT_STATISTIC])} "
+            f"{interval(c.interval_of(VERDICT_STATISTIC), 2)} ({len(c.labels)} rows)")
+
+
+def _stat_cells(value, ci, n_resamples: int) -> list[str]:
+    kept = f"{ci.replicates} of {n_resamples}" if isinstance(ci, Interval) else "0"
+    shown = (interval((ci.low, ci.high), 2) if isinstance(ci, Interval)
+             else stat_text(ci) if ci is not None else "n/a")
+    return [stat_text(value) if value is not None else "n/a", shown, kept]
+
+
+def agreement_table(cl) -> str:
+    """The agreement over every rolled-out item, and beside it over the candidates alone."""
+    with_candidates = bool(cl.candidate_agreement)
+    rows = []
+    for key, label in AGREEMENT_ROWS:
+        row = [label, *_stat_cells(cl.agreement[key], cl.intervals.get(key), cl.n_resamples)]
+        if with_candidates:
+            row += _stat_cells(cl.candidate_agreement.get(key), cl.candidate_intervals.get(key),
+                               cl.n_resamples)
+        rows.append(row)
+    ci = f"{CONFIDENCE:.0%} bootstrap CI"
+    headers = ["statistic", f"all {len(cl.items)} items", ci, "replicates defined"]
+    if with_candidates:
+        headers += [f"the {len(cl.candidates)} candidates", ci, "replicates defined"]
+    text = (f"Agreement (Kendall p over all items = {stat_text(cl.agreement['p_value'], 3)}; "
+            "candidates: the native policy and grafts of encoders with trained weights, "
+            "bench.analysis.candidates"
+            + (f": {', '.join(cl.candidates) or 'none'}" if with_candidates else "") + "):")
+    return text + "\n\n" + table(rows, headers)
 
 
 def closed_loop_section(ctx: ReportContext) -> str:
@@ -166,17 +217,7 @@ def closed_loop_section(ctx: ReportContext) -> str:
         if not cl.measured:
             head += f"\n\n_No agreement: {cl.missing}._"
         else:
-            stats = []
-            for key, label in AGREEMENT_ROWS:
-                ci = cl.intervals.get(key)
-                kept = f"{ci.replicates} of {cl.n_resamples}" if isinstance(ci, Interval) else "0"
-                stats.append([label, stat_text(cl.agreement[key]),
-                              interval(cl.interval_of(key), 2) if isinstance(ci, Interval)
-                              else stat_text(ci), kept])
-            head += (f"\n\nAgreement over {len(cl.items)} items (Kendall p="
-                     f"{stat_text(cl.agreement['p_value'], 3)}):\n\n"
-                     + table(stats, ["statistic", "value", f"{CONFIDENCE:.0%} bootstrap CI",
-                                     "replicates defined"]))
+            head += "\n\n" + agreement_table(cl)
             if cl.measures:
                 head += (f"\n\nOffline measures against success:\n\n{measures_table(cl)}"
                          f"\n\n{measure_verdict(cl)}")

@@ -31,6 +31,12 @@ class ReportContext:
     screen_agreements: list = field(default_factory=list)  # bench.analysis.tiers.TierAgreement
     # {results dir: bench.report.screen.Calibration} of the studies named by --screen-calibration
     screen_calibrations: dict = field(default_factory=dict)
+    # The stored screens' ScreenScores, each with every naive baseline (bench.report.naive), and
+    # the ids of those whose were counted when the report was built.
+    screens: list = field(default_factory=list)
+    naive_filled: list[str] = field(default_factory=list)
+    # The labels of the candidate items (bench.analysis.candidates): encoders and "native".
+    candidates: frozenset[str] = frozenset()
 
     @property
     def records(self) -> list[dict]:

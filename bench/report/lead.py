@@ -33,6 +33,15 @@ def ranking_answer(r: Ranking, ctx: ReportContext) -> str:
     return line
 
 
+def _transfer_tau(t) -> str:
+    """The transfer's tau-b on the candidates first (the question a team asks), then on all."""
+    every = f"{num(t.agreement.get('tau_b'), 2)} over all {len(t.encoders)} encoders"
+    if not t.candidate_agreement:
+        return every
+    return (f"{num(t.candidate_agreement.get('tau_b'), 2)} over the {len(t.candidates)} "
+            f"candidates, {every}")
+
+
 def transfer_answers(ctx: ReportContext) -> list[str]:
     """Does the small backbone's winner sit in the large one's top tier? Only for suites where
     both backbones ran grafts; one backbone alone has no transfer to answer."""
@@ -45,9 +54,8 @@ def transfer_answers(ctx: ReportContext) -> list[str]:
                     if r.backbone == t.large and r.suite == t.suite)
         line = (f"Transfer on suite **{t.suite}**: the small-backbone winner (**{t.small_winner}** "
                 f"on {t.small}) {verdict[t.small_winner_in_large_tier]} in the large backbone's "
-                f"({t.large}) top tier ({', '.join(tier)}; Kendall tau-b "
-                f"{num(t.agreement.get('tau_b'), 2)} over {len(t.encoders)} encoders; wrapper "
-                f"delta {t.small} {ctx.wrapper_text(t.small, t.suite)}, {t.large} "
+                f"({t.large}) top tier ({', '.join(tier)}; Kendall tau-b {_transfer_tau(t)}; "
+                f"wrapper delta {t.small} {ctx.wrapper_text(t.small, t.suite)}, {t.large} "
                 f"{ctx.wrapper_text(t.large, t.suite)}).")
         blind_sides = [b for b in (t.small, t.large)
                        if (v := ctx.vision_of(b, t.suite)) is not None and v.flagged]
@@ -62,6 +70,34 @@ def transfer_answers(ctx: ReportContext) -> list[str]:
             f"{s['comparisons_supporting']} of {s['comparisons_total']} backbone-suite "
             f"comparisons and {s['seed_cells_supporting']} of {s['seed_cells_total']} seed-level "
             f"cells support backbone-dependent rankings (rules under Rank transfer).")
+    return lines
+
+
+def screen_answers(ctx: ReportContext) -> list[str]:
+    """Per backbone x suite: how the cheap tiers order the candidates, and which of them the
+    screen recommends (beats the best naive baseline by a paired interval above 0)."""
+    from bench.analysis.tiers import ALL, CANDIDATES
+    from bench.report.screen import naive_text
+
+    lines = []
+    for b, s in sorted({(a.backbone, a.suite) for a in ctx.screen_agreements}):
+        rows = {(a.item_set, a.tier): a for a in ctx.screen_agreements
+                if (a.backbone, a.suite) == (b, s) and a.point is not None}
+        mine = [a for (item_set, _), a in rows.items() if item_set == CANDIDATES]
+        if not mine:
+            continue
+        taus = []
+        for a in mine:
+            every = rows.get((ALL, a.tier))
+            taus.append(f"{a.tier} {num(a.point.tau_b, 2)}"
+                        + (f" ({num(every.point.tau_b, 2)})" if every else ""))
+        good = [f"{a.tier} ({naive_text(a)})" for a in mine if a.recommended]
+        verdict = (f"the screen recommends {'; '.join(good)}" if good else
+                   "no proxy or short graft beats the best naive baseline by a paired interval "
+                   "above 0, so the screen recommends none")
+        lines.append(f"Screen on **{b} x {s}**, Kendall tau-b with the graft on the "
+                     f"{len(mine[0].encoders)} candidates (over all items in brackets): "
+                     + ", ".join(taus) + f"; {verdict} (Screening many encoders).")
     return lines
 
 
@@ -89,4 +125,4 @@ def answer_lines(ctx: ReportContext) -> list[str]:
         return ["No graft finished: no encoder ranking to answer (finished: "
                 + ", ".join(f"{n} {kind}" for kind, n in sorted(kinds.items())) + ")."]
     lines = [ranking_answer(r, ctx) for r in ctx.rankings]
-    return lines + transfer_answers(ctx) + _vision_answer(ctx)
+    return lines + transfer_answers(ctx) + screen_answers(ctx) + _vision_answer(ctx)

@@ -11,15 +11,31 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 from bench.analysis.agreement import STATISTICS, TIE_RULE, Interval, Undefined
-from bench.analysis.tiers import (MIN_ENCODERS, graft_per_window, short_graft_agreement,
-                                  short_tier, tier_agreement)
+from bench.analysis.candidates import candidate_items
+from bench.analysis.tiers import (ALL, CANDIDATES, MIN_CANDIDATES, MIN_ENCODERS,
+                                  graft_per_window, short_graft_agreement, short_tier,
+                                  tier_agreement)
 from bench.grid.kinds import SHORT_GRAFT, get_kind
 from bench.report.format import num, table
+from bench.report.naive import AT_REPORT_TIME, with_naive_baselines
 from bench.report.screen_cost import cost_table
-from bench.screen.proxies import INPUT_SETS, label_free_proxies, proxy_names, supervised_proxies
-from bench.screen.records import GAIN, HELDOUT
+from bench.screen.proxies import (INPUT_SETS, PROXIES, label_free_proxies, naive_proxies,
+                                  proxy_names, supervised_proxies)
+from bench.screen.records import GAIN, HELDOUT, VALUE
 
-SECTION_TITLE = "Screening many encoders"  # a report has it when its store holds screens
+SECTION_TITLE = "Screening many encoders"
+AGREEMENT_INTRO = (
+    "**Agreement with the graft**, on two item sets: **all** the encoders with both a score and "
+    "a graft (needs {all}), and the **candidates** a team would choose between (needs "
+    "{candidates}): encoders whose registry entry runs trained weights in this world "
+    "(bench.analysis.candidates), never random twins, known-answer encoders (pixels, blind, the "
+    "ladder) or the tiny world's random-init stand-ins. The graft is the normalised held-out "
+    "MSE, mean over seeds; intervals: paired window bootstrap, {n} resamples. Naive "
+    "baselines, scored exactly as a proxy: parameter count, FLOPs at the input size (torch's "
+    "FLOP counter, the encoder as built) and input resolution, bigger ranked better; ImageNet "
+    "top-1 is none of them, as no real encoder's own package card states one. Each tier's "
+    "tau-b minus the best naive baseline's (the best re-chosen in every replicate) has its "
+    "interval on the same window draws as the tier's own statistics.")  # a report has it when its store holds screens
 SCATTER_TITLE = "Screen proxies against the graft's MSE"
 
 
@@ -31,18 +47,21 @@ def measure(value, digits: int = 4) -> str:
 def screen_table(screens: Sequence) -> str:
     """One row per screened (backbone, suite, encoder), columns from the proxy table: each
     supervised proxy's gain of the features over the state, then the [state, features] value of
-    those that show it (ridge and k-NN MSE), each label-free proxy's value, the seconds."""
-    gains, label_free = supervised_proxies(), label_free_proxies()
+    those that show it (ridge and k-NN MSE), each label-free proxy's value, each naive
+    baseline's value, the seconds."""
+    gains, label_free, naive = supervised_proxies(), label_free_proxies(), naive_proxies()
     valued = [p for p in gains if p.value_column]
     with_features = INPUT_SETS[-1]
     # Entropy lies in [0, 1] and is not a difference: 3 digits tell encoders apart there.
     rows = [[s.backbone, s.suite, s.encoder]
             + [measure(s.value(p.name, GAIN)) for p in gains]
             + [measure(s.value(p.name, with_features)) for p in valued]
-            + [measure(s.value(p.name, HELDOUT), 3) for p in label_free] + [num(s.seconds, 2)]
+            + [measure(s.value(p.name, HELDOUT), 3) for p in label_free]
+            + [measure(s.value(p.name, VALUE), 3) for p in naive] + [num(s.seconds, 2)]
             for s in sorted(screens, key=lambda s: (s.backbone, s.suite, s.encoder))]
     return table(rows, ["backbone", "suite", "encoder"] + [f"{p.label} gain" for p in gains]
-                 + [p.value_column for p in valued] + [p.label for p in label_free] + ["s"])
+                 + [p.value_column for p in valued] + [p.label for p in label_free]
+                 + [p.label for p in naive] + ["s"])
 
 
 def _with_interval(point, interval) -> str:
@@ -52,38 +71,86 @@ def _with_interval(point, interval) -> str:
     return text
 
 
+def naive_text(a) -> str:
+    """A tier's tau-b minus the best naive baseline's, its paired interval and which baseline."""
+    if a.tier in {p.name for p in naive_proxies()}:
+        return "(a naive baseline)"
+    if a.naive_gap is None:
+        return "n/a"
+    best = f" vs {PROXIES[a.best_naive].label}" if a.best_naive else ""
+    return _with_interval(a.naive_gap, a.naive_gap_interval) + best
+
+
 def agreement_table(agreements: Sequence) -> str:
-    """One row per (backbone, suite, cheaper tier) with the point statistic and its paired
-    window bootstrap interval, or why it was not measured; then the tie rule."""
+    """One row per (backbone, suite, item set, cheaper tier) with the point statistic and its
+    paired window bootstrap interval, or why it was not measured; the tier's tau-b minus the
+    best naive baseline's (paired) and whether the screen recommends it; then the tie rule."""
     rows = []
     for a in agreements:
-        head = [a.backbone, a.suite, a.tier, len(a.encoders)]
+        head = [a.backbone, a.suite, a.item_set, a.tier, len(a.encoders)]
         if a.missing or a.point is None:
-            rows.append(head + [a.missing or "not measured"] + [""] * (len(STATISTICS) - 1))
+            rows.append(head + [a.missing or "not measured"] + [""] * (len(STATISTICS) + 1))
             continue
         rows.append(head + [_with_interval(getattr(a.point, k), a.intervals.get(k))
-                            for k in STATISTICS])
-    return (table(rows, ["backbone", "suite", "tier", "encoders", "Kendall tau-b",
-                         "weighted tau", "MMRV (MSE)", "top-1 regret (MSE)"])
+                            for k in STATISTICS]
+                    + [naive_text(a), "yes" if a.recommended else "no"])
+    return (table(rows, ["backbone", "suite", "items", "tier", "encoders", "Kendall tau-b",
+                         "weighted tau", "MMRV (MSE)", "top-1 regret (MSE)",
+                         "tau-b minus the best naive (paired)", "recommended"])
             + f"\n\nTies: {TIE_RULE}")
+
+
+def recommendation_lines(agreements: Sequence) -> list[str]:
+    """Per backbone x suite x item set: the tiers the screen recommends (tau-b above the best
+    naive baseline's by a paired interval above 0), or that none is."""
+    lines = []
+    for key in sorted({(a.backbone, a.suite, a.item_set) for a in agreements},
+                      key=lambda k: (k[0], k[1], k[2] != CANDIDATES)):
+        rows = [a for a in agreements if (a.backbone, a.suite, a.item_set) == key]
+        good = [f"{a.tier} ({naive_text(a)})" for a in rows if a.recommended]
+        where = f"**{key[0]} x {key[1]}, {key[2]}**"
+        if good:
+            lines.append(f"- {where}: recommended: {'; '.join(good)}.")
+        elif any(a.point is not None for a in rows):
+            lines.append(f"- {where}: no proxy or short graft beats the best naive baseline "
+                         "(its paired interval reaches 0 or below): rank by the graft.")
+        else:
+            lines.append(f"- {where}: not measured.")
+    return lines
 
 
 def _panels(screens: Sequence) -> list[tuple[str, str]]:
     return sorted({(s.backbone, s.suite) for s in screens})
 
 
+def _panel_agreements(mine: Sequence, records: Sequence, backbone: str, suite: str,
+                      n_resamples: int, seed: int, **kwargs) -> list:
+    """Every proxy's and short graft's TierAgreement on one panel and item set; kwargs:
+    tier_agreement's baselines, items and item_set (a naive baseline gets no baselines)."""
+    out = []
+    for proxy in PROXIES.values():
+        scores = {s.encoder: s.score(proxy.name) for s in mine}
+        own = {**kwargs, "baselines": None} if proxy.naive else kwargs
+        out.append(tier_agreement(scores, records, backbone, suite, proxy.name, n_resamples,
+                                  seed, **own))
+    return out + [short_graft_agreement(records, backbone, suite, v, n_resamples, seed, **kwargs)
+                  for v in get_kind(SHORT_GRAFT).variants]
+
+
 def screen_agreements(screens: Sequence, records: Sequence, n_resamples: int,
-                      seed: int = 0) -> list:
-    """TierAgreement per backbone x suite x proxy: each proxy's scores (`screens`: ScreenScores)
-    against the graft records, over the encoders with both."""
+                      seed: int = 0, candidates: frozenset[str] | None = None) -> list:
+    """TierAgreement per backbone x suite x item set (all, then the candidates: `candidates`,
+    default bench.analysis.candidates' of `records`) x tier: each proxy's scores (`screens`:
+    ScreenScores) and each short graft against the graft records, over the encoders with both,
+    each beside the naive baselines (the screens' parameter count, FLOPs, resolution)."""
+    candidates = candidate_items(records) if candidates is None else candidates
     out = []
     for backbone, suite in _panels(screens):
         mine = [s for s in screens if (s.backbone, s.suite) == (backbone, suite)]
-        for proxy in proxy_names():
-            scores = {s.encoder: s.score(proxy) for s in mine}
-            out.append(tier_agreement(scores, records, backbone, suite, proxy, n_resamples, seed))
-        out += [short_graft_agreement(records, backbone, suite, v, n_resamples, seed)
-                for v in get_kind(SHORT_GRAFT).variants]
+        baselines = {p.name: {s.encoder: s.score(p.name) for s in mine} for p in naive_proxies()}
+        for item_set, items in ((ALL, None), (CANDIDATES, candidates)):
+            out += _panel_agreements(mine, records, backbone, suite, n_resamples, seed,
+                                     baselines=baselines, items=items, item_set=item_set)
     return out
 
 
@@ -148,9 +215,9 @@ def calibrations(selections: Sequence, n_resamples: int, seed: int = 0) -> dict[
         except (OSError, ValueError) as e:  # gone or emptied since the run: said, not raised
             out[path] = Calibration(path, error=str(e))
             continue
-        out[path] = Calibration(path, screen_agreements([r.scores for r in study.screens],
-                                                        study.records, n_resamples, seed),
-                                study.selections)
+        screens, _ = with_naive_baselines([r.scores for r in study.screens], study.records)
+        out[path] = Calibration(path, screen_agreements(screens, study.records, n_resamples,
+                                                        seed), study.selections)
     return out
 
 
@@ -197,7 +264,7 @@ def screen_section(ctx) -> str | None:
     res = ctx.results
     if not res.screens and not res.screen_failures:
         return None
-    screens = [r.scores for r in res.screens]
+    screens = ctx.screens
     parts = ["Zero-training proxies per encoder from the stored features (`pytest bench "
              "--screen`): each supervised proxy's score is the gain of [state, features] over "
              "[state] alone on the grafts' held-out windows (higher is better); entropy is "
@@ -208,9 +275,15 @@ def screen_section(ctx) -> str | None:
     if res.screen_failures:
         parts.append("Screens that failed (their grafts are dropped): " + "; ".join(
             f"`{f.screen_id}`: {f.error}" for f in res.screen_failures))
-    parts += [f"**Agreement with the graft** (needs {MIN_ENCODERS} encoders with both; the graft "
-              "is the normalised held-out MSE, mean over seeds; intervals: paired window "
-              f"bootstrap, {ctx.n_resamples} resamples)", agreement_table(ctx.screen_agreements),
+    if ctx.naive_filled:
+        parts.append(f"Naive baselines of {len(ctx.naive_filled)} screen(s) {AT_REPORT_TIME}: "
+                     + ", ".join(f"`{s}`" for s in ctx.naive_filled) + ".")
+    parts += [AGREEMENT_INTRO.format(all=MIN_ENCODERS, candidates=MIN_CANDIDATES,
+                                     n=ctx.n_resamples),
+              agreement_table(ctx.screen_agreements),
+              "**What the screen recommends** (a tier whose tau-b beats the best naive "
+              "baseline's by a paired interval above 0; the candidates first)",
+              "\n".join(recommendation_lines(ctx.screen_agreements)) or "_Nothing measured._",
               "**Cost per encoder** (seconds: the screen's own solve, extraction not counted; "
               "each graft tier's wall time per cell, mean over seeds; screen / graft per encoder, "
               "then the mean and the worst: the ladder's goal is at most 5% for every encoder)",

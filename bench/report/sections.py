@@ -183,6 +183,31 @@ def rankings_section(ctx: ReportContext) -> str:
     return "\n\n".join(parts)
 
 
+CANDIDATES_TEXT = (
+    "**On the candidates** a team would choose between (encoders whose registry entry runs "
+    "trained weights in this world, bench.analysis.candidates; no random twin, known-answer "
+    "encoder or random-init stand-in), the same statistics, beside those over every encoder:")
+
+
+def candidate_transfer_table(ctx: ReportContext) -> str | None:
+    """The transfer's agreement over the candidates beside over all items; None without any."""
+    rows = []
+    for t in ctx.transfers:
+        if not t.complete or not t.candidate_agreement:
+            continue
+        a = t.candidate_agreement
+        rows.append([t.suite, f"{t.small} -> {t.large}", len(t.candidates),
+                     ", ".join(t.candidates) or "none", num(a["tau_b"], 3),
+                     num(a["p_value"], 3), num(min_exact_kendall_p(len(t.candidates)), 3),
+                     num(a["weighted_tau"], 3),
+                     f"{num(t.agreement['tau_b'], 3)} ({len(t.encoders)})"])
+    if not rows:
+        return None
+    return table(rows, ["suite", "small -> large", "n cand.", "candidates", "tau-b",
+                        "p (exact)", "min. attainable p", "weighted tau",
+                        "tau-b over all (n)"])
+
+
 def transfer_section(ctx: ReportContext) -> str:
     if not any(t.complete for t in ctx.transfers):
         ran = sorted({r.backbone for r in ctx.rankings}) or ["none"]
@@ -216,6 +241,9 @@ def transfer_section(ctx: ReportContext) -> str:
                                   "min. attainable p", "weighted tau", "small winner",
                                   "in large top tier", "large winner", "in small top tier",
                                   "wrapper Δ small", "wrapper Δ large"]))
+    candidates = candidate_transfer_table(ctx)
+    if candidates:
+        parts += [CANDIDATES_TEXT, candidates]
     if notes:
         parts.append(bullets(notes))
     s = ctx.support

@@ -29,9 +29,12 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from bench.screen.proxies import INPUT_SETS, FitInputs, label_free_proxies, supervised_proxies
-from bench.screen.records import (GAIN, ScreenConditions, ScreenFailure, ScreenRecord,
+from bench.screen.proxies import (INPUT_SETS, FitInputs, label_free_proxies, naive_proxies,
+                                  supervised_proxies)
+from bench.screen.records import (GAIN, VALUE, ScreenConditions, ScreenFailure, ScreenRecord,
                                   ScreenScores, new_screen_record)
+from bench.stats import Undefined
+from encoders.cost import EncoderCost, encoder_cost
 from bench.suites.windows import action_chunks
 
 FOLDS = 5  # episode folds of the training episodes that choose the ridge penalty and the k
@@ -94,15 +97,22 @@ def episode_folds(suite, frames: torch.Tensor, episodes: list[int], n_folds: int
 
 
 def screen_features(views: dict, suite, split, normalize_actions, chunk_size: int,
-                    names: tuple[str, str, str]) -> ScreenScores:
-    """Screen one (encoder, backbone, suite) = `names` from its feature `views` (see module doc).
+                    names: tuple[str, str, str], cost: EncoderCost | None = None
+                    ) -> ScreenScores:
+    """Screen one (encoder, backbone, suite) = `names` from its feature `views` (see module doc);
+    `cost`: the encoder's (encoders.cost), what the naive baselines read (None: undefined).
 
     split: .train_frames (N,), .train_episodes, .windows (M,); normalize_actions: (B, T, 7) raw
     -> normalised, the backbone's own. numpy's BLAS runs on torch's thread count: its own
     default (every CPU) made a serial run's LogME and ridge differ from an xdist worker's in the
     13th digit (CI, test_xdist). One knob for the screen's bits, as for a cell's."""
     with threadpool_limits(torch.get_num_threads(), user_api="blas"):
-        return _screen(views, suite, split, normalize_actions, chunk_size, names)
+        out = _screen(views, suite, split, normalize_actions, chunk_size, names)
+    for proxy in naive_proxies():
+        value = (proxy.compute(cost) if cost is not None
+                 else Undefined("the encoder's cost was not measured"))
+        out.keep_label_free(proxy.name, value, proxy.oriented(value), VALUE)
+    return out
 
 
 def _screen(views: dict, suite, split, normalize_actions, chunk_size: int,
@@ -158,11 +168,12 @@ def measure_screen(ws, encoder: str, backbone: str, suite: str,
     except Exception as e:  # noqa: BLE001 - any encoder may fail; the screen goes on
         return ScreenFailure(backbone, suite, encoder, " ".join(f"{type(e).__name__}: {e}".split()))
     feature_seconds = time.perf_counter() - start
+    cost = encoder_cost(ws.encoder(encoder))  # built for the features: one forward more
     # The stored file's own extraction time, whoever built it (the graft, an earlier screen).
     built = [v.stored.manifest.get("build_s") for v in views.values()]
     extraction = max((float(b) for b in built if b is not None), default=None)
     scores = screen_features(views, ws.suite(suite), ws.split(suite), bb.normalize_actions,
-                             bb.info.chunk_size, (encoder, backbone, suite))
+                             bb.info.chunk_size, (encoder, backbone, suite), cost)
     # What extracted them (bench.resources.features.PooledView.runtime; read here by name: bench.run
     # imports bench.results, which imports bench.screen).
     runtimes = {getattr(v, "runtime", None) for v in views.values()}

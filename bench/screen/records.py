@@ -15,7 +15,8 @@ travel as {"undefined": reason}, never as NaN.
 Where a proxy's values live (bench.screen.proxies says which kind each is): a supervised one's
 under proxies[name] as {input set: value, "gain": score}; the label-free entropy in the field of
 its own (the layout from before the table); any later label-free one under proxies[name] as
-{"heldout": value, "gain": score}.
+{"heldout": value, "gain": score}; a naive baseline (the encoder's cost) under proxies[name] as
+{"value": value, "gain": score}.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ SCREEN_VERSION = 4
 OK, FAILED = "ok", "failed"
 _STATUS = "status"  # the envelope key; every other key is a field name
 GAIN, HELDOUT = "gain", "heldout"  # a proxy's score; a label-free proxy's value (not entropy's)
+VALUE = "value"  # a naive baseline's value (the encoder's cost: bench.screen.proxies ENCODER)
 
 
 def _out(value: Measure):
@@ -88,12 +90,14 @@ class ScreenScores:
                              "added; a --screen run measures it again)")
         return self.proxies[proxy][key]
 
-    def keep_label_free(self, proxy: str, value: Measure, score: Measure) -> None:
-        """A label-free proxy's held-out value and its score, where this layout keeps them."""
+    def keep_label_free(self, proxy: str, value: Measure, score: Measure,
+                        key: str = HELDOUT) -> None:
+        """A label-free proxy's value (under `key`: HELDOUT, or VALUE for a naive baseline) and
+        its score, where this layout keeps them."""
         if proxy == ENTROPY:
             self.entropy = value
         else:
-            self.proxies[proxy] = {HELDOUT: value, GAIN: score}
+            self.proxies[proxy] = {key: value, GAIN: score}
 
     def holds(self, proxy: str) -> bool:
         """Has this screen measured `proxy` (a screen stored before a proxy was added has not)?"""
