@@ -36,3 +36,21 @@ def test_what_it_would_take_solves_the_formula():
     assert smallest_count(by_episode, 0.05, "seeds") is None
     # already resolved: the measured count
     assert smallest_count(by_episode, 0.5, "releases") == 3
+
+
+def test_the_budget_takes_its_total_from_the_reports_interval():
+    """The moments give the split, the ranking's interval the total: at the measured counts the
+    pair is resolved exactly when that interval excludes 0."""
+    from bench.analysis.budget import calibrated, resolves
+    from bench.analysis.hierarchy import t_expansion
+
+    parts = Components(0.0, 0.001, 0.003, 0.0, (3, 2, 12), 1e9)  # df huge: t / z = 1
+    wide = calibrated(parts, (-0.01, 0.03))  # contains 0
+    assert wide.mean_variance() == pytest.approx((0.02 / 1.959963984540054) ** 2)
+    assert wide.shares() == pytest.approx(parts.shares())
+    assert not resolves(wide, 0.01, 3, 2, 12)
+    narrow = calibrated(parts, (0.005, 0.015))
+    assert resolves(narrow, 0.01, 3, 2, 12)
+    few = Components(0.0, 0.001, 0.003, 0.0, (3, 2, 12), 2.0)  # the t widening taken back out
+    assert calibrated(few, (-0.01, 0.03)).mean_variance() == pytest.approx(
+        (0.02 / t_expansion(2.0) / 1.959963984540054) ** 2)

@@ -33,6 +33,7 @@ import scipy.stats
 # A value or why there is none: defined below everything (bench.stats), so the stored screen
 # records (bench.screen.records) hold it without importing the analysis.
 from bench.stats import Measure, Undefined, as_float, is_defined  # noqa: F401  (re-exported)
+from bench.analysis.hierarchy import Units, cell_weights, window_weights, windows_as_units
 
 TIE_RULE = (
     "Scores tie when exactly equal. A tie earns no credit for an order the other side shows: "
@@ -187,13 +188,28 @@ class Interval:
 NAIVE_GAP = "tau_b_minus_best_naive"
 
 
-def window_draws(n_windows: int, n_resamples: int, seed: int) -> Iterator[np.ndarray]:
-    """The paired window bootstrap's replicates, the one place they are drawn: per replicate,
-    (W,) indices of the held-out windows drawn with replacement, once for every item and every
-    tier scored on them (so two tiers' statistics of one replicate are paired)."""
+@dataclass(frozen=True)
+class Draw:
+    """One replicate's weights: on the (release, seed) cells (R, S) and the windows (W,)
+    (bench.analysis.hierarchy: releases, seeds, held-out episodes, windows within them)."""
+
+    cells: np.ndarray
+    windows: np.ndarray
+
+
+def replicate_draws(shape: tuple[int, ...], n_resamples: int, seed: int,
+                    units: Units | None = None) -> Iterator[Draw]:
+    """The paired bootstrap's replicates, the one place they are drawn: the hierarchical draw of
+    per-window scores of `shape` (n, W) or (n, R, S, W), once for every item and every tier
+    scored on them (so two tiers' statistics of one replicate are paired). `units` groups the W
+    windows into held-out episodes (None: each window its own unit)."""
+    n_rel, n_seed = shape[1:3] if len(shape) == 4 else (1, 1)
+    units = units if units is not None else windows_as_units(shape[-1])
     rng = np.random.default_rng(seed)
-    for _ in range(n_resamples):
-        yield rng.integers(0, n_windows, n_windows)
+    windows = window_weights(units, n_resamples, rng)
+    cells = cell_weights(n_rel, n_seed, n_resamples, rng)
+    for b in range(n_resamples):
+        yield Draw(cells[b], windows[b])
 
 
 def pairwise_tau_b(predicted: Sequence[float], actual: Sequence[float]) -> Measure:
@@ -226,36 +242,46 @@ def naive_gap(predicted: np.ndarray, actual: np.ndarray,
     return own - max(defined)
 
 
-def _mean_over(scores: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """(n,) scores as drawn: fixed (n,) ones as they are, (n, W) ones averaged over windows w."""
-    return scores[:, w].mean(axis=1) if scores.ndim == 2 else scores
+def _mean_over(scores: np.ndarray, draw: Draw) -> np.ndarray:
+    """(n,) scores as drawn: fixed (n,) ones as they are, (n, W) ones averaged over the drawn
+    windows, (n, R, S, W) ones over the drawn windows, then the drawn cells (absent: NaN)."""
+    if scores.ndim == 1:
+        return scores
+    if scores.ndim == 2:
+        return scores @ draw.windows
+    per_cell = np.nan_to_num(scores) @ draw.windows  # (n, R, S)
+    weights = np.isfinite(scores[..., 0]) * draw.cells
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (per_cell * weights).sum(axis=(1, 2)) / weights.sum(axis=(1, 2))
 
 
 def bootstrap_agreement(predicted: np.ndarray, actual: np.ndarray, n_resamples: int = 1000,
                         seed: int = 0, confidence: float = 0.95,
-                        baselines: Mapping[str, np.ndarray] | None = None
-                        ) -> dict[str, Interval | Undefined]:
-    """Paired window bootstrap of the four statistics: each replicate draws the W windows with
-    replacement ONCE for all n items (window_draws) and re-averages both tiers over them.
+                        baselines: Mapping[str, np.ndarray] | None = None,
+                        units: Units | None = None) -> dict[str, Interval | Undefined]:
+    """Paired hierarchical bootstrap of the four statistics: each replicate draws releases,
+    seeds, held-out episodes (`units`) and windows ONCE for all n items (replicate_draws) and
+    re-averages both tiers over them.
 
-    predicted: (n,) fixed scores, or (n, W) per-window scores on the same windows as `actual`;
-    actual: (n, W) per-window scores (higher is better: -MSE). baselines: {name: (n,) scores}
+    predicted: (n,) fixed scores, or per-window scores of `actual`'s shape on its windows;
+    actual: (n, W) or (n, R, S, W) per-window scores (higher is better: -MSE; NaN rows for
+    absent cells). baselines: {name: (n,) scores}
     of the naive baselines on the same items: the result also holds NAIVE_GAP, the interval of
     naive_gap on the same replicates (the tier and the baselines against one draw of the graft).
     Percentile interval over the replicates where a statistic is defined; Undefined when none
     is."""
     actual = np.asarray(actual, dtype=float)
     predicted = np.asarray(predicted, dtype=float)
-    if actual.ndim != 2 or predicted.shape not in ((len(actual),), actual.shape):
-        raise ValueError(f"actual must be (n, W) and predicted (n,) or (n, W); got "
-                         f"{actual.shape} and {predicted.shape}")
+    if actual.ndim not in (2, 4) or predicted.shape not in ((len(actual),), actual.shape):
+        raise ValueError(f"actual must be (n, W) or (n, R, S, W) and predicted (n,) or of "
+                         f"actual's shape; got {actual.shape} and {predicted.shape}")
     base = {k: np.asarray(v, dtype=float) for k, v in (baselines or {}).items()}
     values: dict[str, list[float]] = {k: [] for k in STATISTICS}
     if baselines is not None:
         values[NAIVE_GAP] = []
     reasons: dict[str, str] = {}
-    for w in window_draws(actual.shape[1], n_resamples, seed):
-        s, r = _mean_over(predicted, w), actual[:, w].mean(axis=1)
+    for w in replicate_draws(actual.shape, n_resamples, seed, units):
+        s, r = _mean_over(predicted, w), _mean_over(actual, w)
         a = agreement(s, r)
         replicate = {k: getattr(a, k) for k in STATISTICS}
         if baselines is not None:

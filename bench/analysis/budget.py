@@ -10,8 +10,10 @@ episodes then has variance
 
     V(R, S, K) = s2_release / R + s2_seed / (R S) + s2_episode / K + s2_residual / (R S K)
 
-and a normal 95% interval excludes 0 at the observed gap g when 1.96 sqrt(V) < |g|. "What it
-would take" solves that for one count at a time, the others kept as measured. Assumptions: the
+and a normal 95% interval excludes 0 at the observed gap g when 1.96 sqrt(V) < |g|. The moments
+give the split; the total is the report's own interval's (`calibrated`), so the measured counts
+resolve the pair exactly when the ranking's interval excludes 0. "What it would take" solves
+that for one count at a time, the others kept as measured, and for all three scaled alike. Assumptions: the
 components are the same at other counts, the gap is the true one (a smaller true gap needs more),
 effects are independent and roughly normal, and one recipe is measured (a different native
 recipe is another population of releases).
@@ -19,12 +21,12 @@ recipe is another population of releases).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
 
-from bench.analysis.hierarchy import Components, components, episode_means
+from bench.analysis.hierarchy import Components, components, episode_means, t_expansion
 from bench.analysis.rankings import PRIMARY, Ranking, WindowMismatchError, cell_arrays, graft_records
 
 Z = 1.959963984540054  # the normal 97.5% quantile
@@ -53,6 +55,7 @@ class Budget:
     counts: tuple[int, int, int]  # releases, seeds, episodes measured
     pairs: list[PairBudget] = field(default_factory=list)
     needed: dict[str, int | None] = field(default_factory=dict)  # level -> count (None: no)
+    all_levels: float | None = None  # the factor on every count that resolves it (None: > 100)
     error: str | None = None
 
     def to_dict(self) -> dict:
@@ -63,7 +66,8 @@ class Budget:
                                           "episode": p.parts.episode,
                                           "residual": p.parts.residual},
                            "df": p.parts.df} for p in self.pairs],
-                "needed": self.needed, "error": self.error}
+                "needed": self.needed, "all_levels_factor": self.all_levels,
+                "error": self.error}
 
 
 def resolves(parts: Components, gap: float, releases: int, seeds: int, episodes: int) -> bool:
@@ -95,6 +99,32 @@ def smallest_count(parts: Components, gap: float, level: str) -> int | None:
     return n
 
 
+def calibrated(parts: Components, interval: tuple[float, float]) -> Components:
+    """`parts` scaled so that their variance at the measured counts is the one the report's
+    interval shows (half-width / (1.96 t/z)): the moments' split, the bootstrap's total, so
+    "resolved at the measured counts" means what the ranking's interval says."""
+    lo, hi = interval
+    own = parts.mean_variance()
+    if not (np.isfinite(lo) and np.isfinite(hi)) or own <= 0 or hi <= lo:
+        return parts
+    half = (hi - lo) / 2 / t_expansion(parts.df)
+    scale = (half / Z) ** 2 / own
+    return replace(parts, release=parts.release * scale, seed=parts.seed * scale,
+                   episode=parts.episode * scale, residual=parts.residual * scale)
+
+
+def scale_factor(parts: Components, gap: float) -> float | None:
+    """The smallest factor f (to 0.1) by which multiplying releases, seeds and episodes alike
+    resolves `gap`; None past 100."""
+    r, s, k = parts.shape
+    f = 1.0
+    while f <= 100:
+        if resolves(parts, gap, int(np.ceil(r * f)), int(np.ceil(s * f)), int(np.ceil(k * f))):
+            return f
+        f = round(f + 0.1, 1) if f < 4 else f * 1.25
+    return None
+
+
 def variance_budget(records: Sequence, ranking: Ranking) -> Budget:
     """The budget of `ranking`'s backbone x suite from its graft records (complete tables only:
     an encoder missing a release or seed is left out of the pairs, said in `error`)."""
@@ -117,7 +147,7 @@ def variance_budget(records: Sequence, ranking: Ranking) -> Budget:
         if not np.all(np.isfinite(table)):
             skipped.append(result.encoder)
             continue
-        parts = components(table)
+        parts = calibrated(components(table), result.diff_ci[PRIMARY])
         # the gap as the ranking reads it (windows weighted, not episodes): one figure per pair
         gap = float(result.diff[PRIMARY])
         budget.pairs.append(PairBudget(result.encoder, gap, parts, parts.shares()))
@@ -128,4 +158,5 @@ def variance_budget(records: Sequence, ranking: Ranking) -> Budget:
         first = budget.pairs[0]
         budget.needed = {level: smallest_count(first.parts, first.gap, level)
                          for level in ("releases", "seeds", "episodes")}
+        budget.all_levels = scale_factor(first.parts, first.gap)
     return budget

@@ -266,7 +266,7 @@ def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
                                 n_resamples=n_resamples, random_seed=random_seed)
         check.comparisons.append(VisionComparison(
             control=label, cell_ids=sorted({c.cell_id for _, c in pairs}),
-            seeds=[int(g.seed) for g, _ in pairs], control_mse=float(boot.mean[1]),
+            seeds=sorted({int(g.seed) for g, _ in pairs}), control_mse=float(boot.mean[1]),
             diff=float(boot.diff[1]), diff_ci=(float(boot.diff_lo[1]), float(boot.diff_hi[1]))))
     return check
 

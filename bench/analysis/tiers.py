@@ -25,7 +25,8 @@ import numpy as np
 from bench.analysis.agreement import (NAIVE_GAP, Agreement, Interval, Measure, Undefined,
                                       agreement, bootstrap_agreement, is_defined, kendall_tau_b,
                                       naive_gap)
-from bench.analysis.rankings import PRIMARY
+from bench.analysis.hierarchy import Units
+from bench.analysis.rankings import PRIMARY, record_units
 from bench.grid.kinds import GRAFT, SHORT_GRAFT, get_kind
 
 MIN_ENCODERS = 6
@@ -92,6 +93,28 @@ def graft_per_window(records: Sequence, backbone: str, suite: str, kind: str = G
     return {e: np.mean(v, axis=0) for e, v in by_encoder.items()}, None
 
 
+def graft_cells(records: Sequence, backbone: str, suite: str, kind: str = GRAFT,
+                variant: str | None = None) -> tuple[dict[str, np.ndarray], Units | None]:
+    """({encoder: (R, S, W) normalised MSE per window of each (release, seed) cell, NaN where
+    absent}, the windows' episodes) of the `kind` x `variant` records on backbone x suite: the
+    releases and seeds indexed over every graft and short graft there, so two tiers' arrays
+    line up. Windows as graft_per_window checks them (call it first)."""
+    here = [r for r in records if r.backbone == backbone and r.suite == suite
+            and r.kind in (GRAFT, SHORT_GRAFT)]
+    mine = [r for r in here if r.kind == kind and r.variant == variant]
+    if not mine:
+        return {}, None
+    releases = sorted({int(r.release) for r in here})
+    seeds = sorted({int(r.seed) for r in here})
+    out: dict[str, np.ndarray] = {}
+    for r in mine:
+        cells = out.setdefault(r.encoder, np.full((len(releases), len(seeds),
+                                                  r.scores.n_windows), np.nan))
+        cells[releases.index(int(r.release)), seeds.index(int(r.seed))] = \
+            r.scores.per_window_in(PRIMARY)
+    return out, record_units(mine[0])
+
+
 def _items(out: TierAgreement, scores: Mapping[str, Measure], per_window: Mapping,
            items: Collection[str] | None) -> None:
     """The tier's items into `out.encoders`, each encoder left out with why into `left_out`."""
@@ -131,8 +154,8 @@ def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: s
                    items: Collection[str] | None = None, item_set: str = ALL) -> TierAgreement:
     """Agreement of the cheaper tier's `scores` {encoder: score, higher is better} with the
     graft records of backbone x suite, with paired window bootstrap intervals.
-    `scores_per_window` {encoder: (W,)}, higher is better, on the graft's windows: a tier scored
-    per window (a short graft), resampled with the graft's windows instead of held fixed.
+    `scores_per_window` {encoder: (R, S, W)} (graft_cells' index), higher is better: a tier
+    scored per window (a short graft), drawn with the graft's cells and windows, not held fixed.
     `baselines` {naive baseline: {encoder: score}}: the tier's tau-b minus the best of theirs,
     point and interval on the same replicates. `items`: only these encoders (the set
     `item_set` names), at least MIN_ITEMS[item_set] of them."""
@@ -150,6 +173,8 @@ def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: s
     out.predicted = [float(scores[e]) for e in out.encoders]
     windows = np.array([per_window[e] for e in out.encoders])  # (n, W)
     out.graft_mse = windows.mean(axis=1).tolist()
+    by_cell, units = graft_cells(records, backbone, suite)
+    cells = np.array([by_cell[e] for e in out.encoders])  # (n, R, S, W)
     actual = [-m for m in out.graft_mse]
     out.point = agreement(out.predicted, actual)
     predicted = (np.array([scores_per_window[e] for e in out.encoders])
@@ -160,7 +185,8 @@ def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: s
         out.naive_gap = naive_gap(np.array(out.predicted), np.array(actual), base)
         defined = {k: v for k, v in out.naive_tau_b.items() if is_defined(v)}
         out.best_naive = max(defined, key=defined.get) if defined else None
-    out.intervals = bootstrap_agreement(predicted, -windows, n_resamples, seed, baselines=base)
+    out.intervals = bootstrap_agreement(predicted, -cells, n_resamples, seed, baselines=base,
+                                        units=units)
     return out
 
 
@@ -186,6 +212,8 @@ def short_graft_agreement(records: Sequence, backbone: str, suite: str, variant:
         return TierAgreement(backbone, suite, tier, item_set=item_set, missing=(
             f"{shorts[0].cell_id} was scored on other windows than {grafts[0].cell_id}: "
             "not paired, no agreement computed"))
+    # per (release, seed) cell, so the draw pairs each short graft with its own graft's cell
+    cells, _ = graft_cells(records, backbone, suite, SHORT_GRAFT, variant)
     return tier_agreement({e: -float(v.mean()) for e, v in short.items()}, records, backbone,
-                          suite, tier, n_resamples, seed, {e: -v for e, v in short.items()},
+                          suite, tier, n_resamples, seed, {e: -v for e, v in cells.items()},
                           **kwargs)

@@ -21,8 +21,10 @@ import numpy as np
 import scipy.stats
 
 from bench.analysis.agreement import (as_float, is_defined, kendall_p_value, kendall_tau_b,
-                                      weighted_tau)
-from bench.analysis.rankings import PRIMARY, Ranking, backbone_order
+                                      pairwise_tau_b, weighted_tau)
+from bench.analysis.hierarchy import replicate_means
+from bench.analysis.rankings import (PRIMARY, Ranking, WindowMismatchError, backbone_order,
+                                     cell_arrays, graft_records)
 
 SUPPORT_RULES = (
     "A **backbone-suite comparison** is one suite and one direction (source backbone -> target "
@@ -226,3 +228,49 @@ def support_counts(transfers: Sequence[Transfer]) -> dict:
         "seed_cells_supporting": sum(c.supports for c in seed_cells),
         "seed_cells_total": len(seed_cells),
     }
+
+
+def _draws(records: Sequence, backbone: str, suite: str, encoders: Sequence[str],
+           n_resamples: int, seed: int) -> np.ndarray | None:
+    """(n, B) hierarchical replicates of `encoders`' mean graft MSE on backbone x suite (the
+    rankings' draw: releases, seeds, episodes, windows), None when they cannot be drawn."""
+    cells = [r for r in graft_records(records, backbone, suite) if r.encoder in encoders]
+    try:
+        ca = cell_arrays(cells, lambda c: c.encoder, (PRIMARY,)) if cells else None
+    except WindowMismatchError:
+        return None
+    if ca is None or sorted(ca.items) != sorted(encoders):
+        return None
+    reps = replicate_means(ca.values[PRIMARY], ca.units, n_resamples=n_resamples,
+                           random_seed=seed)
+    return reps.draws[[ca.items.index(e) for e in encoders]]
+
+
+def _tau_interval(small: np.ndarray, large: np.ndarray, confidence: float = 0.95) -> list | None:
+    """Percentile interval of tau-b over paired replicates (n, B) of two backbones' means."""
+    taus = [pairwise_tau_b(-small[:, b], -large[:, b]) for b in range(small.shape[1])]
+    kept = [t for t in taus if is_defined(t) and np.isfinite(t)]
+    if not kept:
+        return None
+    alpha = (1 - confidence) / 2
+    return [float(np.quantile(kept, alpha)), float(np.quantile(kept, 1 - alpha))]
+
+
+def transfer_intervals(transfers: Sequence[Transfer], records: Sequence, *,
+                       n_resamples: int = 1000, seed: int = 0) -> None:
+    """Each complete transfer's tau-b interval (`agreement["tau_b_ci"]`, and the candidates'
+    in `candidate_agreement`): both backbones' encoder means drawn by the rankings' hierarchical
+    bootstrap with one seed, so both draw the same held-out episodes of their shared suite."""
+    for t in transfers:
+        if not t.complete:
+            continue
+        sets = [(t.agreement, t.encoders)]
+        if t.candidate_agreement:
+            sets.append((t.candidate_agreement, t.candidates))
+        for target, encoders in sets:
+            if len(encoders) < 2:
+                continue
+            small = _draws(records, t.small, t.suite, encoders, n_resamples, seed)
+            large = _draws(records, t.large, t.suite, encoders, n_resamples, seed)
+            if small is not None and large is not None:
+                target["tau_b_ci"] = _tau_interval(small, large)

@@ -16,9 +16,10 @@ METHOD = (
     "held-out-episode and residual (episode x training, windows inside it) variance "
     "(bench/analysis/budget.py). The mean difference over R releases x S seeds x K episodes has "
     "variance V = s2_release/R + s2_seed/(RS) + s2_episode/K + s2_residual/(RSK); the shares "
-    "below are each term's part of V at the measured counts. For the leading pair, \"what it "
-    "would take\" is the smallest R (or S, or K; the other two as measured) at which "
-    "1.96 sqrt(V) < |observed gap|. Assumptions: the components hold at other counts, the "
+    "below are each term's part of V at the measured counts (V itself scaled to the ranking's "
+    "interval). For the leading pair, \"what it would take\" is the smallest R (or S, or K; "
+    "the other two as measured, or all three scaled alike) at which 1.96 sqrt(V) < "
+    "|observed gap|. Assumptions: the components hold at other counts, the "
     "observed gap is the true one (a smaller true gap needs more), effects independent and "
     "roughly normal, one native recipe (its releases' population)."
 )
@@ -41,6 +42,12 @@ def _needed(budget: Budget) -> str:
             words.append(f"{level}: resolved at the measured {measured[level]}")
         else:
             words.append(f"{count} {level} (measured {measured[level]})")
+    if budget.all_levels is not None and budget.all_levels > 1:
+        r, s, k = (int(-(-n * budget.all_levels // 1)) for n in budget.counts)
+        words.append(f"all three x{budget.all_levels:.3g} ({r} releases x {s} seeds x {k} "
+                     "episodes)")
+    elif budget.all_levels is None:
+        words.append("not all three x100")
     return (f"**What it would take** ({budget.leader} vs {first.encoder}, gap "
             f"{num(first.gap, 3)}): " + "; or ".join(words) + ".")
 

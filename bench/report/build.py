@@ -21,7 +21,7 @@ from bench.analysis.candidates import candidate_items
 from bench.analysis.rankings import DEFAULT_RESAMPLES, rank_all
 from bench.analysis.controls import control_deltas, vision_checks, wrapper_neutrality
 from bench.analysis.rollouts import closed_loop_all
-from bench.analysis.transfer import support_counts, transfer_all
+from bench.analysis.transfer import support_counts, transfer_all, transfer_intervals
 from bench.grid.kinds import GRAFT
 from bench.results.store import Results, load_results
 from bench.report.budget import TITLE as BUDGET_TITLE, budget_section, budgets
@@ -74,6 +74,7 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
     transfers = transfer_all(rankings, backbones=[b for b in expected_backbones if b],
                              suites=sorted(expected_suites),
                              candidates=candidates) if rankings else []
+    transfer_intervals(transfers, records, n_resamples=n_resamples, seed=random_seed)
     screens, filled = with_naive_baselines([r.scores for r in results.screens], records)
     return ReportContext(results=results, out_path=out_path, rankings=rankings,
                          transfers=transfers, support=support_counts(transfers),

@@ -19,7 +19,12 @@ def ranking_answer(r: Ranking, ctx: ReportContext) -> str:
         return f"{where}: not ranked ({r.error or 'no graft'})."
     lead = r.encoders[0]
     score = f"norm. MSE {num(lead.mean[PRIMARY])} {interval(lead.ci[PRIMARY])}"
-    seeds = f"seeds {r.seeds}"
+    seeds = (f"seeds {r.seeds}" if len(r.releases) == 1 else
+             f"releases {r.releases} x seeds {r.seeds}")
+    if r.n_episodes:
+        seeds += f", {r.n_episodes} held-out episodes; drawn: " + ", ".join(
+            level for level, n in (("releases", len(r.releases)), ("seeds", len(r.seeds)),
+                                   ("episodes", r.n_episodes)) if n > 1)
     if len(r.encoders) == 1:
         return (f"{where}: only **{lead.encoder}** was grafted ({score}, {seeds}): nothing to "
                 "rank it against.")

@@ -198,13 +198,14 @@ def candidate_transfer_table(ctx: ReportContext) -> str | None:
         a = t.candidate_agreement
         rows.append([t.suite, f"{t.small} -> {t.large}", len(t.candidates),
                      ", ".join(t.candidates) or "none", num(a["tau_b"], 3),
+                     interval(a.get("tau_b_ci") or (float("nan"),) * 2, 3),
                      num(a["p_value"], 3), num(min_exact_kendall_p(len(t.candidates)), 3),
                      num(a["weighted_tau"], 3),
                      f"{num(t.agreement['tau_b'], 3)} ({len(t.encoders)})"])
     if not rows:
         return None
     return table(rows, ["suite", "small -> large", "n cand.", "candidates", "tau-b",
-                        "p (exact)", "min. attainable p", "weighted tau",
+                        "tau-b 95% CI", "p (exact)", "min. attainable p", "weighted tau",
                         "tau-b over all (n)"])
 
 
@@ -218,7 +219,10 @@ def transfer_section(ctx: ReportContext) -> str:
     parts = [
         "Kendall tau-b (scipy.stats.kendalltau, variant b; exact p where there are no ties) and "
         "top-weighted tau (scipy.stats.weightedtau on -MSE, so agreement among the best encoders "
-        "counts most) between the two backbones' mean rankings, over encoders run on both.",
+        "counts most) between the two backbones' mean rankings, over encoders run on both. "
+        "Its interval: both backbones' means drawn by the rankings' hierarchical bootstrap "
+        "(releases, seeds, held-out episodes, windows; one draw of the shared suite's episodes "
+        "for both), percentile.",
         f"**With so few encoders tau cannot reach significance**: the smallest two-sided p "
         f"scipy's exact method can give (perfect agreement) is {min_ps}. Read tau as a "
         f"description, not a test.",
@@ -230,6 +234,7 @@ def transfer_section(ctx: ReportContext) -> str:
             continue
         a = t.agreement
         rows.append([t.suite, f"{t.small} -> {t.large}", len(t.encoders), num(a["tau_b"], 3),
+                     interval(a.get("tau_b_ci") or (float("nan"),) * 2, 3),
                      num(a["p_value"], 3), num(t.min_p, 3), num(a["weighted_tau"], 3),
                      t.small_winner, yes_no(t.small_winner_in_large_tier), t.large_winner,
                      yes_no(t.large_winner_in_small_tier),
@@ -237,7 +242,8 @@ def transfer_section(ctx: ReportContext) -> str:
         if "note" in a:
             notes.append(f"{t.suite}: {a['note']}")
     if rows:
-        parts.append(table(rows, ["suite", "small -> large", "n enc.", "tau-b", "p (exact)",
+        parts.append(table(rows, ["suite", "small -> large", "n enc.", "tau-b", "tau-b 95% CI",
+                                  "p (exact)",
                                   "min. attainable p", "weighted tau", "small winner",
                                   "in large top tier", "large winner", "in small top tier",
                                   "wrapper Δ small", "wrapper Δ large"]))
