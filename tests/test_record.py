@@ -27,6 +27,7 @@ NOT_RECORDS = {
     "bench/grid/user_specs.py": {"camera_map"},  # a --policy's config
     "bench/resources/releases.py": {"backbone", "loss_curve", "revision", "release"},  # release metadata, checkpoint id
     "bench/analysis/hierarchy.py": {"release", "seed"},  # the variance budget's level names
+    "bench/analysis/budget.py": {"backbone", "suite", "encoder", "error", "release", "seed"},  # its summary
     "bench/grid/pinned_release.py": {"backbone"},  # a pinned release's metadata
     "bench/resources/user_policies.py": {"revision"},  # a --policy's checkpoint id
     "bench/resources/features.py": {"encoder", "grid", "suite"},  # the feature store's manifest

@@ -37,7 +37,8 @@ def test_the_first_lines_answer_per_backbone_and_suite_then_transfer(tmp_path):
     first = paragraphs(check_markdown(out))
     assert re.fullmatch(r"\*\*smolvla x spatial\*\*: \*\*pixels\*\* leads \(norm\. MSE 0\.38 "
                         r"\[[\d.]+, [\d.]+\]; alone in its top tier\); margin over the next, "
-                        r"dinov2_s: 0\.03 \[[\d.]+, [\d.]+\] \(paired, 95%; seeds \[0, 1\]\)\.",
+                        r"dinov2_s: 0\.03 \[[\d.]+, [\d.]+\] \(paired, 95%; seeds \[0, 1\], 24 "
+                        r"held-out windows \(no episode ids\); drawn: seeds, windows\)\.",
                         first[0]), first[0]
     assert first[1].startswith("**pi05 x spatial**: **pixels** leads (norm. MSE 0.233 ")
     assert "top tier (near-tie band): pixels, dinov2_s); margin over the next, dinov2_s: " \

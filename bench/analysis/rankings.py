@@ -202,6 +202,7 @@ class Ranking:
     error: str | None = None
     releases: list[int] = field(default_factory=lambda: [0])
     n_episodes: int = 0
+    episodes_from: str = "record"  # bench.analysis.hierarchy.Units.source ('none': windows)
     interval: str = ""  # the levels the intervals draw (bench.analysis.hierarchy.levels_text)
 
     @property
@@ -313,7 +314,7 @@ def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
     ca = cell_arrays(cells, lambda c: c.encoder)
     encoders, releases, seeds = ca.items, ca.releases, ca.seeds
     ranking.seeds, ranking.releases, ranking.n_windows = seeds, releases, len(ca.window_ids)
-    ranking.n_episodes = len(ca.units.episodes)
+    ranking.n_episodes, ranking.episodes_from = len(ca.units.episodes), ca.units.source
     ranking.interval = levels_text(len(releases), len(seeds), ca.units)
     cell_means = {m: ca.values[m].mean(axis=-1) for m in METRICS}  # (E, R, S)
     point = np.nanmean(cell_means[PRIMARY].reshape(len(encoders), -1), axis=1)

@@ -94,6 +94,13 @@ def _step_seconds(record) -> float:
     return float(train) / steps if steps and train is not None else float("nan")
 
 
+def _cells(found: dict) -> str:
+    """'seeds [0, 1]' on release 0 alone, else the (release, seed) pairs."""
+    if all(r == 0 for r, _ in found):
+        return f"seeds {sorted(s for _, s in found)}"
+    return f"(release, seed) {sorted(found)}"
+
+
 def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, steps: int, *,
                   n_resamples: int = DEFAULT_RESAMPLES,
                   random_seed: int = 0) -> TunedComparison | str:
@@ -109,7 +116,7 @@ def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, st
     if not keys:
         at = f" at {steps} steps" if steps else ""
         return (f"{encoder}{at}: no seed with both a tuned cell and a frozen graft of as many "
-                f"steps (tuned (release, seed) {sorted(tuned)}, frozen {sorted(frozen)})")
+                f"steps (tuned {_cells(tuned)}, frozen {_cells(frozen)})")
     cells = [frozen[k] for k in keys] + [tuned[k] for k in keys]
     try:
         _, orders = align_windows(cells)

@@ -22,9 +22,10 @@ def ranking_answer(r: Ranking, ctx: ReportContext) -> str:
     seeds = (f"seeds {r.seeds}" if len(r.releases) == 1 else
              f"releases {r.releases} x seeds {r.seeds}")
     if r.n_episodes:
-        seeds += f", {r.n_episodes} held-out episodes; drawn: " + ", ".join(
+        unit = "windows (no episode ids)" if r.episodes_from == "none" else "episodes"
+        seeds += f", {r.n_episodes} held-out {unit}; drawn: " + ", ".join(
             level for level, n in (("releases", len(r.releases)), ("seeds", len(r.seeds)),
-                                   ("episodes", r.n_episodes)) if n > 1)
+                                   (unit.split()[0], r.n_episodes)) if n > 1)
     if len(r.encoders) == 1:
         return (f"{where}: only **{lead.encoder}** was grafted ({score}, {seeds}): nothing to "
                 "rank it against.")
