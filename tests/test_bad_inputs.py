@@ -363,3 +363,18 @@ def test_a_paper_preflight_stop_leaves_no_folder_behind(bench_run):
                     "--encoders", "dinov2_s", "--seeds", "0", "--controls", "none")
     assert out.ret == pytest.ExitCode.USAGE_ERROR and "missing" in out.screen, out.screen
     assert not (bench_run.path / "results").exists()
+
+
+def test_a_tier_twin_without_the_screen_and_a_degraded_stranger_are_refused():
+    """The guards behind the `--controls tuned_encoder_1_8` and `--degrade-encoder` rows, called
+    directly (broken, those rows would measure the grid instead of refusing)."""
+    from bench.grid.protocol import TINY
+    from bench.regression.run import BaselineOptions, BaselineRun
+    from bench.startup import check_references
+
+    tuned = dataclasses.replace(TINY, controls=("tuned_encoder_1_8",))
+    with pytest.raises(pytest.UsageError, match="short_graft.1_8. graft, a tier of the --screen"):
+        check_references(tuned, screen=False)
+    check_references(tuned, screen=True)
+    with pytest.raises(pytest.UsageError, match="'dinov2' is not an encoder of this run"):
+        BaselineRun(BaselineOptions(degrade=("dinov2", 0.5)), "0" * 12, TINY)

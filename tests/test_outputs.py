@@ -134,3 +134,18 @@ def test_an_export_into_the_record_tree_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"--out {out}: inside the record tree of the results dir {tmp_path}" in err, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name, replace, says", [
+    ("ci", False, None), ("ci-2.nightly", False, None),
+    ("a/b", False, "fix: --save-baseline b "), ("../escape", False, "fix: --save-baseline escape"),
+    ("ok.json", False, "fix: --save-baseline ok "), ("keep", False, "add --replace-baseline"),
+    ("keep", True, None),
+])
+def test_a_baseline_is_a_name_in_its_folder_and_is_replaced_only_when_asked(tmp_path, name,
+                                                                            replace, says):
+    from bench.outputs import baseline_refusal
+
+    (tmp_path / "keep.json").write_text("{}")
+    problem = baseline_refusal("--save-baseline", name, tmp_path, replace)
+    assert problem is None if says is None else says in problem, problem
