@@ -16,9 +16,9 @@ The estimate, per process that measures cells (each xdist worker, or this one):
                                        from the store (FEATURE_BATCH_BYTES: its largest batch)
 
 times the workers, plus one PROCESS_BYTES for the xdist controller. It is a floor, not a bound:
-activations beyond a batch's and the allocator's slack come on top (the real study's processes
-peaked at 5.6-7.9 GB where the estimate says about 2), so a refusal is certain and a printed
-estimate is the least the run takes.
+activations beyond a batch's, encoders built in the loop and the allocator's slack come on top
+(the real study's processes peaked at 5.6-7.9 GB where it says 1.7 GB), so a refusal means the
+run cannot fit, and a printed estimate is the least it will take.
 """
 
 from __future__ import annotations

@@ -19,6 +19,7 @@ written. The rules:
 from __future__ import annotations
 
 import json
+import os
 import re
 from pathlib import Path
 
@@ -51,9 +52,10 @@ def in_record_tree(path: Path) -> Path | None:
     names."""
     from bench.results.store import CELLS
 
-    path = Path(path).absolute()
+    path = Path(os.path.abspath(path))  # `..` folded: results/cells/../R.md is results/R.md
+    folders = record_folders()
     for below, folder in zip(path.parents, list(path.parents)[1:]):
-        if below.name in record_folders() and (folder / CELLS).is_dir():
+        if below.name in folders and (folder / CELLS).is_dir():
             return folder
     return None
 

@@ -57,6 +57,19 @@ OPTION_CASES = [
     (["--robustness", ",,,"], "--robustness ',,,': no item in the list"),
     (["--steps", "0"], "--steps: steps = 0 is out of range; give steps >= 1"),
     (["--steps", "-5"], "--steps: steps = -5 is out of range; give steps >= 1"),
+    # Before: each of these started; the first ran out of memory building the batch order.
+    (["--steps", "100000000000"], "--steps: steps = 100000000000 is out of range; give steps <= "
+     "1000000 (500x the study's 2,000 steps, which run one after another)"),
+    (["--controls", "tuned_encoder_1_8"], "--controls tuned_encoder_1_8: tuned_encoder_1_8 is "
+     "compared with the short_graft[1_8] graft, a tier of the --screen ladder"),
+    (["--screen", "--screen-keep", "ALL"], "--screen-keep ALL: keywords are lower case; give "
+     "--screen-keep all"),
+    (["--robustness", "ALL"], "--robustness ALL: ALL: keywords are lower case; give all"),
+    (["--controls", "NONE"], "--controls NONE: keywords are lower case; give --controls none"),
+    (["--controls", "natve"], "unknown control kind(s) ['natve'] (did you mean native?)"),
+    (["--degrade-encoder", "dinov2:0.5"], "--degrade-encoder dinov2:0.5: 'dinov2' is not an "
+     "encoder of this run (dinov2_s, pixels, blind), so nothing would be degraded; fix: "
+     "--degrade-encoder dinov2_s:0.5"),
 ]
 
 
@@ -75,6 +88,16 @@ GRID_CASES = [
     ("encoders = []", "encoders = []: an empty list selects no cell; give e.g. encoders = "),
     ("seeds = []", "seeds = []: give a non-empty list"),
     ('robustness = "all"', "give a list of names, e.g. robustness = [\"brightness\""),
+    ('robustness = ["ALL"]', "robustness: ALL: keywords are lower case; give all"),
+    ("steps = 100000000000000000", "steps = 100000000000000000 is out of range; give steps <= "
+     "1000000 (500x"),
+    ("[protocol]\nlr = nan", "[protocol]: lr = nan is not a finite number; give lr > 0"),
+    ("[protocol]\nlr = inf", "[protocol]: lr = inf is not a finite number; give lr > 0"),
+    ("[protocol]\nheldout_episodes_per_task = 1000", "[protocol]: heldout_episodes_per_task = "
+     "1000: the generated tiny suite 'spatial' has 16 episodes per task, and each task needs at "
+     "least one left to train on; give heldout_episodes_per_task <= 15"),
+    ("[protocol]\nbatch_size = 1000000000", "[protocol]: batch_size = 1000000000: the generated "
+     "tiny suite 'spatial' has at most 2400 training frames"),
 ]
 
 
@@ -203,12 +226,12 @@ def test_a_report_over_no_records_refuses_and_leaves_every_file(tmp_path, capsys
     (["--resamples", "0"], "argument --resamples: 0: give a whole number >= 2"),
     (["--resamples", "-5"], "argument --resamples: -5: give a whole number >= 2"),
     (["--report", "{dir}"], "--report {dir}: a folder; --report names the report's file"),
-    (["--report", "{dir}/cells/x/REPORT.md"], "is a file; give a path in a folder"),
+    (["--report", "{dir}/x/REPORT.md"], "is a file; give a path in a folder"),
 ], ids=["resamples-0", "resamples-negative", "report-a-folder", "report-under-a-file"])
 def test_a_bad_report_option_is_one_line(tmp_path, capsys, args, says):
     """Before: a 33-line scipy traceback; an IsADirectoryError traceback."""
     save_record(tmp_path, make_record())
-    (tmp_path / "cells" / "x").write_text("")  # a file where a folder would go
+    (tmp_path / "x").write_text("")  # a file where a folder would go
     args = [a.format(dir=tmp_path) for a in args]
     code, out, err = report([tmp_path, "--no-plots", *args], capsys)
     assert code == 4 and err.count("\n") == 1 and says.format(dir=tmp_path) in err, err
@@ -224,7 +247,8 @@ def test_a_file_as_the_results_dir_is_called_a_file(tmp_path, capsys):
 def test_a_report_that_skipped_files_says_how_many_in_the_terminal(tmp_path, capsys):
     save_record(tmp_path, make_record())
     (tmp_path / "cells" / "junk.json").write_text('{"cell_id": 5}')
-    code, out, err = report([tmp_path, "--no-plots", "--resamples", "20"], capsys)
+    code, out, err = report([tmp_path, "--no-plots", "--resamples", "20", "--skip-unreadable"],
+                            capsys)
     assert code == 0 and out.startswith(f"wrote {tmp_path / 'REPORT.md'} (1 finished"), out
     assert "skipped 1 unreadable file(s), not in the report: cells/junk.json" in err, err
 
@@ -317,3 +341,40 @@ def test_a_k_expression_that_selects_no_cell_names_ids_to_pick_from(bench_run):
     results = bench_run.path / "results"
     assert "Traceback" not in out.screen and not (results / "grid.json").exists()
     assert not any((results / "cells").iterdir())
+
+
+@pytest.mark.parametrize("name", sorted(PROTOCOL_RANGES))
+def test_nan_and_infinity_are_outside_every_range(name):
+    """Before: NaN compares false with every bound, so `lr = nan` passed start-up."""
+    for value in (float("nan"), float("inf"), float("-inf")):
+        assert "is not a finite number" in range_error(name, value, "study.toml [protocol]")
+
+
+def test_a_file_given_as_a_policy_folder_is_called_a_file(bench_run):
+    """Before: "no such folder", for a file that exists."""
+    (bench_run.path / "model.safetensors").write_text("")
+    given = f"mine={bench_run.path / 'model.safetensors'}"
+    assert_one_screen(bench_run("--policy", given), f"--policy {given}: a file, not a folder")
+
+
+def test_a_paper_preflight_stop_leaves_no_folder_behind(bench_run):
+    """Before: the stop left empty results/cells/ and results/failed/."""
+    out = bench_run("--profile", "paper", "--backbones", "smolvla", "--suites", "spatial",
+                    "--encoders", "dinov2_s", "--seeds", "0", "--controls", "none")
+    assert out.ret == pytest.ExitCode.USAGE_ERROR and "missing" in out.screen, out.screen
+    assert not (bench_run.path / "results").exists()
+
+
+def test_a_tier_twin_without_the_screen_and_a_degraded_stranger_are_refused():
+    """The guards behind the `--controls tuned_encoder_1_8` and `--degrade-encoder` rows, called
+    directly (broken, those rows would measure the grid instead of refusing)."""
+    from bench.grid.protocol import TINY
+    from bench.regression.run import BaselineOptions, BaselineRun
+    from bench.startup import check_references
+
+    tuned = dataclasses.replace(TINY, controls=("tuned_encoder_1_8",))
+    with pytest.raises(pytest.UsageError, match="short_graft.1_8. graft, a tier of the --screen"):
+        check_references(tuned, screen=False)
+    check_references(tuned, screen=True)
+    with pytest.raises(pytest.UsageError, match="'dinov2' is not an encoder of this run"):
+        BaselineRun(BaselineOptions(degrade=("dinov2", 0.5)), "0" * 12, TINY)

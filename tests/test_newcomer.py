@@ -55,14 +55,15 @@ def test_first_run_shows_progress_and_leaves_the_repo_report_alone(run_bench, tm
 def test_runs_that_finish_no_cell_write_no_report(run_bench, tmp_path):
     results = tmp_path / "results"
     results.mkdir()
-    (results / "REPORT.md").write_text("an earlier report\n")
+    earlier = "# graftbench report\n\nan earlier report\n"  # its marker: bench.outputs
+    (results / "REPORT.md").write_text(earlier)
     collect = run_bench(*ONE_CELL, "--results-dir", str(results), "--co", quiet=True)
     assert collect.returncode == 0, collect.stdout[-2000:]
     stopped = run_bench("--profile", "paper", "--backbones", "pi05", "--suites", "spatial",
                         "--encoders", "dinov2_s", "--controls", "none", "--seeds", "0",
                         "--results-dir", str(results), quiet=True)
     assert stopped.returncode == 4, stopped.stdout[-2000:]  # preflight: artifacts missing
-    assert (results / "REPORT.md").read_text() == "an earlier report\n"
+    assert (results / "REPORT.md").read_text() == earlier
 
 
 @pytest.mark.parametrize("args, message", [

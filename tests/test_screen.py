@@ -109,9 +109,16 @@ def test_screen_bits_follow_torch_threads_not_numpys_blas_default(tiny_ws, one_t
     assert proxies[0] == proxies[1]
 
 
-@pytest.mark.parametrize("value, expected", [("3", 3), ("all", None), ("ALL", None), ("12", 12)])
+@pytest.mark.parametrize("value, expected", [("3", 3), ("all", None), ("12", 12)])
 def test_screen_keep_accepts_counts_and_all(value, expected):
     assert parse_screen_keep(value) == expected
+
+
+def test_screen_keep_refuses_a_keyword_in_another_case():
+    """Keywords are lower case on every option (--robustness ALL is refused too)."""
+    with pytest.raises(ValueError, match=r"^--screen-keep ALL: keywords are lower case; give "
+                                         r"--screen-keep all$"):
+        parse_screen_keep("ALL")
 
 
 @pytest.mark.parametrize("value", ["0", "-2", "2.5", "three", ""])

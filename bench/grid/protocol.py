@@ -106,10 +106,13 @@ class Range:
             return False
         return self.high is None or value <= self.high
 
-    def text(self) -> str:
-        """'>= 1', '> 0', 'in [0, 1]': the message's words."""
-        if self.high is None:
+    def text(self, value=None) -> str:
+        """'>= 1', '> 0', 'in [0, 1]': the message's words; a top set by cost (`why`) is named
+        with its reason only to a value above it."""
+        if self.high is None or self.why and value is not None and not value > self.high:
             return f"{'>' if self.low_open else '>='} {self.low}"
+        if self.why:
+            return f"<= {self.high} ({self.why})"
         return f"in {'(' if self.low_open else '['}{self.low}, {self.high}]"
 
 
@@ -125,6 +128,7 @@ class Range:
 MAX_STEPS = 1_000_000
 _STEPS_WHY = "500x the study's 2,000 steps, which run one after another"
 MAX_SEED = 2**63 - 1
+_SHIFT_WHY = "it pads each image by as many pixels; past the largest side it moves nothing more"
 PROTOCOL_RANGES: dict[str, Range] = {
     "steps": Range(1, MAX_STEPS, why=_STEPS_WHY), "batch_size": Range(1),
     "lr": Range(0, low_open=True), "weight_decay": Range(0),
@@ -138,7 +142,8 @@ PROTOCOL_RANGES: dict[str, Range] = {
     "native_lr": Range(0, low_open=True),
     "native_state_dropout": Range(0, 1),
     "native_state_dropout_warmup": Range(0, MAX_STEPS, why=_STEPS_WHY),
-    "native_image_shift": Range(0, 512), "graft_image_shift": Range(0, 512),  # <= image side
+    "native_image_shift": Range(0, 512, why=_SHIFT_WHY),
+    "graft_image_shift": Range(0, 512, why=_SHIFT_WHY),
     "tiny_image_size": Range(16, 512),
 }
 
@@ -149,9 +154,9 @@ def range_error(field: str, value, where: str) -> str | None:
     allowed = PROTOCOL_RANGES.get(field)
     if allowed is None or value in allowed:
         return None
-    why = f" ({allowed.why})" if allowed.why else ""
-    what = "is not a finite number" if value != value or value in (_INF, -_INF) else "is out of range"
-    return f"{where}: {field} = {value!r} {what}; give {field} {allowed.text()}{why}"
+    finite = value == value and value not in (_INF, -_INF)
+    what = "is out of range" if finite else "is not a finite number"
+    return f"{where}: {field} = {value!r} {what}; give {field} {allowed.text(value)}"
 
 
 _INF = float("inf")

@@ -95,13 +95,11 @@ class Applied:
 def parse_robustness(values, where: str) -> tuple[Applied, ...]:
     """["brightness", "blur:1,3", "all"] -> the (kind, severity) pairs, table order, each once.
     A bare kind means severities 1-3; ValueError, one line naming `where`, otherwise."""
-    from bench.option_values import wrong_case
-
     wanted: set[tuple[str, int]] = set()
     for value in values:
         name, _, given = str(value).strip().partition(":")
-        if problem := wrong_case(where, name, ("all",)):
-            raise ValueError(problem)
+        if name != "all" and name.lower() == "all":  # keywords are lower case, on every option
+            raise ValueError(f"{where}: {name}: keywords are lower case; give all")
         names = list(PERTURBATIONS) if name == "all" else [name]
         if name != "all" and name not in PERTURBATIONS:
             raise ValueError(f"{where}: {PERTURBATIONS.refusal(name)} (or all), each as KIND "
