@@ -391,4 +391,7 @@ def parse_options(config: pytest.Config) -> RunOptions:
         rollout_batching=Batching(rollout_batch, opt("--rollout-envs")), executor=opt("--executor"),
         slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen,
         pack_grafts=pack_grafts(opt("--pack-grafts"), profile.grid_file, opt("--executor")),
-        replace_report=bool(opt("--replace-report")))
+        # The default report (no --report) is the run's own output, not a file the user named:
+        # a -k slice on a fresh clone replaces it, as the README's usage shows. A named report
+        # keeps the fewer-cells rule; every report keeps the rest of bench.outputs' rule.
+        replace_report=bool(opt("--replace-report")) or opt("--report") is None)

@@ -67,13 +67,14 @@ def test_pytest_bench_never_writes_over_what_it_does_not_own(bench_run, args, sa
 
 
 def test_a_report_with_fewer_cells_needs_the_flag(bench_run):
-    """Before: `-k` of one cell replaced a 40-cell report with a 1-cell one, without a word."""
+    """Before: `-k` of one cell replaced a 40-cell report with a 1-cell one, without a word.
+    (A named report: the default one is the run's own output, which a slice replaces.)"""
     tmp = bench_run.path
     (tmp / "REPORT.md").write_text("# graftbench report\n\nforty cells\n")
     (tmp / "REPORT_summary.json").write_text(json.dumps(
         {"answer": [], "cells": {"finished": 39, "failed": ["x"]}}))
     before = files(tmp)
-    out = bench_run("-k", "pi05-spatial-pixels-seed0")
+    out = bench_run("-k", "pi05-spatial-pixels-seed0", "--report", str(tmp / "REPORT.md"))
     assert out.ret == 4 and (f"--report {tmp / 'REPORT.md'}: the report there holds 40 cell(s) "
                              "and this one would hold at most 1; fix: add --replace-report") \
         in out.screen, out.screen
