@@ -6,7 +6,8 @@ them pushed a 24 GB machine into thrash).
 The estimate, per process that measures cells (each xdist worker, or this one):
 
     PROCESS_BYTES                      torch, LeRobot and timm imported, a tiny release, a batch
-  + its backbones' weights             hub releases: parameters x 4 bytes (they load in fp32);
+  + its backbones' weights             hub releases: the cached model.safetensors' size, else
+                                       parameters x 4 bytes (they load in fp32);
                                        your --policy folder: its *.safetensors bytes. Under -n
                                        a worker takes one backbone's cells (bench.scheduling):
                                        the largest ceil(backbones / workers) count
@@ -68,9 +69,17 @@ def backbone_bytes(profile, name: str) -> int:
     if profile.source != "hub":
         return 0
     from backbones import BACKBONES
+    from ondisk.hubcache import cached_file
 
     entry = BACKBONES.get(name)
-    return int(entry.params * 4) if entry is not None and entry.params != float("inf") else 0
+    if entry is None:
+        return 0
+    # The checkpoint the cache holds, as it is (the offline hub world's are tiny); the registry's
+    # nominal size only when the cache has none yet (the preflight then names what is missing).
+    weights = cached_file(entry.repo_id, "model.safetensors", entry.revision)
+    if weights is not None and weights.is_file():
+        return weights.stat().st_size
+    return int(entry.params * 4) if entry.params != float("inf") else 0
 
 
 def data_bytes(profile, suite: str) -> int:

@@ -109,7 +109,7 @@ BAD_INPUTS = [
     (["--screen", "--screen-keep", "-2"], "--screen-keep -2", "give a whole number >= 1, or all"),
     (["--screen", "--screen-keep", "2.5"], "--screen-keep 2.5", "give a whole number >= 1, or all"),
     (["--screen", "--screen-by", "shortest"], "--screen-by shortest",
-     "choose one of logme, ridge, knn, entropy, short"),
+     "choose one of logme, ridge, knn, entropy, param_count, flops, resolution, short"),
     (["--screen", "--screen-by", "short", "--executor", "submitit-local"],
      "--screen-by short with --executor submitit-local", "fix: --executor local"),
     (["--screen-keep", "2"], "--screen-keep 2", "--screen is not given; fix: add --screen"),

@@ -13,7 +13,8 @@ episodes then has variance
 and a normal 95% interval excludes 0 at the observed gap g when 1.96 sqrt(V) < |g|. The moments
 give the split; the total is the report's own interval's (`calibrated`), so the measured counts
 resolve the pair exactly when the ranking's interval excludes 0. "What it would take" solves
-that for one count at a time, the others kept as measured, and for all three scaled alike. Assumptions: the
+that for one count at a time, the others kept as measured, and for all three scaled alike.
+Assumptions: the
 components are the same at other counts, the gap is the true one (a smaller true gap needs more),
 effects are independent and roughly normal, and one recipe is measured (a different native
 recipe is another population of releases).
@@ -27,7 +28,8 @@ from typing import Sequence
 import numpy as np
 
 from bench.analysis.hierarchy import Components, components, episode_means, t_expansion
-from bench.analysis.rankings import PRIMARY, Ranking, WindowMismatchError, cell_arrays, graft_records
+from bench.analysis.rankings import (PRIMARY, Ranking, WindowMismatchError, cell_arrays,
+                                     graft_records)
 
 Z = 1.959963984540054  # the normal 97.5% quantile
 MAX_COUNT = 10_000  # counts past this are reported as "not by this level alone"

@@ -58,7 +58,8 @@ def is_candidate(record) -> bool:
 
 
 def candidate_items(records: Iterable) -> frozenset[str]:
-    """The labels (bench.grid.kinds.record_label: an encoder's name for its grafts, "native")
+    """The labels (bench.grid.kinds.record_label: an encoder's name for its grafts, the native
+    kind's)
     of the candidate items among `records`; an item with any record that is not a candidate (a
     name run in two worlds) is left out."""
     verdicts: dict[str, bool] = {}

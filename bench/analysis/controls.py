@@ -66,6 +66,12 @@ class ControlDelta:
     mse: dict[str, float]
     reference_mse: dict[str, float] = field(default_factory=dict)
     delta: dict[str, float] = field(default_factory=dict)
+    release: int = 0
+
+    @property
+    def cell(self) -> int | str:
+        """Its (release, seed) cell as per-cell tables key it: the seed on release 0."""
+        return self.seed if not self.release else f"rel{self.release}-seed{self.seed}"
 
     @property
     def label(self) -> str:
@@ -82,7 +88,7 @@ def control_deltas(records: Sequence[dict]) -> list[ControlDelta]:
         ref, ref_id = find_reference(r, records)
         cd = ControlDelta(cell_id=r.cell_id, kind=r.kind, backbone=r.backbone,
                           suite=r.suite, encoder=r.encoder, variant=r.variant,
-                          seed=int(r.seed), reference_id=ref_id,
+                          seed=int(r.seed), release=int(r.release), reference_id=ref_id,
                           reference_found=ref is not None,
                           mse={m: float(r.mse_in(m)) for m in METRICS})
         if ref is not None:
@@ -94,11 +100,12 @@ def control_deltas(records: Sequence[dict]) -> list[ControlDelta]:
 
 @dataclass
 class WrapperNeutrality:
-    """(native_wrapped - native) / native on one backbone x suite, per seed and mean over seeds."""
+    """(native_wrapped - native) / native on one backbone x suite, per (release, seed) cell
+    (`ControlDelta.cell`) and mean over them."""
 
     backbone: str
     suite: str
-    per_seed: dict[int, dict[str, float]] = field(default_factory=dict)
+    per_seed: dict[int | str, dict[str, float]] = field(default_factory=dict)  # cell -> delta
     mean: dict[str, float] = field(default_factory=dict)
     unmatched: list[str] = field(default_factory=list)  # wrapped cells without a native record
 
@@ -114,7 +121,7 @@ def wrapper_neutrality(records: Sequence[dict]) -> dict[tuple[str, str], Wrapper
             continue
         wn = out.setdefault((cd.backbone, cd.suite), WrapperNeutrality(cd.backbone, cd.suite))
         if cd.reference_found:
-            wn.per_seed[cd.seed] = dict(cd.delta)
+            wn.per_seed[cd.cell] = dict(cd.delta)
         else:
             wn.unmatched.append(f"{cd.cell_id} (reference {cd.reference_id} missing)")
     for wn in out.values():
@@ -133,7 +140,8 @@ VISION_RULE = (
     "normalised MSE over seeds, `blind` excluded) is better than every blind or zero-image "
     "control present: the blind graft (same seeds), a zero_image control of the best encoder "
     "(each variant) or of the native policy. Better = the 95% interval of (control - best "
-    "graft) lies above 0. Pooling over releases and seeds: per (release, seed) cell, the mean over identical held-out "
+    "graft) lies above 0. Pooling over releases and seeds: per (release, seed) cell, the mean "
+    "over identical held-out "
     "windows of the per-window difference; these are averaged over the seeds both cells have "
     "(a native-policy control does not depend on the seed: its cell is paired with every graft "
     "seed of its release); the interval is the rankings' paired hierarchical bootstrap "

@@ -290,7 +290,8 @@ def cell_arrays(cells: Sequence, item_of, metrics: Sequence[str] = METRICS) -> C
     shape = (len(items), len(releases), len(seeds), len(window_ids))
     values = {m: np.full(shape, np.nan) for m in metrics}
     for cell, order in zip(cells, orders):
-        at = items.index(item_of(cell)), releases.index(int(cell.release)), seeds.index(int(cell.seed))
+        at = (items.index(item_of(cell)), releases.index(int(cell.release)),
+              seeds.index(int(cell.seed)))
         for m in metrics:
             values[m][at] = np.asarray(cell.scores.per_window_in(m), dtype=float)[order]
     units = record_units(cells[0])

@@ -3,9 +3,10 @@
 The items are the encoders that have both a defined score of the cheaper tier (a screen proxy:
 higher is better; a short graft: -its MSE, mean over seeds) and at least one graft record on the
 backbone x suite. The graft's score of an
-encoder is its normalised held-out MSE averaged over its seeds, per window, so the paired window
-bootstrap (bench.analysis.agreement.bootstrap_agreement) draws the same windows for every
-encoder. Fewer than MIN_ENCODERS such encoders: "not measured", with the reason.
+encoder is its normalised held-out MSE averaged over its releases and seeds; the paired bootstrap
+(bench.analysis.agreement.bootstrap_agreement) draws releases, seeds, held-out episodes and
+windows once for every encoder and tier. Fewer than MIN_ENCODERS such encoders: "not
+measured", with the reason.
 
 Two sets of items (`item_set`): ALL of them, and the CANDIDATES a team would choose between
 (bench.analysis.candidates: pretrained encoders; never random twins or known-answer encoders),
@@ -153,7 +154,7 @@ def tier_agreement(scores: Mapping[str, Measure], records: Sequence, backbone: s
                    baselines: Mapping[str, Mapping[str, Measure]] | None = None,
                    items: Collection[str] | None = None, item_set: str = ALL) -> TierAgreement:
     """Agreement of the cheaper tier's `scores` {encoder: score, higher is better} with the
-    graft records of backbone x suite, with paired window bootstrap intervals.
+    graft records of backbone x suite, with paired hierarchical bootstrap intervals.
     `scores_per_window` {encoder: (R, S, W)} (graft_cells' index), higher is better: a tier
     scored per window (a short graft), drawn with the graft's cells and windows, not held fixed.
     `baselines` {naive baseline: {encoder: score}}: the tier's tau-b minus the best of theirs,

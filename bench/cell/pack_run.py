@@ -94,7 +94,8 @@ def _train_and_write(service, plans: list[CellPlan]) -> CellResult:
         if plan.discard:  # a degraded record never outlives its run
             ws.store.forget(plan.cell.id)
     lead = plans[0].cell
-    reset_peak_memory(next(ws.backbone(lead.backbone, lead.suite, lead.release).policy.parameters()).device)
+    policy = ws.backbone(lead.backbone, lead.suite, lead.release).policy
+    reset_peak_memory(next(policy.parameters()).device)
     try:
         items = train_pack([p.cell for p in plans], ws, [p.context for p in plans],
                            label=f"{lead.backbone}-{lead.suite} pack")

@@ -157,8 +157,9 @@ class CellService:
         from bench.results.record import checkpoint_revision
 
         ws = self.workspace()
-        return replace(run, revision=checkpoint_revision(ws.checkpoint(cell.backbone, cell.suite, cell.release)),
-                       normalizer_fingerprint=ws.normalizer(cell.backbone, cell.suite, cell.release).fingerprint)
+        where = (cell.backbone, cell.suite, cell.release)
+        return replace(run, revision=checkpoint_revision(ws.checkpoint(*where)),
+                       normalizer_fingerprint=ws.normalizer(*where).fingerprint)
 
     def _measure(self, cell_plan: CellPlan):
         cell = cell_plan.cell

@@ -49,4 +49,7 @@ class ReportContext:
         wn = self.wrapper.get((backbone, suite))
         if wn is None or not wn.mean:
             return "not measured (no native + native_wrapped pair)"
-        return f"{pct(wn.mean[PRIMARY])} (mean over seeds {sorted(wn.per_seed)})"
+        cells = list(wn.per_seed)
+        if all(isinstance(c, int) for c in cells):
+            return f"{pct(wn.mean[PRIMARY])} (mean over seeds {sorted(cells)})"
+        return f"{pct(wn.mean[PRIMARY])} (mean over {len(cells)} release x seed cells)"

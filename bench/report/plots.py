@@ -53,7 +53,8 @@ def plot_mse_intervals(rankings: Sequence[Ranking], path: Path) -> Path | None:
         ax.set_xticks(x, names, rotation=30, ha="right")
         ax.set_title(f"{r.backbone} x {r.suite} (blue: top tier)", fontsize=9)
         ax.set_ylabel("normalised MSE (own axis)")
-    fig.suptitle("Offline action MSE per encoder, 95% window-bootstrap intervals, dots = seeds\n"
+    fig.suptitle("Offline action MSE per encoder, 95% intervals (releases, seeds, episodes, "
+                 "windows drawn), dots = cells\n"
                  "levels are not comparable across backbones", fontsize=9)
     fig.savefig(path, dpi=110)
     return path

@@ -30,12 +30,14 @@ AGREEMENT_INTRO = (
     "{candidates}): encoders whose registry entry runs trained weights in this world "
     "(bench.analysis.candidates), never random twins, known-answer encoders (pixels, blind, the "
     "ladder) or the tiny world's random-init stand-ins. The graft is the normalised held-out "
-    "MSE, mean over seeds; intervals: paired window bootstrap, {n} resamples. Naive "
+    "MSE, mean over releases and seeds; intervals: the paired hierarchical bootstrap "
+    "(releases, seeds within a release, held-out episodes, windows within an episode; both "
+    "tiers and the graft on one draw, docs/INTERVALS.md), {n} resamples. Naive "
     "baselines, scored exactly as a proxy: parameter count, FLOPs at the input size (torch's "
     "FLOP counter, the encoder as built) and input resolution, bigger ranked better; ImageNet "
     "top-1 is none of them, as no real encoder's own package card states one. Each tier's "
     "tau-b minus the best naive baseline's (the best re-chosen in every replicate) has its "
-    "interval on the same window draws as the tier's own statistics.")  # a report has it when its store holds screens
+    "interval on the same draws as the tier's own statistics.")  # a report has it when its store holds screens
 SCATTER_TITLE = "Screen proxies against the graft's MSE"
 
 
@@ -83,7 +85,7 @@ def naive_text(a) -> str:
 
 def agreement_table(agreements: Sequence) -> str:
     """One row per (backbone, suite, item set, cheaper tier) with the point statistic and its
-    paired window bootstrap interval, or why it was not measured; the tier's tau-b minus the
+    paired hierarchical bootstrap interval, or why it was not measured; the tier's tau-b minus the
     best naive baseline's (paired) and whether the screen recommends it; then the tie rule."""
     rows = []
     for a in agreements:

@@ -305,7 +305,7 @@ def wrapper_section(ctx: ReportContext) -> str:
     for cd in ctx.controls:
         if not get_kind(cd.kind).tower:
             continue
-        rows.append([cd.backbone, cd.suite, cd.seed, num(cd.reference_mse.get(PRIMARY)),
+        rows.append([cd.backbone, cd.suite, cell_label(cd.cell), num(cd.reference_mse.get(PRIMARY)),
                      num(cd.mse[PRIMARY]), pct(cd.delta.get(PRIMARY)), pct(cd.delta.get(RAW)),
                      "" if cd.reference_found else f"reference {cd.reference_id} missing"])
     for (b, s), wn in sorted(ctx.wrapper.items()):
