@@ -139,3 +139,29 @@ def test_a_study_resumes_from_its_stored_rows_and_records_its_rule():
     stray = {"item": "lite0", "round": plan["round"], "unit": 0, "success": 0}
     with pytest.raises(ValueError, match="did not run"):
         study_state(design, items, rows + [stray])
+
+
+def test_the_records_cli_orders_cells_by_their_stored_episodes(tmp_path, capsys):
+    import json
+
+    from bench.analysis.sequential_records import main
+    from bench.results.store import ResultStore
+    from tests.factories import make_record
+
+    def rollouts(wins_per_task: int) -> dict:  # 2 tasks x 12 episodes; the first ones succeed
+        return {"spec": {"tasks": [0, 1]}, "episodes": [
+            {"task": t, "episode": e, "init_state": 49 - e, "success": e < wins_per_task,
+             "steps": 50} for t in (0, 1) for e in range(12)]}
+
+    store = ResultStore(tmp_path)
+    for encoder, wins in (("pixels", 12), ("blind", 0)):
+        store.write(make_record(encoder=encoder, rollouts=rollouts(wins)))
+    with pytest.raises(ValueError, match="round 4 holds episodes"):  # rolled out uniformly
+        main([str(tmp_path), "--budget", "1000", "--alpha", "0.1"])
+    assert main([str(tmp_path), "--budget", "1000", "--alpha", "0.1", "--unplanned",
+                 "ignore"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    # Both units of a round are discordant: 2**n / (n + 1) first reaches 10 at n = 8.
+    assert out["order"][0].endswith("pixels-seed0") and out["rounds"] == 4
+    assert out["pairs"][0]["declared"] == 1 and out["next"]["stop"] == "resolved"
+    assert out["spent"] == 16 and out["design"]["units_per_round"] == 2

@@ -152,10 +152,12 @@ def advance(state: RaceState, success: np.ndarray, ran: np.ndarray,
                      state.rounds + 1)
 
 
-def study_state(design: SequentialDesign, items: list[str], rows: list[dict]):
+def study_state(design: SequentialDesign, items: list[str], rows: list[dict],
+                unplanned: str = "refuse"):
     """Replay a study's stored per-episode rows ({"item", "round", "unit", "success"}) round by
     round: (RaceState after its complete rounds, {item: units stored} of a round in flight).
-    Refuses rows the design would not have run (another design's, or another order's)."""
+    Rows the design would not have run (another design's, or another order's) are refused, or
+    left out with unplanned="ignore" (what the design would have spent on rows run uniformly)."""
     index, units = {name: k for k, name in enumerate(items)}, design.units_per_round
     rounds = 1 + max((int(r["round"]) for r in rows), default=-1)
     success = np.zeros((rounds, len(items), units), bool)
@@ -171,11 +173,15 @@ def study_state(design: SequentialDesign, items: list[str], rows: list[dict]):
     for r in range(rounds):
         chosen = items_to_run(state, design)
         extra = ran[r].any(-1) & ~chosen
-        if extra.any():
+        if unplanned == "ignore":
+            ran[r][extra] = False
+        elif extra.any():
             raise ValueError(f"round {r} holds episodes of {np.asarray(items)[extra].tolist()}, "
                              "which this design did not run: rows of another study or design")
+        if not chosen.any():  # the study had stopped here
+            break
         if not ran[r][chosen].all():  # the last round, interrupted: resume it
-            if r != rounds - 1:
+            if r != rounds - 1 and unplanned != "ignore":
                 raise ValueError(f"round {r} is incomplete but round {rounds - 1} exists")
             return state, {items[k]: np.flatnonzero(ran[r, k]).tolist()
                            for k in np.flatnonzero(chosen)}
@@ -183,10 +189,11 @@ def study_state(design: SequentialDesign, items: list[str], rows: list[dict]):
     return state, {}
 
 
-def next_round(design: SequentialDesign, items: list[str], rows: list[dict]) -> dict:
+def next_round(design: SequentialDesign, items: list[str], rows: list[dict],
+               unplanned: str = "refuse") -> dict:
     """What the study runs next, from its stored rows: {"round", "run": {item: [units still
-    to run]}, "stop": None, "resolved" or "budget"}."""
-    state, in_flight = study_state(design, items, rows)
+    to run]}, "stop": None, "resolved" or "budget"} (`unplanned`: study_state's)."""
+    state, in_flight = study_state(design, items, rows, unplanned)
     if in_flight:
         units = range(design.units_per_round)
         return {"round": state.rounds, "stop": None,
