@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 from typing import Callable
 
-import numpy as np
 import torch
 
 
@@ -33,7 +32,7 @@ class _Slot:
     init_state: int | None = None  # the worker's answer to the reset
     steps: int = 0
     start: float = 0.0
-    sent: np.ndarray | None = field(default=None, repr=False)  # the chunk in flight
+    tasks: set = field(default_factory=set)  # tasks whose env the worker has built
 
 
 def _to_numpy(raw: dict) -> dict:
@@ -117,8 +116,10 @@ def run_workers(act, planned: list[tuple], slots: list[_Slot], spec,
     queue = list(planned)
 
     def assign(slot: _Slot) -> None:
-        slot.episode, slot.steps, slot.init_state = (queue.pop(0) if queue else None), 0, None
+        nxt = next_episode(queue, slot.tasks)
+        slot.episode, slot.steps, slot.init_state = nxt, 0, None
         if slot.episode is not None:
+            slot.tasks.add(slot.episode[0])
             slot.start = time.perf_counter()
             slot.conn.send(("reset", *slot.episode))
 
@@ -143,6 +144,22 @@ def run_workers(act, planned: list[tuple], slots: list[_Slot], spec,
             actions = crash(lambda: next_actions(act, _to_torch(raw), spec.n_action_steps),
                             where)
             slot.conn.send(("chunk", actions, spec.max_steps - slot.steps))
+
+
+def next_episode(queue: list[tuple], tasks: set) -> tuple | None:
+    """Pop the next episode for a worker holding envs of `tasks`: the first of a task it has
+    (an env build is seconds), else the first of the task with the most episodes left (so
+    that W workers start on W different tasks when there are as many)."""
+    if not queue:
+        return None
+    mine = [i for i, planned in enumerate(queue) if planned[0] in tasks]
+    if not mine:
+        left = {}
+        for planned in queue:
+            left[planned[0]] = left.get(planned[0], 0) + 1
+        busiest = max(left, key=lambda t: (left[t], -list(left).index(t)))
+        mine = [i for i, planned in enumerate(queue) if planned[0] == busiest]
+    return queue.pop(mine[0])
 
 
 def _reply(slot: _Slot) -> tuple:
