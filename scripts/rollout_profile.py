@@ -21,7 +21,8 @@ from collections import defaultdict
 import torch
 
 from bench.sim import env as sim_env
-from bench.sim.rollout import next_actions, rollout_env_seed, rollout_init_state
+from bench.sim.episode import next_actions, rollout_init_state
+from bench.sim.rollout import rollout_env_seed
 
 
 def tick() -> tuple[float, float]:

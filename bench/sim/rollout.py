@@ -30,17 +30,13 @@ import torch
 from bench.progress import ProgressSink, as_sink, countdown
 from bench.sim import env as sim_env
 from bench.sim.batching import IN_PROCESS, Batching
+from bench.sim.episode import (ActFn, episode_row, execute_chunk, next_actions,
+                               reads_nothing, rollout_init_state)
 from bench.stats import wilson_interval
-
-ActFn = Callable[[dict], torch.Tensor]  # raw obs (batch of B) -> (B, T, 7) raw actions
 
 
 class RolloutCrashed(RuntimeError):
     """An episode raised (env or policy): the cell fails with this one line."""
-
-
-def reads_nothing(env, steps) -> None:
-    """A test's scenes render what they like: nothing to gate."""
 
 
 @dataclass(frozen=True)
@@ -79,13 +75,6 @@ class RolloutSpec:
             raise ValueError(f"RolloutSpec needs episodes_per_task, max_steps, n_action_steps >= 1;"
                              f" got {self.episodes_per_task}, {self.max_steps}, "
                              f"{self.n_action_steps}")
-
-
-def rollout_init_state(episode: int, num_init_states: int) -> int:
-    """Official init state of rollout episode `episode` (from the end of the list)."""
-    if episode >= num_init_states:
-        raise ValueError(f"rollout episode {episode}: only {num_init_states} init states")
-    return num_init_states - 1 - episode
 
 
 def rollout_env_seed(seed: int, task: int, episode: int) -> int:
@@ -128,40 +117,9 @@ def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
     success, steps = False, 0
     while steps < max_steps and not success:
         actions = next_actions(act, scenes.observe([obs], [description]), n_action_steps)
-        obs, done, success = execute_chunk(env, actions, max_steps - steps, scenes)
+        obs, done, success = execute_chunk(env, actions, max_steps - steps, scenes.read_after)
         steps += done
     return episode_row(init_state, success, steps, start)
-
-
-def next_actions(act: ActFn, raw: dict, n_action_steps: int) -> np.ndarray:
-    """The policy's chunk for one observation: its first `n_action_steps` actions, (T, 7)
-    float64 (what env.step receives)."""
-    with torch.inference_mode():
-        chunk = act(raw)
-    chunk = torch.as_tensor(chunk).detach().float().cpu()
-    if chunk.ndim != 3 or chunk.shape[0] != 1 or chunk.shape[2] != 7:
-        raise ValueError(f"act returned shape {tuple(chunk.shape)}; expected (B=1, T, 7) raw "
-                         "actions")
-    return chunk[0, :n_action_steps].numpy().astype(np.float64)
-
-
-def execute_chunk(env, actions: np.ndarray, steps_left: int, scenes: Scenes = LIBERO):
-    """Step `actions` (T, 7) until they run out, the goal holds or `steps_left` is spent;
-    (last observation, steps taken, success). Frames are rendered only where the loop will
-    read them: after the chunk's last action, unless the episode ends on it."""
-    scenes.read_after(env, len(actions) if len(actions) < steps_left else None)
-    obs, steps = None, 0
-    for action in actions[:steps_left]:
-        obs, _, _, _, info = env.step(action)
-        steps += 1
-        if info.get("is_success", False):
-            return obs, steps, True
-    return obs, steps, False
-
-
-def episode_row(init_state: int, success: bool, steps: int, start: float) -> dict:
-    return {"init_state": int(init_state), "success": bool(success), "steps": steps,
-            "seconds": round(time.perf_counter() - start, 2)}
 
 
 def run_rollouts(act: ActFn, spec: RolloutSpec, progress: ProgressSink,

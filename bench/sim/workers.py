@@ -2,7 +2,7 @@
 
 `run_task_workers` hands the planned episodes to W spawned worker processes, each holding its
 own LIBERO env per task (and its own EGL context). A worker resets its env, executes the action
-chunks it is sent (bench.sim.rollout.execute_chunk, frames rendered only where read) and sends
+chunks it is sent (bench.sim.episode.execute_chunk, frames rendered only where read) and sends
 back the observation the policy reads; this process calls the policy, one observation at a
 time, exactly as the in-process loop does (bench.sim.rollout.run_episode), so the actions, the
 init states, env seeds and rows are the in-process ones (tests/test_sim_frames.py). The policy
@@ -45,7 +45,7 @@ def _to_torch(raw: dict) -> dict:
 
 def _serve(conn, scenes, suite: str, render, max_steps: int, descriptions: list[str]) -> None:
     """A worker: one env per task, built on first use; answers reset and chunk messages."""
-    from bench.sim.rollout import execute_chunk, rollout_init_state
+    from bench.sim.episode import execute_chunk, rollout_init_state
 
     torch.set_num_threads(1)  # one core a worker; the parent's policy has one thread too
     envs = {}
@@ -66,7 +66,8 @@ def _serve(conn, scenes, suite: str, render, max_steps: int, descriptions: list[
                     conn.send(("obs", 0, False, raw, init_state))
                 else:  # ("chunk", actions, steps_left)
                     _, actions, steps_left = message
-                    obs, done, success = execute_chunk(current[0], actions, steps_left, scenes)
+                    obs, done, success = execute_chunk(current[0], actions, steps_left,
+                                                    scenes.read_after)
                     read = not success and done == len(actions) and done < steps_left
                     raw = _to_numpy(scenes.observe([obs], [current[1]])) if read else None
                     conn.send(("obs", done, success, raw, None))
@@ -111,7 +112,7 @@ def run_workers(act, planned: list[tuple], slots: list[_Slot], spec,
     """Run every planned (task, episode, env_seed) on the workers; `ended(row)` as
     each finishes (rows as bench.sim.rollout.run_episode's, plus task and episode). `crash(step,
     where)` runs `step` and names the episode if it raises."""
-    from bench.sim.rollout import episode_row, next_actions
+    from bench.sim.episode import episode_row, next_actions
 
     queue = list(planned)
 
