@@ -1,6 +1,7 @@
 """The sequential closed-loop design (bench.analysis.sequential): known answers by hand, then
 simulated Bernoulli studies (no simulator): its error rate stays under its nominal level and it
-reaches the uniform allocation's resolution with fewer episodes; resumable from stored rows."""
+reaches the uniform allocation's resolution with fewer episodes; resumable from stored rows.
+~5 s in all on 2 shared cores (numpy: the replicate studies advance together)."""
 
 from __future__ import annotations
 

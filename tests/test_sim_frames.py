@@ -4,7 +4,8 @@ bench.sim.workers): same init states, env seeds, frames, actions and per-episode
 
 The policy pushes the arm by what it sees (state and pixels), so a frame rendered at the wrong
 step, a placeholder read, or an episode run on another init state or seed changes what the
-policy is handed and, through its actions, the rows.
+policy is handed and, through its actions, the rows. `slow`: ~2.5 min on 2 shared cores (six
+LIBERO env builds, two spawned workers).
 """
 
 from __future__ import annotations

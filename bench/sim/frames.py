@@ -31,20 +31,20 @@ class FrameGate:
     def _wrap(self, observable) -> None:
         render = observable._sensor
         blank: list[np.ndarray] = []
+        probing = [True]  # set_sensor probes the sensor once for its shape: a real frame
 
         def gated(obs_cache):
-            # {} is robosuite's validity probe (set_sensor): it needs the true shape once.
-            if obs_cache and self._inner.timestep != self.read_at:
+            if probing[0]:
+                blank.append(np.zeros_like(render(obs_cache)))
                 return blank[0]
-            frame = render(obs_cache)
-            if obs_cache:
-                self.rendered_at = self._inner.timestep
-            if not blank:
-                blank.append(np.zeros_like(frame))
-            return frame
+            if self._inner.timestep != self.read_at:
+                return blank[0]
+            self.rendered_at = self._inner.timestep
+            return render(obs_cache)
 
         gated.__modality__ = render.__modality__
         observable.set_sensor(gated)
+        probing[0] = False
 
     def read_after(self, steps: int | None) -> None:
         """The observation after `steps` more control steps is read (None: none is): render
