@@ -166,6 +166,7 @@ def number(option: str, value, kind: type = int, example: str = "10"):
 # Number options, declared without argparse's `type=` (a typo there is argparse's usage block):
 # (kind, an example for the fix). `typed_options` converts them once, at start-up.
 NUMBERS = {"--steps": (int, "1000"), "--rollouts": (int, "10"), "--rollout-batch": (int, "5"),
+           "--rollout-workers": (int, "2"),
            "--sim-demos": (int, "3"), "--sim-demo-noise": (float, "0.1"),
            "--sim-demo-speed": (float, "0.5"), "--slurm-time": (int, "240"),
            "--slurm-gpus-per-task": (int, "1"), "--slurm-array-parallelism": (int, "64"),

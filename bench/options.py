@@ -22,8 +22,8 @@ from bench.screen.selection import (DEFAULT_SCREEN_BY, REFERENCES, SHORT, Screen
 from bench.option_values import (control_list, listed, pack_grafts, positive, protocol_value,
                                  refuse_empty, report_file, seeds, typed_options)
 from bench.sim.batching import IN_PROCESS, Batching
-from bench.startup import (check_environment, check_rollout_batch, check_rollouts_possible,
-                           check_sim_suites_possible)
+from bench.startup import (check_environment, check_rollout_batch, check_rollout_workers,
+                           check_rollouts_possible, check_sim_suites_possible)
 
 DEFAULT_PROFILE = "tiny"
 
@@ -86,6 +86,8 @@ def _add_sim_options(g) -> None:
                 help="envs of a task rolled out at once, one batched policy call per step "
                      "(LeRobot's gym vector env; default 1: one env in-process, the faster on "
                      "2 CPU cores, docs/PERFORMANCE.md)")
+    g.addoption("--rollout-workers", default=1, metavar="W", help="processes stepping the "
+                "simulator, same rows (default 1; 2 on 2 cores: docs/PERFORMANCE.md)")
     g.addoption("--rollout-envs", default="sync", metavar="sync|async",
                 help="with --rollout-batch > 1: the B envs in this process (sync) or one worker "
                      "process and render context each (async, as lerobot-eval)")
@@ -343,7 +345,7 @@ class RunOptions:
     features_mode: str = "cache"
     feature_dtype: str = "fp16"
     rollouts: int = 0
-    # --rollout-batch (envs per task at once), --rollout-envs (gym sync or async vector env)
+    # --rollout-batch (envs per task at once), --rollout-envs (sync or async), --rollout-workers
     rollout_batching: Batching = IN_PROCESS
     executor: str = "local"
     slurm: object = None  # bench.cell.executors.SlurmOptions
@@ -388,7 +390,8 @@ def parse_options(config: pytest.Config) -> RunOptions:
         report_path(opt("--report"), results, profile.name, results_dir),
         rerun=bool(opt("--rerun")), features_mode=opt("--features"),
         feature_dtype=opt("--feature-dtype"), rollouts=rollouts,
-        rollout_batching=Batching(rollout_batch, opt("--rollout-envs")), executor=opt("--executor"),
+        rollout_batching=Batching(rollout_batch, opt("--rollout-envs"), check_rollout_workers(
+            opt("--rollout-workers"), rollouts, rollout_batch)), executor=opt("--executor"),
         slurm=slurm, baseline=BaselineOptions.parse(config, opt("--executor")), screen=screen,
         pack_grafts=pack_grafts(opt("--pack-grafts"), profile.grid_file, opt("--executor")),
         # The default report (no --report) is the run's own output, not a file the user named:

@@ -207,6 +207,23 @@ def check_rollout_batch(batch, rollouts: int) -> int:
     return int(batch)
 
 
+def check_rollout_workers(workers, rollouts: int, batch: int) -> int:
+    """--rollout-workers: worker processes >= 1, only beside --rollouts and not beside a
+    --rollout-batch (a worker steps one env; a batch steps B in one vector env)."""
+    if workers is None or workers == 1:
+        return 1
+    if workers < 1:
+        raise pytest.UsageError(f"--rollout-workers {workers}: give worker processes >= 1 "
+                                "(1: the simulator in this process)")
+    if not rollouts:
+        raise pytest.UsageError(f"--rollout-workers {workers}: it runs the episodes of "
+                                "--rollouts, which is not given; fix: add --rollouts N")
+    if batch > 1:
+        raise pytest.UsageError(f"--rollout-workers {workers} with --rollout-batch {batch}: "
+                                "choose one (workers are the faster on a few CPU cores)")
+    return int(workers)
+
+
 def check_writable(option: str, folder: Path) -> None:
     """A UsageError naming the option when `folder` cannot be created or written."""
     import tempfile

@@ -1,10 +1,12 @@
-"""Episodes per minute of closed-loop rollouts at a given batch (docs/PERFORMANCE.md, issue 27).
+"""Episodes per minute of closed-loop rollouts at a given batch or worker count (docs/PERFORMANCE.md).
 
 Rolls a tiny release (or a zero-action policy: --release zero) out on the sim suite's tasks and
 prints one JSON line: batch, env mode, episodes, wall seconds, episodes per minute, load.
 
     python scripts/rollout_throughput.py RELEASE_DIR --tasks 0,1 --episodes 3 --max-steps 100 \
         --batch 3 --envs async
+    python scripts/rollout_throughput.py RELEASE_DIR --tasks 0,1 --episodes 2 --max-steps 280 \
+        --workers 2
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=1)
     p.add_argument("--envs", default="sync")
     p.add_argument("--n-action-steps", type=int, default=10)
+    p.add_argument("--workers", type=int, default=1)
     a = p.parse_args()
     from bench.sim.env import RenderSettings
     from bench.sim.batching import Batching
@@ -46,7 +49,7 @@ def main() -> None:
     load_before = os.getloadavg()
     start = time.perf_counter()
     out = run_rollouts(act, spec, progress=QUIET, render=RenderSettings(),
-                       batching=Batching(a.batch, a.envs))
+                       batching=Batching(a.batch, a.envs, workers=a.workers))
     wall = time.perf_counter() - start
     n = len(out["episodes"])
     print(json.dumps({"batch": a.batch, "envs": out["settings"]["env_mode"], "episodes": n,

@@ -84,6 +84,8 @@ BAD_INPUTS = [
     (["--rollouts", "-1"], "--rollouts -1", ">= 0"),
     (["--rollout-batch", "0"], "--rollout-batch 0", "rolled out at once >= 1"),
     (["--rollout-batch", "4"], "--rollout-batch 4", "fix: add --rollouts N"),
+    (["--rollout-workers", "0"], "--rollout-workers 0", "worker processes >= 1"),
+    (["--rollout-workers", "2"], "--rollout-workers 2", "fix: add --rollouts N"),
     (["--profile", "sim", "--sim-tasks", "0,4"], "--sim-tasks 0,4",
      "the scripted expert cannot solve LIBERO-spatial task 4 (measured 0/5"),
     (["--profile", "sim", "--sim-tasks", "0,x"], "--sim-tasks 0,x", "give e.g. --sim-tasks 0,1,2"),

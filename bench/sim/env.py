@@ -161,6 +161,24 @@ def make_env(suite: str, task_id: int, render: RenderSettings = RenderSettings()
     return env
 
 
+def make_rollout_env(suite: str, task_id: int, render: RenderSettings = RenderSettings(),
+                     max_steps: int | None = None):
+    """`make_env` whose cameras render only the frames the rollout loop reads (`read_after`):
+    the same frames, physics and states as an env rendering every step (bench.sim.frames)."""
+    from bench.sim.frames import FrameGate
+
+    env = make_env(suite, task_id, render, max_steps=max_steps)
+    env.frame_gate = FrameGate(env, CAMERA_MAPPING)
+    return env
+
+
+def read_after(env, steps: int | None) -> None:
+    """The observation `steps` control steps from now is the next one read (None: none is)."""
+    gate = getattr(env, "frame_gate", None)
+    if gate is not None:
+        gate.read_after(steps)
+
+
 def apply_render_settings(env, render: RenderSettings) -> None:
     """Set shadow map, multisampling and reflections, then rebuild the MuJoCo render context."""
     import mujoco
@@ -192,6 +210,9 @@ def reset_to(env, init_state: int, seed: int) -> dict:
     for robot in env._env.robots:
         robot.gripper.current_action = np.zeros(robot.gripper.dof)
     env.init_state_id = int(init_state)
+    gate = getattr(env, "frame_gate", None)
+    if gate is not None:  # only the last settle step's frames are read
+        gate.read_after_reset(env.num_steps_wait)
     obs, _ = env.reset(seed=int(seed))
     return obs
 

@@ -30,9 +30,9 @@ import torch
 from bench.progress import ProgressSink, as_sink, countdown
 from bench.sim import env as sim_env
 from bench.sim.batching import IN_PROCESS, Batching
+from bench.sim.episode import (ActFn, episode_row, execute_chunk, next_actions,
+                               reads_nothing, rollout_init_state)
 from bench.stats import wilson_interval
-
-ActFn = Callable[[dict], torch.Tensor]  # raw obs (batch of B) -> (B, T, 7) raw actions
 
 
 class RolloutCrashed(RuntimeError):
@@ -49,10 +49,13 @@ class Scenes:
     num_init_states: Callable  # env -> int
     reset_to: Callable  # (env, init_state, env_seed) -> raw observation
     observe: Callable  # ([raw observation], [instruction]) -> what `act` receives
+    # (env, steps or None): the observation `steps` steps from now is the next one read, so
+    # only its frames need rendering (bench.sim.frames); a test's scenes may ignore it.
+    read_after: Callable = reads_nothing
 
 
-LIBERO = Scenes(sim_env.make_env, sim_env.task_descriptions, sim_env.num_init_states,
-                sim_env.reset_to, sim_env.observe)
+LIBERO = Scenes(sim_env.make_rollout_env, sim_env.task_descriptions, sim_env.num_init_states,
+                sim_env.reset_to, sim_env.observe, sim_env.read_after)
 
 
 @dataclass(frozen=True)
@@ -72,13 +75,6 @@ class RolloutSpec:
             raise ValueError(f"RolloutSpec needs episodes_per_task, max_steps, n_action_steps >= 1;"
                              f" got {self.episodes_per_task}, {self.max_steps}, "
                              f"{self.n_action_steps}")
-
-
-def rollout_init_state(episode: int, num_init_states: int) -> int:
-    """Official init state of rollout episode `episode` (from the end of the list)."""
-    if episode >= num_init_states:
-        raise ValueError(f"rollout episode {episode}: only {num_init_states} init states")
-    return num_init_states - 1 - episode
 
 
 def rollout_env_seed(seed: int, task: int, episode: int) -> int:
@@ -120,24 +116,10 @@ def run_episode(act: ActFn, env, init_state: int, env_seed: int, max_steps: int,
         on_reset([env])
     success, steps = False, 0
     while steps < max_steps and not success:
-        raw = scenes.observe([obs], [description])
-        with torch.inference_mode():
-            chunk = act(raw)
-        chunk = torch.as_tensor(chunk).detach().float().cpu()
-        if chunk.ndim != 3 or chunk.shape[0] != 1 or chunk.shape[2] != 7:
-            raise ValueError(f"act returned shape {tuple(chunk.shape)}; expected (B=1, T, 7) raw "
-                             "actions")
-        for action in chunk[0, :n_action_steps].numpy().astype(np.float64):
-            obs, _, _, _, info = env.step(action)
-            steps += 1
-            if info.get("is_success", False):
-                success = True
-            if success or steps >= max_steps:
-                break
-    return {"init_state": int(init_state), "success": bool(success), "steps": steps,
-            "seconds": round(time.perf_counter() - start, 2)}
-
-
+        actions = next_actions(act, scenes.observe([obs], [description]), n_action_steps)
+        obs, done, success = execute_chunk(env, actions, max_steps - steps, scenes.read_after)
+        steps += done
+    return episode_row(init_state, success, steps, start)
 
 
 def run_rollouts(act: ActFn, spec: RolloutSpec, progress: ProgressSink,
@@ -182,6 +164,9 @@ def _run_all(act: ActFn, spec: RolloutSpec, report: Callable[[dict], None],
         return (f"{len(episodes)} episode(s) finished before it are kept; rerun to resume"
                 if on_episode is not None else "no episode log: a rerun starts over")
 
+    if batching.workers > 1:
+        return _run_on_workers(act, spec, report, render, done, on_episode, batching.workers,
+                               scenes, descriptions, episodes, kept)
     if batching.size > 1:
         return _run_batched(act, spec, report, render, done, on_episode, batching,
                             vector_scenes, descriptions, episodes, kept)
@@ -239,6 +224,37 @@ def _run_batched(act: ActFn, spec: RolloutSpec, report: Callable[[dict], None], 
                                      batching, vector_scenes, ended,
                                      lambda step, where: _crash_named(step, where, kept()))
     # Rows in the B = 1 order (task, episode), whatever order the slots finished in.
+    order = {t: i for i, t in enumerate(spec.tasks)}
+    return sorted(episodes, key=lambda e: (order[e["task"]], e["episode"]))
+
+
+def _run_on_workers(act: ActFn, spec: RolloutSpec, report: Callable[[dict], None], render,
+                    done: dict, on_episode, workers: int, scenes: Scenes, descriptions,
+                    episodes: list, kept: Callable[[], str]) -> list[dict]:
+    """_run_all's way over worker processes (bench.sim.workers): the same planned episodes."""
+    from bench.sim import workers as pool
+
+    if getattr(act, "on_reset", None) is not None:
+        raise ValueError("a privileged policy (on_reset) reads its env, which lives in a worker "
+                         "process: run it with one worker")
+
+    def ended(row: dict) -> None:
+        if on_episode is not None:
+            on_episode(row)
+        episodes.append(row)
+        report(row)
+
+    planned = [(t, e, rollout_env_seed(spec.seed, t, e)) for t in spec.tasks
+               for e in range(spec.episodes_per_task) if (t, e) not in done]
+    episodes += list(done.values())
+    if planned:
+        slots = pool.start_workers(min(workers, len(planned)), scenes, spec.suite, render,
+                                   spec.max_steps, descriptions)
+        try:
+            pool.run_workers(act, planned, slots, spec, ended,
+                             lambda step, where: _crash_named(step, where, kept()))
+        finally:
+            pool.stop_workers(slots)
     order = {t: i for i, t in enumerate(spec.tasks)}
     return sorted(episodes, key=lambda e: (order[e["task"]], e["episode"]))
 
