@@ -33,6 +33,7 @@ NOT_RECORDS = {
     "bench/resources/features.py": {"encoder", "grid", "suite"},  # the feature store's manifest
     "bench/resources/feature_file.py": {"grid"},  # the feature file's manifest
     "bench/sim/rollout.py": {"per_task"},  # the rollouts' own summary
+    "bench/analysis/sequential_records.py": {"rollouts", "tasks"},  # the rollouts' spec, the plan's keys
     "bench/suites/synthetic.py": {"seed"},  # a suite's generation parameters
     "bench/analysis/transfer.py": {"suite"},  # a rank-transfer comparison row
     "bench/report/sections.py": {"suite"},  # the same row, rendered
