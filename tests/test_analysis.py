@@ -302,6 +302,15 @@ def test_pooled_over_seeds_is_the_mean_of_per_seed_paired_differences():
     assert check(records).comparisons[0].seeds == [0, 1]
 
 
+def test_a_control_without_the_grafts_cells_is_named_not_compared():
+    """A blind graft only on a seed the best graft lacks: a note naming its cells, no comparison."""
+    records = cells("siglip", [RAMP]) + [make_record(encoder="blind", seed=3, per_window=RAMP)]
+    c = check(records)
+    assert not c.comparisons and c.status == "unchecked"
+    assert c.notes == ["blind graft: no seed in common with the siglip graft (control (release, "
+                       "seed) cells [(0, 3)])"]
+
+
 def test_zero_image_controls_of_the_best_encoder_and_of_native():
     records = cells("siglip", [RAMP, RAMP, RAMP]) + [
         make_record(kind="zero_image", encoder="siglip", variant=variant, seed=seed,

@@ -13,8 +13,8 @@ from typing import Sequence
 import numpy as np
 
 from bench.analysis.rankings import (
-    DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, graft_records,
-    paired_bootstrap, record_units,
+    DEFAULT_RESAMPLES, WindowMismatchError, backbone_order, graft_records,
+    paired_records_bootstrap,
 )
 from bench.grid.kinds import CELL_KINDS, GRAFT, NATIVE, NATIVE_SLOT, ZERO, get_kind, is_native_like, kind_of
 from bench.results.record import NORMALIZED, RAW
@@ -253,25 +253,14 @@ def vision_check(records: Sequence[dict], backbone: str, suite: str, *,
         pairs = [(g, c) for g, c in pairs if c is not None]
         if not pairs:
             check.notes.append(f"{label}: no seed in common with the {check.best_encoder} graft "
-                               f"(control seeds {sorted(by_seed)})")
+                               f"(control (release, seed) cells {sorted(by_cell)})")
             continue
-        cells = [g for g, _ in pairs] + [c for _, c in pairs]
-        try:
-            _, orders = align_windows(cells)
+        try:  # row 0 the best graft, row 1 the control
+            boot = paired_records_bootstrap(pairs, n_resamples=n_resamples,
+                                            random_seed=random_seed)
         except WindowMismatchError as err:
             check.notes.append(f"{label}: not compared: {err}")
             continue
-        values = [np.asarray(c.scores.per_window_in(NORMALIZED), dtype=float)[o]
-                  for c, o in zip(cells, orders)]
-        # (2, R, S, W): row 0 the best graft, row 1 the control, each (release, seed) paired
-        releases = sorted({int(g.release) for g, _ in pairs})
-        seeds = sorted({int(g.seed) for g, _ in pairs})
-        per_window = np.full((2, len(releases), len(seeds), len(values[0])), np.nan)
-        for i, (g, _) in enumerate(pairs):
-            at = releases.index(int(g.release)), seeds.index(int(g.seed))
-            per_window[(0, *at)], per_window[(1, *at)] = values[i], values[len(pairs) + i]
-        boot = paired_bootstrap(per_window, record_units(best_cells[0]), leader=0,
-                                n_resamples=n_resamples, random_seed=random_seed)
         check.comparisons.append(VisionComparison(
             control=label, cell_ids=sorted({c.cell_id for _, c in pairs}),
             seeds=sorted({int(g.seed) for g, _ in pairs}), control_mse=float(boot.mean[1]),

@@ -19,11 +19,10 @@ from typing import Sequence
 import numpy as np
 
 from bench.analysis.rankings import (
-    DEFAULT_RESAMPLES, WindowMismatchError, align_windows, backbone_order, paired_bootstrap,
-    record_units,
+    DEFAULT_RESAMPLES, WindowMismatchError, backbone_order, paired_records_bootstrap,
 )
 from bench.grid.kinds import GRAFT, SHORT_GRAFT, kind_of
-from bench.results.record import NORMALIZED
+
 
 HELPS, HURTS, UNCLEAR = "tuning helps", "tuning hurts", "no clear difference"
 ONE_SEED = "no verdict: one seed (an interval must draw seeds)"
@@ -117,21 +116,11 @@ def compare_tuned(records: Sequence, backbone: str, suite: str, encoder: str, st
         at = f" at {steps} steps" if steps else ""
         return (f"{encoder}{at}: no seed with both a tuned cell and a frozen graft of as many "
                 f"steps (tuned {_cells(tuned)}, frozen {_cells(frozen)})")
-    cells = [frozen[k] for k in keys] + [tuned[k] for k in keys]
-    try:
-        _, orders = align_windows(cells)
+    try:  # row 0 frozen, row 1 tuned
+        boot = paired_records_bootstrap([(frozen[k], tuned[k]) for k in keys],
+                                        n_resamples=n_resamples, random_seed=random_seed)
     except WindowMismatchError as err:
         return f"{encoder}: not compared: {err}"
-    values = [np.asarray(c.scores.per_window_in(NORMALIZED), dtype=float)[o]
-              for c, o in zip(cells, orders)]
-    # (2, R, S, W): row 0 frozen, row 1 tuned, each (release, seed) cell paired
-    releases = sorted({r for r, _ in keys})
-    per_window = np.full((2, len(releases), len(seeds), len(values[0])), np.nan)
-    for i, (r, s) in enumerate(keys):
-        at = releases.index(r), seeds.index(s)
-        per_window[(0, *at)], per_window[(1, *at)] = values[i], values[len(keys) + i]
-    boot = paired_bootstrap(per_window, record_units(cells[0]), leader=0,
-                            n_resamples=n_resamples, random_seed=random_seed)
     return TunedComparison(
         backbone, suite, encoder, steps, seeds, frozen_mse=float(boot.mean[0]),
         tuned_mse=float(boot.mean[1]), diff=float(boot.diff[1]),
