@@ -73,13 +73,13 @@ def check_tuned_encoders(profile, labels: dict[str, str] | None = None) -> None:
     from bench.grid.cells import tunable_encoders
     from bench.grid.kinds import CELL_KINDS
 
-    tuned = [k.name for k in CELL_KINDS.values() if k.tune_encoder and k.name in profile.controls]
+    tuned = [k.name for k in CELL_KINDS.values() if k.encoder_in_loop and k.name in profile.controls]
     if tuned and not tunable_encoders(profile.encoders, profile.source):
         labels = labels or {}
         raise pytest.UsageError(
-            f"{labels.get('controls', '--controls')}: {', '.join(tuned)} tunes an encoder's "
-            f"weights, and no encoder of {labels.get('encoders', '--encoders')} "
-            f"({', '.join(profile.encoders)}) has any to tune; fix: add a timm-built encoder "
+            f"{labels.get('controls', '--controls')}: {', '.join(tuned)} needs an encoder's "
+            f"weights in the loop, and no encoder of {labels.get('encoders', '--encoders')} "
+            f"({', '.join(profile.encoders)}) has any; fix: add a timm-built encoder "
             "(e.g. dinov2_s) or drop the control")
 
 

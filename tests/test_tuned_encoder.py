@@ -6,12 +6,16 @@ analysis gives known answers."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
 import torch
 
-from bench.analysis.tuning import HELPS, HURTS, ONE_SEED, UNCLEAR, tuned_vs_frozen
+from bench.analysis.tuning import (
+    HELPS, HURTS, LIVE_HURTS, MOVED_HELPS, NOT_FLAT, ONE_SEED, UNCLEAR, last_quarter_change,
+    tuned_vs_frozen,
+)
 from bench.grid.cells import CellSpec, control_cells, tunable_encoders
 from bench.grid.kinds import CELL_KINDS, GRAFT, SAME, control_kinds
 from bench.grid.protocol import PROFILES, TINY, with_overrides
@@ -62,8 +66,8 @@ def test_start_up_refuses_a_misspelt_kind_and_a_tuned_control_without_encoder_we
         build_profile(Config(**{"--controls": "tuned_encodr"}))
     blind = build_profile(Config(**{"--controls": TUNED, "--encoders": "pixels,blind"}))
     labels = {"controls": f"--controls {TUNED}", "encoders": "--encoders pixels,blind"}
-    with pytest.raises(pytest.UsageError, match=r"^--controls tuned_encoder: tuned_encoder tunes "
-                       r"an encoder's weights, and no encoder of --encoders pixels,blind"):
+    with pytest.raises(pytest.UsageError, match=r"^--controls tuned_encoder: tuned_encoder needs "
+                       r"an encoder's weights in the loop, and no encoder of --encoders pixels,blind"):
         check_tuned_encoders(blind, labels)
     check_tuned_encoders(dataclasses.replace(blind, encoders=("pixels", "dinov2_s")), labels)
 
@@ -141,8 +145,12 @@ def test_tuned_cell_twice_gives_the_same_bits_and_records_its_parameters(tmp_pat
 
 
 # --- the report's analysis: known answers ----------------------------------------------------
+# A frozen twin whose loss has flattened (its last quarter no lower than the quarter before).
+FLAT = [[0, 1.0], [25, 0.5], [50, 0.3], [60, 0.31], [75, 0.3], [90, 0.3], [99, 0.31]]
+
+
 def _pair(encoder: str, frozen: list[float], tuned: list[float], seed: int = 0, **kw):
-    return [make_record(encoder=encoder, seed=seed, per_window=frozen, **kw),
+    return [make_record(encoder=encoder, seed=seed, per_window=frozen, loss_curve=FLAT, **kw),
             make_record(kind=TUNED, encoder=encoder, seed=seed, per_window=tuned, **kw)]
 
 
@@ -245,3 +253,91 @@ def test_report_section_renders_the_verdicts_and_is_left_out_without_tuned_cells
     assert ("frozen siglip > dinov2_s; tuned dinov2_s > siglip (**the ranking changes**, the "
             "leader too (siglip -> dinov2_s)") in text
     assert tuning_section(ctx([r for r in records if r.kind == GRAFT])) is None
+
+
+# --- the zero-learning-rate twin -------------------------------------------------------------
+TWIN = next(k.name for k in CELL_KINDS.values() if k.live_encoder)
+
+
+def test_the_twin_is_the_graft_on_the_live_path_bit_for_bit(tmp_path):
+    """tuned_encoder_lr0 trains the projector alone with the session's frozen encoder in the loop:
+    its record is the graft's measured with --features loop, bit for bit (same trained projector,
+    same scores), while the graft on stored features is not; it never reuses the graft's
+    projector, never packs, and runs per tunable encoder as the tuned kind does."""
+    from bench.cell.packed import packable
+    from bench.cell.service import run_cell
+
+    twin = CellSpec(TWIN, "smolvla", "spatial", 0, "dinov2_s")
+    assert twin.id == "smolvla-spatial-dinov2_s-tuned_encoder_lr0-seed0"
+    assert twin.reference == CellSpec(GRAFT, "smolvla", "spatial", 0, "dinov2_s")
+    assert not twin.spec.shares_graft_training("dinov2_s", None)
+    assert cell_context(twin, "cache", projectors={}).features_mode == "loop"
+    assert packable(twin) and TWIN not in PROFILES["tiny"].controls
+    profile = dataclasses.replace(TINY, controls=(TWIN,), control_encoders=("pixels",))
+    assert [c.id for c in control_cells(profile) if c.backbone == "pi05" and c.seed == 0] == [
+        "pi05-spatial-dinov2_s-tuned_encoder_lr0-seed0"]
+
+    graft = CellSpec(GRAFT, "smolvla", "spatial", 0, "dinov2_s")
+    ws = lent_workspace(PROFILE, ResultStore(tmp_path / "twin"))
+    held = {k: v.clone() for k, v in ws.encoder("dinov2_s").state_dict().items()}
+    a = run_cell(twin, ws)
+    assert all(torch.equal(v, ws.encoder("dinov2_s").state_dict()[k]) for k, v in held.items())
+    assert a.training.trainable_params == a.training.projector_params
+    assert a.measured.features_mode == "loop" and a.measured.feature_dtype is None
+    live = run_cell(graft, lent_workspace(PROFILE, ResultStore(tmp_path / "live")), "loop")
+    stored = run_cell(graft, lent_workspace(PROFILE, ResultStore(tmp_path / "stored")), "cache")
+    assert a.scores.per_window == live.scores.per_window
+    assert a.training.loss_curve == live.training.loss_curve
+    assert a.scores.per_window != stored.scores.per_window  # fp16 store against fp32 live
+
+
+def test_no_verdict_where_the_frozen_loss_still_falls():
+    """The same -0.5 on two seeds, but the frozen twin's logged loss still halves in its last
+    quarter: tuning may only have trained faster, so no verdict; the change is measured."""
+    falling = [[s, 1.0 / (1 + s)] for s in range(0, 100, 10)] + [[99, 0.01]]
+    # quarters of 100 steps: [50, 75) holds 0.3, 0.31; [75, 100) holds 0.3, 0.3, 0.31
+    assert last_quarter_change([FLAT]) == pytest.approx((0.91 / 3) / (0.61 / 2) - 1)
+    assert last_quarter_change([falling]) < -0.2
+    assert np.isnan(last_quarter_change([[[0, 1.0], [10, 0.5]]]))  # no third-quarter point
+    base = [1.0, 2.0, 3.0, 4.0]
+    records = [r.replace(loss_curve=falling) if r.kind == GRAFT else r
+               for r in _seeds("dinov2_s", base, [v - 0.5 for v in base])]
+    (c,) = tuned_vs_frozen(records, n_resamples=50).comparisons
+    assert c.diff == pytest.approx(-0.5) and c.verdict == NOT_FLAT and not c.flattened
+
+
+def test_the_twin_splits_tuned_minus_frozen_into_the_path_and_the_move():
+    """frozen, twin = frozen + 0.1 everywhere (the live path hurts), tuned = frozen - 0.3 (the
+    encoder's move helps by 0.4): both halves and their intervals are exact, and add up to
+    tuned - frozen; without the twin there is no split."""
+    base = [1.0, 2.0, 3.0, 4.0, 5.0]
+    records = _seeds("dinov2_s", base, [v - 0.3 for v in base]) + [
+        make_record(kind=TWIN, encoder="dinov2_s", seed=s, per_window=[v + 0.1 for v in base])
+        for s in (0, 1)]
+    (c,) = tuned_vs_frozen(records, n_resamples=100).comparisons
+    split = c.twin
+    assert split.seeds == [0, 1] and split.twin_mse == pytest.approx(3.1)
+    assert split.path == pytest.approx(0.1) and split.path_ci == pytest.approx((0.1, 0.1))
+    assert split.moved == pytest.approx(-0.4) and split.moved_ci == pytest.approx((-0.4, -0.4))
+    assert split.path + split.moved == pytest.approx(c.diff)
+    assert split.path_verdict == LIVE_HURTS and split.moved_verdict == MOVED_HELPS
+    assert c.verdict == HELPS
+    (alone,) = tuned_vs_frozen([r for r in records if r.kind != TWIN],
+                               n_resamples=20).comparisons
+    assert alone.twin is None
+
+
+def test_report_section_gives_the_split_beside_the_verdict(tmp_path):
+    from bench.report.context import ReportContext
+    from bench.report.tuning import tuning_section
+    from bench.results.store import Results
+
+    base = [1.0, 2.0, 3.0, 4.0]
+    records = _seeds("dinov2_s", base, [v - 0.3 for v in base]) + [
+        make_record(kind=TWIN, encoder="dinov2_s", seed=s, per_window=[v + 0.1 for v in base])
+        for s in (0, 1)]
+    text = tuning_section(ReportContext(Results(tmp_path, records=records), tmp_path / "R.md",
+                                        [], [], {}, {}, [], n_resamples=50))
+    assert "zero-learning-rate twin" in text
+    assert re.search(rf"\| 0\.1 +\| \[0\.1, 0\.1\] +\| {LIVE_HURTS} +\| -0\.4 +\| "
+                     rf"\[-0\.4, -0\.4\] +\| {MOVED_HELPS} ", text)

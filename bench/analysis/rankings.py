@@ -298,22 +298,26 @@ def cell_arrays(cells: Sequence, item_of, metrics: Sequence[str] = METRICS) -> C
     return CellArrays(items, releases, seeds, window_ids, units, values)
 
 
-def paired_records_bootstrap(pairs: Sequence[tuple], *, n_resamples: int = DEFAULT_RESAMPLES,
+def paired_records_bootstrap(pairs: Sequence[tuple], *, leader: int = 0,
+                             n_resamples: int = DEFAULT_RESAMPLES,
                              random_seed: int = 0) -> BootstrapResult:
-    """Two rows from (first, second) record pairs, each pair one (release, seed) cell keyed by
-    its first record: row 0 the firsts (the leader), row 1 the seconds, on normalised MSE,
-    windows aligned by id (WindowMismatchError when they differ), through paired_bootstrap."""
-    cells = [a for a, _ in pairs] + [b for _, b in pairs]
+    """Rows from tuples of records (pairs, triples...), each tuple one (release, seed) cell keyed
+    by its first record: row i the tuples' i-th records, on normalised MSE, differences against
+    row `leader`, windows aligned by id (WindowMismatchError when they differ), through
+    paired_bootstrap (the same draws for every `leader` at one random_seed)."""
+    rows = len(pairs[0])
+    cells = [t[i] for i in range(rows) for t in pairs]
     _, orders = align_windows(cells)
     values = [np.asarray(c.scores.per_window_in(NORMALIZED), dtype=float)[o]
               for c, o in zip(cells, orders)]
-    releases = sorted({int(a.release) for a, _ in pairs})
-    seeds = sorted({int(a.seed) for a, _ in pairs})
-    per_window = np.full((2, len(releases), len(seeds), len(values[0])), np.nan)
-    for i, (a, _) in enumerate(pairs):
-        at = releases.index(int(a.release)), seeds.index(int(a.seed))
-        per_window[(0, *at)], per_window[(1, *at)] = values[i], values[len(pairs) + i]
-    return paired_bootstrap(per_window, record_units(cells[0]), leader=0,
+    releases = sorted({int(t[0].release) for t in pairs})
+    seeds = sorted({int(t[0].seed) for t in pairs})
+    per_window = np.full((rows, len(releases), len(seeds), len(values[0])), np.nan)
+    for j, t in enumerate(pairs):
+        at = releases.index(int(t[0].release)), seeds.index(int(t[0].seed))
+        for i in range(rows):
+            per_window[(i, *at)] = values[i * len(pairs) + j]
+    return paired_bootstrap(per_window, record_units(cells[0]), leader=leader,
                             n_resamples=n_resamples, random_seed=random_seed)
 
 

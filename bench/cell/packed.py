@@ -185,6 +185,8 @@ def packable(cell) -> str | None:
         return "LoRA changes the backbone the pack shares"
     if kind.tune_encoder:
         return "its encoder trains (at its own learning rate)"
+    if kind.live_encoder:
+        return "its encoder runs in the loop (the pack reads stored features)"
     return None
 
 

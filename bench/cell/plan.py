@@ -75,9 +75,9 @@ def cell_context(cell: CellSpec, features_mode: str = "cache", *,
                  projectors: Mapping[tuple, TrainedProjector] | None = None,
                  feature_transform: Callable | None = None) -> CellContext:
     """The context to measure `cell` with: the graft's projector when one was kept. A cell that
-    tunes its encoder runs it in the loop whatever the run's mode: stored features are the
-    frozen encoder's."""
-    if cell.spec.tune_encoder:
+    tunes its encoder runs it in the loop whatever the run's mode (stored features are the
+    frozen encoder's), and so does its live twin (its question is how the loop differs)."""
+    if cell.spec.encoder_in_loop:
         features_mode = "loop"
     share = shared_projector_key(cell, features_mode) if feature_transform is None else None
     reuse = (projectors or {}).get(share) if share is not None and cell.kind != GRAFT else None

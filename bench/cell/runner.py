@@ -189,6 +189,8 @@ def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
         inputs.encoder = ws.encoder(cell.encoder)
         if cell.spec.tune_encoder:  # its own copy, in the loop (stored features: the frozen one)
             inputs.encoder = tunable_copy(inputs.encoder, cell.encoder)
+        elif cell.spec.live_encoder:
+            pass  # the session's frozen encoder, in the loop: the stored features are skipped
         elif context.features_mode == "cache":
             inputs.features = ws.features(cell.encoder, cell.suite, inputs.grid,
                                           transform=context.feature_transform)

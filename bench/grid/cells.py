@@ -86,7 +86,7 @@ def control_cells(profile: Profile) -> list[CellSpec]:
     # A kind that tunes its encoder asks a question per encoder: every grid encoder with weights
     # to tune, not the control encoders.
     tuned = (tunable_encoders(profile.encoders, profile.source)
-             if any(k.tune_encoder for k in kinds) else ())
+             if any(k.encoder_in_loop for k in kinds) else ())
     cells: list[CellSpec] = []
     for b, s, r, seed in ((b, s, r, seed) for b in profile.backbones for s in profile.suites
                           for r in profile.release_indices for seed in profile.seeds):
@@ -94,10 +94,10 @@ def control_cells(profile: Profile) -> list[CellSpec]:
                   for k in kinds if k.encoder != "required" for v in k.native_variants]
         cells += [CellSpec(k.name, b, s, seed, e, v, r)
                   for e in profile.control_encoders
-                  for k in kinds if k.encoder != "none" and not k.tune_encoder
+                  for k in kinds if k.encoder != "none" and not k.encoder_in_loop
                   for v in k.variants]
         cells += [CellSpec(k.name, b, s, seed, e, v, r)
-                  for k in kinds if k.tune_encoder for e in tuned for v in k.variants]
+                  for k in kinds if k.encoder_in_loop for e in tuned for v in k.variants]
     return cells
 
 

@@ -68,6 +68,11 @@ class CellKind:
     # encoder's). Its question is per encoder, so it runs for every grid encoder with weights to
     # train (bench.grid.cells.tunable_encoders), not for the control encoders.
     tune_encoder: bool = False
+    # The encoder runs in the training and evaluation loop at full precision without training
+    # (the tuned control's zero-learning-rate twin): the tuned cell's feature path with its
+    # weights held, so tuned - twin is what moving the encoder does and twin - graft what the
+    # live path does against the stored fp16 features. Per encoder, as tune_encoder.
+    live_encoder: bool = False
     # Left out of the profiles' default controls (bench.grid.protocol ALL_CONTROLS): measured
     # only when --controls or a grid file names it (a tuned encoder costs several times a frozen
     # graft's steps; the default grids and their committed records stay as they were).
@@ -119,6 +124,12 @@ class CellKind:
     def train_rule(self, variant: str | None) -> str:
         return dict(self.train_inputs).get(variant, SAME)
 
+    @property
+    def encoder_in_loop(self) -> bool:
+        """Its encoder runs on every batch (tuned or live): a question per tunable encoder, never
+        packed, never the stored features."""
+        return self.tune_encoder or self.live_encoder
+
     def scaled_steps(self, steps: int, variant: str | None) -> int:
         """`steps` (the protocol's steps or warm-up) at the variant's fraction, rounded up; 0 stays
         0, anything else trains at least one step: 600 at 1/8 -> 75, 12 at 1/8 -> 2."""
@@ -128,7 +139,7 @@ class CellKind:
     def shares_graft_training(self, encoder: str | None, variant: str | None) -> bool:
         """Trains exactly its graft's projector (same encoder, grid, inputs, LM): it takes the
         graft's trained projector instead of training it again; only evaluation differs."""
-        return (encoder is not None and not (self.lora or self.tower or self.tune_encoder)
+        return (encoder is not None and not (self.lora or self.tower or self.encoder_in_loop)
                 and self.grid is _same_grid and self.train_rule(variant) == SAME
                 and self.scaled_steps(_FRACTION_PROBE, variant) == _FRACTION_PROBE)
 
@@ -215,6 +226,14 @@ register_kind(CellKind("tuned_encoder", "the graft with its encoder's weights tr
 register_kind(CellKind("tuned_encoder_1_8", "the tuned-encoder control trained for 1/8 of the "
                        "steps, against the short_1_8 graft (the frozen twin at the same steps)",
                        tune_encoder=True, opt_in=True, train_fraction=((None, (1, 8)),)))
+# tuned_encoder's zero-learning-rate twin: the same live path, its encoder held. The held encoder
+# takes no gradient: at rate 0 its weights cannot move, and the clip then sees the projector's
+# gradients alone, as the frozen graft's does (so tuned - twin also holds what the encoder's
+# gradients do to the shared clip: part of what tuning is).
+register_kind(CellKind("tuned_encoder_lr0", "tuned_encoder's twin at encoder learning rate 0: "
+                       "the encoder run live in full precision, its weights held (does the live "
+                       "path alone differ from the stored features?)",
+                       live_encoder=True, opt_in=True))
 register_kind(CellKind("pooling", "the graft pooled to another token grid",
                        variants=("half", "double", "global"), grid=_pooling_grid,
                        tag="pool_{variant}"))
