@@ -14,7 +14,7 @@ FitInputs each round (its decomposition is cached on it). The goal: about a seco
 percent of a 600-step tiny graft (22-34 s on this machine class).
 
 test_screen_real_store: one whole screen (read, pool, every proxy on both input sets, entropy)
-from a completed fp16 store at docs/real's shapes (Lite0 7x7x1280 and Lite2 9x9x1280, Lite0's
+from a completed fp16 store at studies/real's shapes (Lite0 7x7x1280 and Lite2 9x9x1280, Lite0's
 stride-16 tap 14x14x112, DINOv2-S 16x16x384 channels-last; 1,082 frames x 2 cameras, 721
 training windows in 5 folds, 122 held out, pooled to the tiny backbones' 2x2 / 4x4 grids).
 
@@ -97,7 +97,7 @@ def test_proxies_synthetic(benchmark, kind):
     print(f"\n{kind}: {benchmark.stats.stats.min:.2f} s (min of 3), {out}")
 
 
-# docs/real's stored grids (fp16, 1,082 frames x 2 cameras): (grid, channels, memory format)
+# studies/real's stored grids (fp16, 1,082 frames x 2 cameras): (grid, channels, memory format)
 # and the tiny backbone's grid it is pooled to (SmolVLA 2x2, pi0.5 4x4).
 REAL_STORES = {"effnet_lite0-smolvla": ((7, 7), 1280, "nchw", (2, 2)),
                "effnet_lite2-pi05": ((9, 9), 1280, "nchw", (4, 4)),
@@ -127,7 +127,8 @@ def _real_store(root, name: str):
 
 
 def _real_world():
-    """(suite, split) with docs/real's sizes: 721 training windows in 9 episodes, 122 held out."""
+    """(suite, split) with studies/real's sizes: 721 training windows in 9 episodes, 122 held
+    out."""
     from types import SimpleNamespace
 
     import torch
@@ -148,7 +149,7 @@ def _real_world():
 def test_screen_real_store(benchmark, tmp_path_factory, name):
     """One whole screen (bench.screen.measure.screen_features: read and pool both cameras'
     stored grids, every proxy on [state] and [state, features], entropy) from a store at
-    docs/real's shapes, one thread; the goal: <= 5% of a tiny graft cell (22-34 s here)."""
+    studies/real's shapes, one thread; the goal: <= 5% of a tiny graft cell (22-34 s here)."""
     from bench.resources.features import PooledView
     from bench.screen.measure import screen_features
 

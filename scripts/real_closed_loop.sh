@@ -1,17 +1,17 @@
 #!/usr/bin/env bash
-# The real-encoder study's closed-loop tier (docs/real/closed_loop.toml says why these items),
-# item by item into one results folder; every item resumes, so a stopped run, or a new sitting,
-# continues by running this again. Two queues hold disjoint items (no encoder in both, so two
-# one-thread jobs never wait on each other's feature extraction); run them side by side:
+# The real-encoder study's closed-loop tier (studies/real_closed_loop/closed_loop.toml says why
+# these items), item by item into one results folder; every item resumes, so a stopped run, or a new
+# sitting, continues by running this again. Two queues hold disjoint items (no encoder in both, so
+# two one-thread jobs never wait on each other's feature extraction); run them side by side:
 #   OMP_NUM_THREADS=1 bash scripts/real_closed_loop.sh a &  OMP_NUM_THREADS=1 bash scripts/real_closed_loop.sh b
 # Usage: bash scripts/real_closed_loop.sh [a|b|c|all] [RESULTS] [REPORT]
 set -euo pipefail
 queue=${1:-all}
-results=${2:-docs/real/records/closed_loop}
-report=${3:-docs/real/CLOSED_LOOP.md}
+results=${2:-studies/real_closed_loop/records}
+report=${3:-studies/real_closed_loop/REPORT.md}
 py=${PYTHON:-.venv/bin/python}
-common=(--grid docs/real/closed_loop.toml --sim-tasks 0,1 --sim-demos 25 --sim-demo-noise 0.1
-        --sim-demo-speed 0.5 --rollouts 20 --results-dir "$results" --report "$report"
+common=(--grid studies/real_closed_loop/closed_loop.toml --sim-tasks 0,1 --sim-demos 25
+        --sim-demo-noise 0.1 --sim-demo-speed 0.5 --rollouts 20 --results-dir "$results" --report "$report"
         -p no:cacheprovider)
 # Seed 0 of every item first, so a sitting that ends early leaves the most items measured.
 a=("--encoders blind --controls native -k native-seed0"

@@ -1,4 +1,4 @@
-"""Which part of a tiny release rebuilds bit for bit here (docs/sim/REBUILD.md): prints hashes
+"""Which part of a tiny release rebuilds bit for bit here (studies/sim/REBUILD.md): prints hashes
 to compare between two runs, two settings or two machines.
 
     python scripts/rebuild_probe.py render          # 1 LIBERO task x 1 demo, the closed-loop spec

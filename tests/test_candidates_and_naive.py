@@ -70,7 +70,7 @@ def test_the_difference_is_drawn_on_the_same_replicates_as_the_tier():
     assert (ci.low, ci.high, ci.undefined) == (0.0, 0.0, 0) and not out.recommended
 
 
-# The docs/real world in small: the wheels' trained encoders beside random twins, known-answer
+# The studies/real world in small: the wheels' trained encoders beside random twins, known-answer
 # encoders and the tiny world's random-init stand-ins, all in the tiny profile's records.
 TRAINED = ["dinov2_s_focus", "effnet_lite0", "effnet_lite0_s4", "effnet_lite1", "effnet_lite2"]
 REFERENCES = ["blind", "dinov2_s", "effnet_lite0_random", "pixels", "pixels_p16", "siglip"]

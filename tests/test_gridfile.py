@@ -190,9 +190,9 @@ def test_a_study_file_runs_the_same_cells_and_records_its_hash(bench_cli, tmp_pa
 
 
 def test_the_committed_sim_recipe_is_the_protocol_of_the_committed_sim_report():
-    """docs/sim/closed_loop.toml is the grid file docs/sim/REPORT.md's run used (a copy of it):
-    its protocol hash is the one every record of that report carries."""
-    profile = build_profile(Config(grid=str(REPO_ROOT / "docs" / "sim" / "closed_loop.toml")))
-    summary = json.loads((REPO_ROOT / "docs" / "sim" / "REPORT_summary.json").read_text())
+    """studies/sim/closed_loop.toml is the grid file studies/sim/REPORT.md's run used (a copy of
+    it): its protocol hash is the one every record of that report carries."""
+    profile = build_profile(Config(grid=str(REPO_ROOT / "studies" / "sim" / "closed_loop.toml")))
+    summary = json.loads((REPO_ROOT / "studies" / "sim" / "REPORT_summary.json").read_text())
     assert profile.name == "sim" and summary["protocol_hashes"] == [profile.protocol.hash]
     assert profile.control_encoders == ("pixels_p16",)  # the report's LoRA item

@@ -42,7 +42,7 @@ def test_demo_specs_refuse_a_task_the_expert_cannot_solve():
     assert replace(noisy, action_noise=0.0).key() == more.key()  # no noise: the old key
     slow = demo_spec("spatial", (0, 1), 20, expert_speed=0.5)  # an unsaturated expert
     assert slow.key() != more.key() and replace(slow, expert_speed=1.0).key() == more.key()
-    # Pinned: the key of the cached suite of docs/LIBERO_SIM.md's attempts 1-2, made before the
+    # Pinned: the key of the cached suite of studies/sim/README.md's attempts 1-2, made before the
     # noise and speed fields existed (a default field in the key would rename every cached suite).
     assert demo_spec("spatial", (0, 1), 10).key() == "fe3b20524c9d"
     with pytest.raises(ValueError, match="give 0 < speed <= 1"):

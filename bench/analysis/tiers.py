@@ -31,7 +31,7 @@ from bench.analysis.rankings import PRIMARY, record_units
 from bench.grid.kinds import GRAFT, SHORT_GRAFT, get_kind
 
 MIN_ENCODERS = 6
-# The candidates a team weighs are few (docs/real: 5 pretrained encoders); 4 items give 6 pairs,
+# The candidates a team weighs are few (studies/real: 5 pretrained encoders); 4 items give 6 pairs,
 # the fewest whose tau-b can tell a fair order from a coin (and its interval says how little).
 MIN_CANDIDATES = 4
 ALL, CANDIDATES = "all", "candidates"

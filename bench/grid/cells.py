@@ -155,7 +155,7 @@ def staggered(items: list, workers: int) -> list:
     """`items` (cells or screen cases) ordered for `workers` xdist workers that each hold one
     backbone, so that the workers need different encoders' features at the same time. Features
     are per suite, shared by the backbones: in the same order one worker extracts while the other
-    waits on the store's lock (seen on docs/real's study: a ViT's 20 minutes with a worker idle).
+    waits on the store's lock (seen on studies/real: a ViT's 20 minutes with a worker idle).
     Backbones go round the encoders in pairs, the second of a pair backwards: two workers then
     meet once, wherever the extraction times put that, and each finds everything past it already
     stored (a rotation, tried first, let a worker whose half was cheap catch up with the other and

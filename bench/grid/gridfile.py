@@ -340,7 +340,7 @@ def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
 
 def _check_release_pins(where: str, values: dict) -> None:
     """Every pinned backbone pins all its releases: a study never mixes pinned releases with
-    ones trained on this machine (other kernels give other weights, docs/sim/REBUILD.md)."""
+    ones trained on this machine (other kernels give other weights, studies/sim/REBUILD.md)."""
     count = values.get("releases_per_backbone", 1)
     for backbone in dict(values.get("releases", ())):
         pinned = sum(1 for name, _ in values["releases"] if name == backbone)

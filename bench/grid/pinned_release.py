@@ -1,6 +1,6 @@
 """Pinned releases: a tiny release's files committed with a study, loaded by content hash.
 
-A tiny release trained on another machine is not the same release (docs/sim/REBUILD.md: other
+A tiny release trained on another machine is not the same release (studies/sim/REBUILD.md: other
 CPU kernels, other rendered frames), and a long graft amplifies the difference past the gaps
 between encoders. So a committed study names the release it was measured on, as a folder of
 the files `save_pretrained` wrote, named `<backbone>-<content hash>`, in its grid file:
@@ -13,7 +13,7 @@ checked when the grid file is read (start-up, exit 4) and again when the policy 
 Records measured on it carry its weights' sha256 (the checkpoint `revision`), as records of a
 cached release do, so a study's records resume on the pinned copy of their release.
 
-    python -m bench.grid.pinned_release RELEASE_FOLDER --into docs/real/releases
+    python -m bench.grid.pinned_release RELEASE_FOLDER --into studies/real/releases
 
 copies a release folder (GRAFTBENCH_CACHE/released/<backbone>-<key>) there under its content
 hash and prints the grid-file line. Standard library only: the grid file's start-up check must
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> None:
                                      description=__doc__.splitlines()[0])
     parser.add_argument("release", help="a tiny release folder (GRAFTBENCH_CACHE/released/...)")
     parser.add_argument("--into", required=True, help="where pinned releases live, e.g. "
-                        "docs/real/releases")
+                        "studies/real/releases")
     args = parser.parse_args(argv)
     if not (Path(args.release) / RELEASE_FILE).is_file():
         print(f"python -m bench.grid.pinned_release: {args.release}: no {RELEASE_FILE}; give a "

@@ -145,7 +145,7 @@ def release_warning(backbone: str, cells: dict[str, list[str]]) -> str:
     """The caveat naming each release of `backbone` and the cells measured on it."""
     return (f"**Warning: {backbone}'s records were measured on {len(cells)} different releases** "
             f"({cells_by(cells)}); their numbers are not comparable: measure them again on one "
-            "release, or pin it in the grid file's [releases] (docs/sim/REBUILD.md).")
+            "release, or pin it in the grid file's [releases] (studies/sim/REBUILD.md).")
 
 
 def rankings_section(ctx: ReportContext) -> str:

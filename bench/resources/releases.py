@@ -5,7 +5,7 @@ policy natively (all of it, its own tower included) on the training episodes of 
 saves it with save_pretrained and from then on loads it through the same from_pretrained path as
 a real checkpoint. Deterministic, keyed by (config, data fingerprints, protocol), rebuilt only
 when missing. The key does not hold the CPU's kernels or the thread count, which change the
-weights (docs/sim/REBUILD.md): a committed study pins its release (bench.grid.pinned_release).
+weights (studies/sim/REBUILD.md): a committed study pins its release (bench.grid.pinned_release).
 """
 
 from __future__ import annotations
