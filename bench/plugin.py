@@ -67,7 +67,8 @@ def pytest_xdist_node_collection_finished(node, ids: list[str]) -> None:
     case_ids = list(map(cell_id_of, ids))
     try:  # the start of the run's ends, here where -k has been applied
         gs.collected(Selection(cells=tuple(c for c in case_ids if c in known),
-                               screens=tuple(c for c in case_ids if c in screens)),
+                               screens=tuple(c for c in case_ids if c in screens),
+                               sliced=not set(known) <= set(case_ids)),
                      [known[c] for c in case_ids if c in known])
     except pytest.UsageError as e:  # raised inside xdist's loop: an exit, not an INTERNALERROR
         pytest.exit(f"ERROR: {e}", returncode=pytest.ExitCode.USAGE_ERROR)
@@ -142,7 +143,9 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
             robust.append(params["robust_cell"].id)
     if not items and not hasattr(config, "workerinput"):
         _refuse_empty_selection(config)
-    gs.collected(Selection(tuple(c.id for c in cells), tuple(screens), tuple(robust)), cells)
+    sliced = bool(config.stash.get(DESELECTED_KEY, []))
+    gs.collected(Selection(tuple(c.id for c in cells), tuple(screens), tuple(robust), sliced),
+                 cells)
 
 
 def pytest_deselected(items) -> None:

@@ -60,6 +60,9 @@ class Selection:
     cells: tuple[str, ...] = ()
     screens: tuple[str, ...] = ()
     robust: tuple[str, ...] = ()
+    # -k / -m deselected some grid case: a slice of the grid, which adds to what the results
+    # dir's grid.json expects instead of redefining it.
+    sliced: bool = False
 
     def __bool__(self) -> bool:
         return bool(self.cells or self.screens or self.robust)
@@ -131,8 +134,10 @@ class GraftSession:
             raise pytest.UsageError(problem)
 
     def _write_grid(self) -> None:
-        """grid.json: the cells this run meant to measure (the report lists those missing)."""
-        self.store.write_grid(self.ran_cells, self.profile.name)
+        """grid.json: the cells this run meant to measure (the report lists those missing); a
+        slice's are added to those of the grid it was cut from, so one study run in slices
+        reads as one study."""
+        self.store.write_grid(self.ran_cells, self.profile.name, add=self.selection.sliced)
 
     def check_names_once(self) -> list[str]:
         """The start-up check of names and paths, when no earlier hook ran it (a grid module

@@ -26,8 +26,20 @@ def test_slice_runs_resumes_and_reports(bench_cli, tmp_path):
 
     record = json.loads((tmp_path / "results" / "cells" / "pi05-spatial-pixels-seed0.json").read_text())
     assert record["protocol"]["steps"] == 5 and record["profile"] == "tiny"
-    grid = json.loads((tmp_path / "results" / "grid.json").read_text())
-    assert sorted(grid["expected"]) == ["pi05-spatial-native-seed0", "pi05-spatial-pixels-seed0"]
+    grid_json = tmp_path / "results" / "grid.json"
+    assert sorted(json.loads(grid_json.read_text())["expected"]) == [
+        "pi05-spatial-native-seed0", "pi05-spatial-pixels-seed0"]
+    # Another slice adds its cells to what the folder expects; the whole grid redefines it.
+    third = bench_cli(tmp_path, *SLICE, "-k", "blind")
+    assert third.returncode == 0 and "measured 1, resumed from store 0" in third.stdout
+    expected = json.loads(grid_json.read_text())["expected"]
+    assert sorted(expected) == ["pi05-spatial-blind-seed0", "pi05-spatial-native-seed0",
+                                "pi05-spatial-pixels-seed0"]
+    grid_json.write_text(json.dumps({"expected": expected + ["pi05-spatial-gone-seed0"],
+                                     "profile": "tiny"}))
+    whole = bench_cli(tmp_path, *SLICE)
+    assert whole.returncode == 0 and "measured 0, resumed from store 3" in whole.stdout
+    assert sorted(json.loads(grid_json.read_text())["expected"]) == sorted(expected)
 
 
 def test_unknown_names_fail_before_any_work_listing_valid_ones(bench_cli, tmp_path):

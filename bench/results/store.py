@@ -389,6 +389,16 @@ class ResultStore:
         atomic_write_json(path, selection.to_json())
         return path
 
-    def write_grid(self, expected: list[str], profile: str) -> None:
+    def write_grid(self, expected: list[str], profile: str, add: bool = False) -> None:
+        """`expected` as what the folder's runs mean to measure; `add`: after what an earlier
+        run of the same profile expected (a -k slice of a larger grid), not instead of it."""
+        if add:
+            try:
+                earlier = json.loads((self.root / GRID).read_text())
+            except (OSError, ValueError):
+                earlier = {}
+            if isinstance(earlier, dict) and earlier.get(_GRID_PROFILE) == profile:
+                kept = [c for c in earlier.get(_GRID_EXPECTED) or [] if isinstance(c, str)]
+                expected = kept + [c for c in expected if c not in set(kept)]
         atomic_write_json(self.root / GRID, {_GRID_EXPECTED: expected, _GRID_PROFILE: profile})
 
