@@ -88,10 +88,12 @@ def caveats(ctx: ReportContext) -> str:
         f"window (common random numbers{crn}); "
         "only the real action dimensions (LIBERO: 7; padding masked out); over the full action "
         "chunk; reported in the backbone's normalised action space (primary) and in raw units.",
-        "**Two machines differ by up to ~2.5% MSE on the same cell** (measured: CPUs with "
-        "different kernels, tiny releases retrained, docs/CI.md; `hardware` in each record names "
-        "the CPU and its kernels): a difference that small between reports from two machines "
-        "means nothing.",
+        "**Two machines differ on the same cell** as far as the release differs: with the tiny "
+        "releases retrained on each, by up to 2.3% MSE on the CI slice (docs/CI.md) and 7.6% on "
+        "a 10,000-step graft (studies/sim/REBUILD.md); with the release pinned by content hash, "
+        "by 2.5e-7 relative (a 10,000-step graft, AVX512 against AVX2 kernels). `hardware` in "
+        "each record names the CPU and its kernels: between two machines' reports, compare on "
+        "pinned releases.",
         "**MSE levels are not comparable across backbones** (different action normalisation): "
         "compare rankings across backbones, never levels; every plot gives each backbone its "
         "own axis.",
