@@ -136,7 +136,10 @@ class GraftSession:
     def _write_grid(self) -> None:
         """grid.json: the cells this run meant to measure (the report lists those missing); a
         slice's are added to those of the grid it was cut from, so one study run in slices
-        reads as one study."""
+        reads as one study. --collect-only measures nothing and expects nothing: it lists ids
+        and leaves a study's grid.json as it was."""
+        if self.config.option.collectonly:
+            return
         self.store.write_grid(self.ran_cells, self.profile.name, add=self.selection.sliced)
 
     def check_names_once(self) -> list[str]:

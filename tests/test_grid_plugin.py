@@ -105,6 +105,7 @@ def test_controls_none_collects_no_empty_control_case(bench_cli, tmp_path):
     assert out.returncode == 0, out.stdout[-2000:]
     assert "NOTSET" not in out.stdout and "::test_control[" not in out.stdout
     assert "1 test collected" in out.stdout
+    assert not (tmp_path / "results" / "grid.json").exists()  # ids listed, nothing expected
 
 
 def test_the_screen_start_line_counts_the_screens_that_will_run(bench_cli, tmp_path):
@@ -117,3 +118,4 @@ def test_the_screen_start_line_counts_the_screens_that_will_run(bench_cli, tmp_p
             "screens, the references pixels, blind included); grafted: the best 1 of the 2 "
             "listed by logme, and the references") in out.stdout, out.stdout[-2000:]
     assert out.stdout.count("::test_screen[") == 4
+    assert not (tmp_path / "results" / "grid.json").exists()  # under --screen: at the end
