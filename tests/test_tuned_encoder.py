@@ -284,8 +284,8 @@ def test_the_twin_is_the_graft_on_the_live_path_bit_for_bit(tmp_path):
     assert all(torch.equal(v, ws.encoder("dinov2_s").state_dict()[k]) for k, v in held.items())
     assert a.training.trainable_params == a.training.projector_params
     assert a.measured.features_mode == "loop" and a.measured.feature_dtype is None
-    live = run_cell(graft, lent_workspace(PROFILE, ResultStore(tmp_path / "live")), "loop")
-    stored = run_cell(graft, lent_workspace(PROFILE, ResultStore(tmp_path / "stored")), "cache")
+    live = run_cell(graft, ws, "loop")
+    stored = run_cell(graft, ws, "cache")
     assert a.scores.per_window == live.scores.per_window
     assert a.training.loss_curve == live.training.loss_curve
     assert a.scores.per_window != stored.scores.per_window  # fp16 store against fp32 live
