@@ -221,8 +221,9 @@ register_kind(CellKind("tuned_encoder", "the graft with its encoder's weights tr
                        "the protocol's encoder_lr (does tuning the encoder beat freezing it?)",
                        tune_encoder=True, opt_in=True))
 # The same question at an eighth of the steps (whole schedule compressed, as short_1_8): its
-# frozen twin is the short_1_8 graft. A tuned cell runs its encoder inside every step (a ViT-S at
-# 224 px: ~6-10 s a step on one CPU thread), so this is the one a CPU study can afford.
+# frozen twin is the short_1_8 graft. A tuned cell runs its encoder forward and backward inside
+# every step (studies/real/REPORT.md's tuned section gives the measured cost per step of a Lite
+# and a ViT-S at 224 px on one CPU thread), so this is the cheapest question.
 register_kind(CellKind("tuned_encoder_1_8", "the tuned-encoder control trained for 1/8 of the "
                        "steps, against the short_1_8 graft (the frozen twin at the same steps)",
                        tune_encoder=True, opt_in=True, train_fraction=((None, (1, 8)),)))
