@@ -60,9 +60,7 @@ class Selection:
     cells: tuple[str, ...] = ()
     screens: tuple[str, ...] = ()
     robust: tuple[str, ...] = ()
-    # -k / -m deselected some grid case: a slice of the grid, which adds to what the results
-    # dir's grid.json expects instead of redefining it.
-    sliced: bool = False
+    sliced: bool = False  # -k / -m deselected a grid case (grid.json: `_write_grid`)
 
     def __bool__(self) -> bool:
         return bool(self.cells or self.screens or self.robust)
@@ -101,8 +99,7 @@ class GraftSession:
             self.check_report()
 
     def use_seams(self, **changes) -> None:
-        """Replace seams (Seams' fields) before the first cell: after it, they would apply to
-        part of the run only."""
+        """Replace seams (Seams' fields) before the first cell (after it: part of the run only)."""
         if self._cells is not None or self._workspace is not None:
             raise RuntimeError("use_seams after the first cell: set seams at pytest_configure")
         self.seams = replace(self.seams, **changes)
@@ -110,8 +107,7 @@ class GraftSession:
     def collected(self, selection: Selection, cells: list[CellSpec] = ()) -> None:
         """Collection's selection (bench.plugin, after -k / -m; an xdist controller: what its
         workers collected), `cells` its grid cells. Where the run's ends run (not an xdist
-        worker): the results dir opened and --report's folder checked, the paper preflight of
-        the cells, and grid.json written, its one writer (`_write_grid`)."""
+        worker): the results dir and --report checked, the paper preflight, grid.json written."""
         self.selection = selection
         if hasattr(self.config, "workerinput") or not (selection.cells or selection.screens):
             return
@@ -134,13 +130,9 @@ class GraftSession:
             raise pytest.UsageError(problem)
 
     def _write_grid(self) -> None:
-        """grid.json: the cells this run meant to measure (the report lists those missing); a
-        slice's are added to those of the grid it was cut from, so one study run in slices
-        reads as one study. --collect-only measures nothing and expects nothing: it lists ids
-        and leaves a study's grid.json as it was."""
-        if self.config.option.collectonly:
-            return
-        self.store.write_grid(self.ran_cells, self.profile.name, add=self.selection.sliced)
+        """grid.json (store.write_grid), never under --collect-only: it lists ids, expects none."""
+        if not self.config.option.collectonly:
+            self.store.write_grid(self.ran_cells, self.profile.name, add=self.selection.sliced)
 
     def check_names_once(self) -> list[str]:
         """The start-up check of names and paths, when no earlier hook ran it (a grid module

@@ -222,7 +222,7 @@ class BaselineRun:
                              B.markdown_section(self.comparison, self.compare_path)))
         if self.save_path is not None:
             from bench.results.provenance import git_commit
-            from bench.results.store import atomic_write_json
+            from bench.results.jsonfile import atomic_write_json
 
             kept = [records[c] for c in ids
                     if c in records and not records[c].measured.feature_transform]

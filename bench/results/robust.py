@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from bench.results.record import SPACES, Record
-from bench.results.store import atomic_write_json
+from bench.results.jsonfile import atomic_write_json
 
 ROBUST = "robust"
 SCHEMA = 1

@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import tempfile
 import threading
@@ -23,6 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.grid.kinds import GRAFT
+from bench.results.episode_log import EpisodeLog
+from bench.results.jsonfile import atomic_write_json, read_json as _read_json
 from ondisk.filelock import exclusive, try_exclusive
 from bench.results.current import RunConditions, is_current
 from bench.results.record import Failure, Record
@@ -35,32 +36,16 @@ ROLLOUTS = "rollouts"
 CLAIMS = ".claims"  # hidden: a folder of lock files, no results
 UNREADABLE = "unreadable"
 _GRID_EXPECTED, _GRID_PROFILE = "expected", "profile"
-_LOG_KEY, _LOG_EPISODES = "key", "episodes"
 
 
 class ResultsDirError(RuntimeError):
     pass
 
 
-def atomic_write_json(path: Path, data: dict) -> None:
-    """Temp file in the same folder + os.replace: a crash never leaves half a record."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1, sort_keys=True)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _read_json(path: Path) -> dict:
-    with open(path, encoding="utf-8") as f:
-        return json.load(f)
+def _read_grid(root: Path) -> tuple[list[str], str | None]:
+    """grid.json's (expected cell ids, profile); OSError / ValueError / KeyError / TypeError."""
+    grid = _read_json(root / GRID)
+    return [str(c) for c in grid[_GRID_EXPECTED]], grid.get(_GRID_PROFILE)
 
 
 def read_record(path: Path) -> Record:
@@ -125,9 +110,7 @@ def load_results(results_dir: str | Path) -> Results:
     results.set_aside = sorted(p.name for p in (root / UNREADABLE).glob("*.json"))
     if (root / GRID).exists():
         try:
-            grid = _read_json(root / GRID)
-            results.expected = [str(c) for c in grid[_GRID_EXPECTED]]
-            results.grid_profile = grid.get(_GRID_PROFILE)
+            results.expected, results.grid_profile = _read_grid(root)
         except (OSError, ValueError, KeyError, TypeError) as err:
             results.skipped.append((GRID, f"{type(err).__name__}: {err}"))
     return results
@@ -178,37 +161,6 @@ def load_failure(results_dir: str | Path, cell_id: str) -> Failure | None:
         return Failure.from_json(_read_json(path)) if path.is_file() else None
     except (OSError, ValueError):
         return None
-
-
-class EpisodeLog:
-    """The finished closed-loop episodes of one cell while its rollouts run, so a killed run
-    resumes per episode: one JSON file rewritten atomically after every episode (a kill loses
-    at most the episode in flight; an episode is a few hundred bytes, so rewriting stays cheap).
-
-    `key` names the policy and rollout spec the episodes belong to: episodes stored under
-    another key (a retrained policy, another spec) are never resumed, they are started over.
-    The store removes the file when the cell's record is written (the record holds them)."""
-
-    def __init__(self, path: Path, key: str) -> None:
-        self.path, self.key = Path(path), key
-
-    def finished(self) -> list[dict]:
-        """Episodes stored under this key, in the order they finished; [] when none is usable."""
-        try:
-            data = _read_json(self.path)
-        except (OSError, ValueError):
-            return []  # absent, or unreadable: roll out again rather than trust it
-        if not isinstance(data, dict) or data.get(_LOG_KEY) != self.key:
-            return []
-        return list(data.get(_LOG_EPISODES) or [])
-
-    def add(self, episode: dict) -> None:
-        """Store one more finished episode (atomically, with those before it)."""
-        atomic_write_json(self.path, {_LOG_KEY: self.key,
-                                      _LOG_EPISODES: [*self.finished(), episode]})
-
-    def clear(self) -> None:
-        self.path.unlink(missing_ok=True)
 
 
 _HELD = threading.local()  # the cell claims this thread holds (ResultStore.cell_lock)
@@ -390,15 +342,14 @@ class ResultStore:
         return path
 
     def write_grid(self, expected: list[str], profile: str, add: bool = False) -> None:
-        """`expected` as what the folder's runs mean to measure; `add`: after what an earlier
-        run of the same profile expected (a -k slice of a larger grid), not instead of it."""
-        if add:
-            try:
-                earlier = json.loads((self.root / GRID).read_text())
-            except (OSError, ValueError):
-                earlier = {}
-            if isinstance(earlier, dict) and earlier.get(_GRID_PROFILE) == profile:
-                kept = [c for c in earlier.get(_GRID_EXPECTED) or [] if isinstance(c, str)]
-                expected = kept + [c for c in expected if c not in set(kept)]
+        """grid.json: the cells this run means to measure (the report lists those missing);
+        `add` (a -k / -m slice): after what the folder's grid of the same profile expected, not
+        instead of it, so a study run in slices reads as one study."""
+        try:
+            kept, earlier = _read_grid(self.root) if add else ([], None)
+        except (OSError, ValueError, KeyError, TypeError):
+            kept, earlier = [], None
+        if earlier == profile:
+            expected = kept + [c for c in expected if c not in set(kept)]
         atomic_write_json(self.root / GRID, {_GRID_EXPECTED: expected, _GRID_PROFILE: profile})
 
