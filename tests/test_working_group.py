@@ -127,3 +127,21 @@ def test_the_report_gives_the_verdict_and_the_open_pairs(tmp_path):
     assert "| effnet_lite0 - effnet_lite1 | 40 | 15.0% / 10.0% | +5.0 pts" in section
     assert "743 (783 in all)" in section
     assert "offline MSE orders 0 of the 1 resolved neighbour pair(s) the same way" in section
+
+
+def test_the_section_names_the_sequential_design_the_folder_was_run_under(tmp_path):
+    import json
+    from types import SimpleNamespace
+
+    from bench.analysis.sequential_study import DESIGN_FILE
+    from bench.report.working_group import design_line
+
+    ctx = SimpleNamespace(results=SimpleNamespace(root=tmp_path))
+    assert design_line(ctx) is None
+    (tmp_path / DESIGN_FILE).write_text(json.dumps({
+        "design": {"rule": "racing v1", "alpha": 0.05, "budget": 1500, "units_per_round": 36},
+        "last": {"rounds": 4, "stop": "resolved", "spent_episodes": 700}}))
+    assert design_line(ctx) == (
+        "Run as a sequential study (sequential.json: racing v1, alpha 0.05, budget 1500 "
+        "episodes, 36 episodes per item a round): 4 round(s), stopped: resolved; 700 episodes "
+        "rolled out in all.")

@@ -8,13 +8,12 @@ import math
 
 from bench.analysis.agreement import Interval, Undefined
 from bench.analysis.rankings import CONFIDENCE
+from bench.analysis.sequential_study import DESIGN_FILE
 from bench.analysis.working_group import OPEN_PAIR_RULE, WORKING_RULE, WorkingGroup
 from bench.report.context import ReportContext
 from bench.report.format import interval, num, table
 
 TITLE = "Closed loop: the verdict within the working group"
-# What the sequential runner (bench.analysis.sequential_study) stores in the results folder.
-DESIGN_FILE = "sequential.json"
 INTRO = (
     "Which of the encoders that work succeeds most, and does offline MSE tell? " + WORKING_RULE
     + " Success per item is the mean over its cells (releases x seeds) of each cell's share of "
