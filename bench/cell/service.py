@@ -91,7 +91,8 @@ class CellService:
             cell_plan = self.plan(cell)
             if cell_plan.resume is not None:
                 record, outcome = cell_plan.resume, RESUMED
-            elif cell_plan.extend is not None:
+            elif cell_plan.extend is not None and self.measure_with is None:
+                # (a job array measures elsewhere: its task measures the cell again, rerun)
                 record, outcome = self._extend(cell_plan), MEASURED
             else:
                 record, outcome = self._measure(cell_plan), MEASURED
@@ -186,7 +187,7 @@ class CellService:
 
     def _extend(self, cell_plan: CellPlan):
         """The stored record with the episodes the run wants more of (bench.cell.extend), in
-        this process whatever the executor (nothing trains), written as a measured one."""
+        this process (nothing trains), written as a measured one."""
         from bench.cell.extend import extend_rollouts
 
         cell, order = cell_plan.cell, list(self.order())
