@@ -18,8 +18,9 @@ INTRO = (
     "Which of the encoders that work succeeds most, and does offline MSE tell? " + WORKING_RULE
     + " Success per item is the mean over its cells (releases x seeds) of each cell's share of "
     "successful episodes; intervals draw releases, seeds within a release and rollout episodes "
-    "within their task (n - 1 of n at each level, one draw for every item: an episode is a task "
-    f"and init state, the same for every item), percentile, {CONFIDENCE:.0%}. A neighbour pair "
+    "within their task (across tasks where a task holds one; n - 1 of n at each level, one draw "
+    "for every item: an episode is a task and init state, the same for every item), "
+    f"percentile, {CONFIDENCE:.0%}. A neighbour pair "
     "is compared on the episodes both items ran; it is resolved when the interval of its "
     "difference excludes 0. Kendall tau-b of -MSE and success over the working items, with the "
     "same draw (held-out windows for the MSE, the cell draw shared): +1 is 'offline MSE orders "
