@@ -60,9 +60,11 @@ def test_a_stored_cell_rolls_out_only_its_missing_episodes(tmp_path, monkeypatch
     """Through the cell service, as `pytest bench --rollouts 3` on a record of 2 per task: the
     8 stored episodes are kept, 4 rolled out (one per task, init state 47), the offline scores
     untouched, the rows in one sitting's order."""
-    from bench.cell.rollouts import cell_rollouts
+    from dataclasses import asdict
+
+    from bench.cell.rollouts import rollout_spec, suite_render
     from bench.cell.service import CellService, RunSettings
-    from bench.progress import QUIET
+    from bench.loops.evaluate import executed_steps
     from bench.results.store import ResultStore
     from tests.worlds import lent_workspace
 
@@ -70,8 +72,15 @@ def test_a_stored_cell_rolls_out_only_its_missing_episodes(tmp_path, monkeypatch
     ws = lent_workspace(TINY, store, rollouts=3)
     scenes, resets = fake_scenes(ws)
     monkeypatch.setattr("bench.sim.rollout.LIBERO", scenes)
-    backbone = ws.backbone("pi05", "spatial")
-    two = cell_rollouts(NATIVE, ws.suite("spatial"), backbone, 2, progress=QUIET, scenes=scenes)
+    # The stored 2 per task, as a sitting of 2 leaves them (written here: rolling them out
+    # would cost a 280-step episode)
+    suite = ws.suite("spatial")
+    spec = rollout_spec(suite, 2, executed_steps(ws.backbone("pi05", "spatial")),
+                        scenes.descriptions)
+    two = {"spec": asdict(spec), "settings": {"render": suite_render(suite).as_dict()},
+           "episodes": [{"task": t, "episode": e, "init_state": 49 - e, "success": e == 0,
+                         "steps": 3 if e == 0 else 280, "seconds": 1.0}
+                        for t in range(4) for e in range(2)]}
     stored = make_record(kind="native", backbone="pi05", encoder=None).replace(
         cell_id=NATIVE.id, rollouts=two, checkpoint={
             **ws.checkpoint("pi05", "spatial"),
@@ -82,6 +91,7 @@ def test_a_stored_cell_rolls_out_only_its_missing_episodes(tmp_path, monkeypatch
                           RunSettings(feature_dtype=ws.feature_dtype, rollouts=3))
     record = service.run(NATIVE)
     assert resets == [(t, 47) for t in range(4)]
+
     def rows(out):
         return [(e["task"], e["episode"], e["init_state"], e["success"], e["steps"])
                 for e in out["episodes"]]
