@@ -9,7 +9,8 @@ measured or failed by this service, and not a control that takes its graft's pro
 each cell keeps its own seed, data order, noise and schedule in the pack, so a seed is no reason to
 keep cells apart, and more cells fill a pack. Each mate is claimed on the results store WITHOUT
 waiting: one another process holds is left to it; one with a current record (its plan: resume) is
-left out and resumed by its own case. The pack trains (train_pack), then every cell is scored as it
+left out and resumed by its own case, and so is one whose record lacks only closed-loop episodes
+(its plan: extend, bench.cell.extend). The pack trains (train_pack), then every cell is scored as it
 is alone (runner.score_cell) and written by the service, mates first, the lead last (returned to the
 service like a runner's result), the claims held until all are written. A mate that fails gets its
 failure record, and its case fails with that error when reached; the others go on. The mates'
@@ -65,8 +66,8 @@ def claim_mates(service, lead: CellPlan, claims: contextlib.ExitStack) -> list[C
             continue
         service.set_aside(mate)
         plan = service.plan(mate)
-        if plan.resume is not None or plan.context.reuse is not None:
-            one.close()  # its case resumes it / takes its graft's projector, as unpacked
+        if plan.resume is not None or plan.extend is not None or plan.context.reuse is not None:
+            one.close()  # its case resumes / extends it, takes its graft's projector, as unpacked
             continue
         claims.enter_context(one.pop_all())
         mates.append(plan)

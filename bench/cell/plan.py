@@ -11,13 +11,13 @@ lives on the workspace (its resources only: policies, suites, encoders, features
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Mapping
 
 from bench.grid.cells import CellSpec
 from bench.grid.kinds import GRAFT
-from bench.results.current import RunConditions, is_current
+from bench.results.current import RunConditions, fewer_episodes, is_current
 from bench.results.record import Record
 
 FEATURES_MODES = ("cache", "loop")
@@ -87,13 +87,15 @@ def cell_context(cell: CellSpec, features_mode: str = "cache", *,
 
 @dataclass(frozen=True)
 class CellPlan:
-    """Resume `cell` from `resume`, or measure it with `context` (after discarding the stored
-    record when `discard`: a planted degradation must never outlive its run)."""
+    """Resume `cell` from `resume`, roll out the episodes `extend` lacks (bench.cell.extend), or
+    measure it with `context` (after discarding the stored record when `discard`: a planted
+    degradation must never outlive its run)."""
 
     cell: CellSpec
     context: CellContext
     resume: Record | None = None
     discard: bool = False
+    extend: Record | None = None
 
     def work(self, steps: int) -> str:
         """What measuring does, for the start line."""
@@ -109,18 +111,25 @@ def plan(cell: CellSpec, stored: Record | None, run: RunConditions, *,
          weights: Callable[[RunConditions], RunConditions] | None = None,
          rerun: bool = False, features_mode: str = "cache",
          projectors: Mapping[tuple, TrainedProjector] | None = None,
-         feature_transform: Callable | None = None) -> CellPlan:
-    """Resume or measure `cell`, whose stored record is `stored` (None: none readable). `run`:
-    the conditions a stored record must match (bench.results.current); `weights(run)`: `run`
-    with the conditions that need the policy looked up (revision, normalizer_fingerprint),
-    asked only when the stored record passes `run`."""
+         feature_transform: Callable | None = None,
+         rebuilds: Callable[[CellSpec, Record], bool] = lambda cell, record: False) -> CellPlan:
+    """Resume, extend or measure `cell`, whose stored record is `stored` (None: none readable).
+    `run`: the conditions a stored record must match (bench.results.current); `weights(run)`:
+    `run` with the conditions that need the policy looked up (revision, normalizer_fingerprint),
+    asked only when the stored record passes `run` but perhaps its episode count. A record that
+    passes all but holds fewer episodes per task is extended when `rebuilds(cell, stored)` (its
+    policy can be rebuilt from the store: bench.cell.extend.rebuilds_policy)."""
     context = cell_context(cell, features_mode, projectors=projectors,
                            feature_transform=feature_transform)
     degraded = stored is not None and (feature_transform is not None
                                        or stored.measured.feature_transform is not None)
     if rerun or stored is None or degraded:
         return CellPlan(cell, context, discard=degraded)
-    if not is_current(stored, run):
+    if not is_current(stored, replace(run, rollouts=0)):
         return CellPlan(cell, context)
     full = weights(run) if weights is not None else run
-    return CellPlan(cell, context, resume=stored if is_current(stored, full) else None)
+    if is_current(stored, full):
+        return CellPlan(cell, context, resume=stored)
+    if fewer_episodes(stored, full) and rebuilds(cell, stored):
+        return CellPlan(cell, context, extend=stored)
+    return CellPlan(cell, context)

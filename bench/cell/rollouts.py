@@ -168,7 +168,7 @@ def rollout_log_key(spec, render, policy: str) -> str:
 def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *,
                   graft: LoopGraft | None = None, progress: ProgressSink, store=None,
                   policy: str = "", scenes=None, batching=None, perturb=None,
-                  log_id: str | None = None) -> dict:
+                  log_id: str | None = None, kept: dict | None = None) -> dict:
     """Roll the cell's policy out in LIBERO; the dict stored under the record's "rollouts".
 
     With a results `store`, every finished episode is kept in the cell's episode log (under
@@ -176,7 +176,9 @@ def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *,
     resumes from it. `scenes`: bench.sim.rollout.Scenes (LIBERO's unless a test passes one);
     `batching`: bench.sim.rollout.Batching (None: in-process), the same episodes whatever it is,
     so the episode log's key leaves it out. `perturb` (cell_act) and
-    `log_id` (the episode log's name, default the cell id): the robustness tier's rollouts."""
+    `log_id` (the episode log's name, default the cell id): the robustness tier's rollouts.
+    `kept`: a stored record's rollouts of this policy at fewer episodes per task (bench.cell.
+    extend), whose episodes are kept, not rolled out again; another spec or render is refused."""
     if cell.spec.eval_inputs in NO_CLOSED_LOOP:
         return {"skipped": NO_CLOSED_LOOP[cell.spec.eval_inputs]}
     from dataclasses import asdict
@@ -189,14 +191,35 @@ def cell_rollouts(cell, suite, backbone, episodes_per_task: int, *,
     act = cell_act(cell, backbone, noise_seed=spec.seed, graft=graft, perturb=perturb)
     log = (store.episode_log(log_id or cell.id, rollout_log_key(spec, render, policy))
            if store else None)
-    out = run_rollouts(act, spec, progress=progress, render=render,
-                       finished=log.finished() if log else [],
+    finished = kept_episodes(kept, spec, render) + (log.finished() if log else [])
+    out = run_rollouts(act, spec, progress=progress, render=render, finished=finished,
                        on_episode=log.add if log else None, scenes=scenes,
                        batching=batching or IN_PROCESS)
     # Each task's instruction, so an episode's LIBERO task id meets the record's task name
     # (per-task success against per-task MSE: bench.analysis.offline_measures).
     texts = scenes.descriptions(spec.suite)
     return {**out, "spec": asdict(spec), "task_names": {str(t): texts[t] for t in spec.tasks}}
+
+
+def kept_episodes(kept: dict | None, spec, render) -> list[dict]:
+    """The episodes of stored rollouts `kept` (None: none) that `spec` begins with: the same spec
+    but for fewer episodes per task, the same render settings; ValueError naming the difference
+    otherwise (their episodes are other scenes: the cell must be measured again)."""
+    from dataclasses import asdict
+
+    if not kept or not kept.get("episodes"):
+        return []
+    def as_stored(value):  # as a record holds it (JSON: tuples are lists)
+        return json.loads(json.dumps(value))
+
+    want = {**asdict(spec), "episodes_per_task": kept["spec"]["episodes_per_task"]}
+    have_render = (kept.get("settings") or {}).get("render")
+    if (as_stored(kept["spec"]) != as_stored(want)
+            or have_render is not None and as_stored(have_render) != as_stored(render.as_dict())):
+        raise ValueError(f"the stored rollouts ({kept['spec']}, render {have_render}) are not "
+                         f"the first episodes of {asdict(spec)} (render {render.as_dict()}): "
+                         "measure the cell again (--rerun)")
+    return [e for e in kept["episodes"] if int(e["episode"]) < spec.episodes_per_task]
 
 
 def suite_render(suite):

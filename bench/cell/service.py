@@ -25,6 +25,7 @@ from typing import Callable, Sequence
 from bench.grid.cells import CellSpec
 from bench.progress import say
 from bench.cell.outcome import MEASURED, RESUMED, Outcome, failed
+from bench.cell.extend import rebuilds_policy
 from bench.cell.plan import CellPlan, CellResult, plan
 
 
@@ -90,6 +91,9 @@ class CellService:
             cell_plan = self.plan(cell)
             if cell_plan.resume is not None:
                 record, outcome = cell_plan.resume, RESUMED
+            elif cell_plan.extend is not None and self.measure_with is None:
+                # (a job array measures elsewhere: its task measures the cell again, rerun)
+                record, outcome = self._extend(cell_plan), MEASURED
             else:
                 record, outcome = self._measure(cell_plan), MEASURED
         self.records[cell.id], self.outcomes[cell.id] = record, outcome
@@ -105,7 +109,8 @@ class CellService:
         return plan(cell, self.store.load(cell.id), run,
                     weights=lambda wanted: self._weights(cell, wanted),
                     rerun=s.rerun, features_mode=s.features_mode, projectors=self.projectors,
-                    feature_transform=self.feature_transform(cell))
+                    feature_transform=self.feature_transform(cell),
+                    rebuilds=lambda c, record: rebuilds_policy(c, record, self.store.root))
 
     def progress(self):
         return self.workspace().progress
@@ -176,6 +181,23 @@ class CellService:
             else:
                 result = self.runner(cell, self.workspace(), cell_plan.context)
             return self.write(cell_plan, result)
+        except Exception as e:
+            self.note_failure(cell, e)
+            raise
+
+    def _extend(self, cell_plan: CellPlan):
+        """The stored record with the episodes the run wants more of (bench.cell.extend), in
+        this process (nothing trains), written as a measured one."""
+        from bench.cell.extend import extend_rollouts
+
+        cell, order = cell_plan.cell, list(self.order())
+        position = order.index(cell.id) + 1 if cell.id in order else "?"
+        have = (cell_plan.extend.run.rollouts or {}).get("episodes") or []
+        say(self.progress(), f"cell {position}/{len(order)} {cell.id}: {len(have)} stored "
+                             f"episode(s) kept, the rest of {self.settings.rollouts} per task "
+                             "rolled out by its stored policy (nothing trained or rescored)")
+        try:
+            return self.write(cell_plan, extend_rollouts(cell, self.workspace(), cell_plan.extend))
         except Exception as e:
             self.note_failure(cell, e)
             raise

@@ -22,6 +22,7 @@ from bench.analysis.rankings import DEFAULT_RESAMPLES, rank_all
 from bench.analysis.controls import control_deltas, vision_checks, wrapper_neutrality
 from bench.analysis.rollouts import closed_loop_all
 from bench.analysis.transfer import support_counts, transfer_all, transfer_intervals
+from bench.analysis.working_group import working_groups
 from bench.grid.kinds import GRAFT
 from bench.results.store import Results, load_results
 from bench.report.budget import TITLE as BUDGET_TITLE, budget_section, budgets
@@ -32,6 +33,7 @@ from bench.report.naive import with_naive_baselines
 from bench.report.provenance import per_task_section, protocol_constants, provenance_section
 from bench.report.robustness import robustness_section
 from bench.report.tuning import TITLE as TUNING_TITLE, tuning_section
+from bench.report.working_group import TITLE as WORKING_TITLE, working_group_section
 from bench.report.screen import (SCATTER_TITLE, SECTION_TITLE, calibrations, scatter_points,
                                  screen_agreements, screen_section)
 from bench.report.sections import (
@@ -54,6 +56,7 @@ SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
     ("Controls", controls_section),
     (TUNING_TITLE, tuning_section),  # only when the store holds tuned-encoder cells
     ("Closed loop: success beside offline MSE", closed_loop_section),
+    (WORKING_TITLE, working_group_section),  # only when candidates were rolled out
     ("Per-task breakdown", per_task_section),
     (SECTION_TITLE, screen_section),  # only when the store holds screens
     ("Robustness", robustness_section),  # only when the store holds robustness records
@@ -89,7 +92,10 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
                              screens, records, n_resamples, random_seed, candidates),
                          screen_calibrations=calibrations(results.selections, n_resamples,
                                                           random_seed),
-                         screens=screens, naive_filled=filled, candidates=candidates)
+                         screens=screens, naive_filled=filled, candidates=candidates,
+                         working_groups=working_groups(records, candidates,
+                                                       n_resamples=n_resamples,
+                                                       random_seed=random_seed))
 
 
 def _guarded(name: str, render: Callable[[ReportContext], str | None],
@@ -179,7 +185,8 @@ def summary(ctx: ReportContext) -> dict:
         "protocol_hashes": sorted({r.measured.protocol_hash or "?" for r in ctx.records}),
         "rankings": ctx.rankings, "transfers": ctx.transfers, "support": ctx.support,
         "wrapper_neutrality": ctx.wrapper, "controls": ctx.controls,
-        "closed_loop": ctx.closed_loop, "vision_use": ctx.vision,
+        "closed_loop": ctx.closed_loop, "working_groups": ctx.working_groups,
+        "vision_use": ctx.vision,
         "screen_agreement": ctx.screen_agreements,
         "screen_calibration": ctx.screen_calibrations,
         "protocol_constants": protocol_constants(ctx.records),

@@ -37,6 +37,8 @@ class ReportContext:
     naive_filled: list[str] = field(default_factory=list)
     # The labels of the candidate items (bench.analysis.candidates): encoders and "native".
     candidates: frozenset[str] = frozenset()
+    # The verdict within the closed loop's working group (bench.analysis.working_group).
+    working_groups: list = field(default_factory=list)
 
     @property
     def records(self) -> list[dict]:

@@ -8,7 +8,7 @@ states what its cell was measured under (protocol, normaliser, package versions)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from bench.results.record import Record
 
@@ -45,6 +45,20 @@ def differences(record: Record, run: RunConditions) -> list[str]:
     for pkg in sorted(set(run.versions or {}) & set(have_versions)):
         differ(pkg, have_versions[pkg], run.versions[pkg])
     return out
+
+
+def fewer_episodes(record: Record, run: RunConditions) -> bool:
+    """Whether `record` stands for `run` in everything but holding fewer closed-loop episodes
+    per task than the run wants (none counts as 0): its episodes can be kept and the rest
+    rolled out (bench.cell.extend), where another count or condition measures it again."""
+    if not run.rollouts or differences(record, replace(run, rollouts=0)):
+        return False
+    rollouts = record.run.rollouts or {}
+    if "skipped" in rollouts:
+        return False
+    have = (rollouts.get("spec") or {}).get("episodes_per_task", 0) \
+        if rollouts.get("episodes") else 0
+    return have < run.rollouts
 
 
 def is_current(record: Record, run: RunConditions) -> bool:
