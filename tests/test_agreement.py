@@ -150,3 +150,28 @@ def test_one_seed_per_item_gives_the_two_axis_intervals_exactly():
     drawn = bootstrap_two_axes(pred[:, 0], act[:, 0], n_resamples=100, seeds=seeds)
     assert {k: (v.low, v.high) for k, v in alone.items()} == {
         k: (v.low, v.high) for k, v in drawn.items()}
+
+
+def test_the_two_axis_draw_takes_episodes_as_the_unit_when_given_units():
+    """Planted: every held-out episode's windows are one value, so copying each window three
+    times within its episode adds no information. Drawn by episodes (units), the interval is
+    the same as before the copies (the same draws of 4 episodes); drawn window by window, it
+    narrows as if there were 3x the data."""
+    from bench.analysis.agreement import bootstrap_two_axes
+    from bench.analysis.hierarchy import Units
+
+    rng = np.random.default_rng(5)
+    # 5 items x 12 held-out episodes (2 tasks), one window each; 8 rollout episodes, no spread
+    pred = rng.normal(size=(5, 12)) + 0.3 * np.arange(5)[:, None]
+    act = np.repeat(rng.random((5, 1)), 8, axis=1)
+    tripled, tasks = np.repeat(pred, 3, axis=1), np.repeat([0, 1], 6)
+    episodes = (Units(np.arange(12), tasks), Units(np.arange(8), np.repeat([0, 1], 4)))
+    copies = (Units(np.repeat(np.arange(12), 3), np.repeat(tasks, 3)), episodes[1])
+
+    def width(p, units=None):
+        ci = bootstrap_two_axes(p, act, n_resamples=400, statistics=("pearson_r",),
+                                units=units)["pearson_r"]
+        return ci.high - ci.low
+
+    assert width(tripled, copies) == pytest.approx(width(pred, episodes), rel=0.15)
+    assert width(tripled) < 0.8 * width(pred)

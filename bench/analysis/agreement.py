@@ -367,7 +367,8 @@ def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: i
                        seed: int = 0, confidence: float = 0.95, *,
                        statistics: tuple[str, ...] = WITH_PEARSON,
                        masks: tuple[np.ndarray, np.ndarray] | None = None,
-                       seeds: SeedStacks | None = None) -> dict[str, Interval | Undefined]:
+                       seeds: SeedStacks | None = None,
+                       units: tuple | None = None) -> dict[str, Interval | Undefined]:
     """Paired bootstrap when the two tiers are measured on different units: each replicate draws
     the W columns of `predicted` and, independently, the E columns of `actual` with replacement,
     ONCE for all n items, and re-averages both (e.g. offline -MSE over held-out windows against
@@ -379,7 +380,11 @@ def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: i
     item x task pair: its task's windows and episodes); the draws are the same either way.
     seeds: the same scores per training seed (SeedStacks): each replicate first draws every
     item's seeds (its own random stream, so items of one seed each give the two-axis intervals
-    exactly), then the windows and episodes of that draw: the training's variance enters."""
+    exactly), then the windows and episodes of that draw: the training's variance enters.
+    units: (Units of the W columns, Units of the E columns) (bench.analysis.hierarchy): each
+    axis drawn as the rankings draw it, episodes (within tasks) then windows within a drawn
+    episode, n - 1 of n at each level, instead of its columns one by one; a rollout episode is
+    its own unit of one column, drawn within its task."""
     predicted = np.asarray(predicted, dtype=float)
     actual = np.asarray(actual, dtype=float)
     if predicted.ndim != 2 or actual.ndim != 2 or len(predicted) != len(actual):
@@ -387,13 +392,20 @@ def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: i
                          f"{actual.shape}")
     pm, am = (None, None) if masks is None else (np.asarray(m, dtype=float) for m in masks)
     rng, seed_rng = np.random.default_rng(seed), np.random.default_rng([seed, 1])
+    if units is not None:  # (B, W) and (B, E) weights of each replicate's hierarchical draw
+        column_weights = [window_weights(u, n_resamples, rng) for u in units]
     values: dict[str, list[float]] = {k: [] for k in statistics}
     reasons: dict[str, str] = {}
-    for _ in range(n_resamples):
+    for b in range(n_resamples):
         p, a = (predicted, actual) if seeds is None else seeds.draw(seed_rng)
-        w = rng.integers(0, predicted.shape[1], predicted.shape[1])
-        e = rng.integers(0, actual.shape[1], actual.shape[1])
-        s = masked_mean(p[:, w], None if pm is None else pm[:, w])
-        r = masked_mean(a[:, e], None if am is None else am[:, e])
+        if units is not None:
+            wp, wa = (weights[b][None, :] for weights in column_weights)
+            s = masked_mean(p, wp if pm is None else pm * wp)
+            r = masked_mean(a, wa if am is None else am * wa)
+        else:
+            w = rng.integers(0, predicted.shape[1], predicted.shape[1])
+            e = rng.integers(0, actual.shape[1], actual.shape[1])
+            s = masked_mean(p[:, w], None if pm is None else pm[:, w])
+            r = masked_mean(a[:, e], None if am is None else am[:, e])
         _keep(values, reasons, {k: BY_NAME[k](s, r) for k in statistics})
     return percentile_intervals(values, reasons, n_resamples, confidence)

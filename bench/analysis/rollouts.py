@@ -10,10 +10,11 @@ offline winner) and Pearson r of -MSE and success. +1 (tau, r) means "the offlin
 closed-loop ranking". A closed-loop ranking that is one tie (every item succeeds equally often)
 has no order: those statistics are `Undefined` with the reason, never 0.
 
-Intervals (stated in the report): a paired bootstrap. Each replicate draws the held-out windows
-and, independently, the rollout episodes (identical init states across cells) with replacement,
-once for all items, and recomputes every statistic; percentile interval over the replicates
-where it is defined. With a handful of items and few episodes the interval is wide: that is the
+Intervals (stated in the report): a paired bootstrap. Each replicate draws every item's seeds,
+the held-out episodes within their tasks and windows within a drawn episode, and, independently,
+the rollout episodes within their task (identical init states across cells), n - 1 of n at each
+level (bench.analysis.hierarchy), once for all items, and recomputes every statistic; percentile
+interval over the replicates where it is defined. With a handful of items and few episodes the interval is wide: that is the
 honest answer at small N.
 
 Given the candidates (bench.analysis.candidates: the native policy and grafts of trained
@@ -34,7 +35,8 @@ from bench.analysis.agreement import (
 )
 from bench.analysis.offline_measures import (MeasureAgreement, Rolled, full_chunk,
                                              measure_agreements, seed_stack)
-from bench.analysis.rankings import CONFIDENCE
+from bench.analysis.hierarchy import Units
+from bench.analysis.rankings import CONFIDENCE, record_units
 from bench.grid.kinds import record_label
 from bench.stats import wilson_interval
 
@@ -109,21 +111,24 @@ class ClosedLoop:
 
 
 def agreement_with_success(per_window: np.ndarray, per_episode: np.ndarray, seeds: SeedStacks,
-                           n_resamples: int, random_seed: int
+                           n_resamples: int, random_seed: int, units: tuple[Units, Units]
                            ) -> tuple[dict[str, Measure], dict[str, Interval | Undefined]]:
     """(statistics, intervals) of -MSE against success over the rows given: per_window (I, W)
-    MSE and per_episode (I, E) success, means over seeds; seeds: their per-seed stacks."""
+    MSE and per_episode (I, E) success, means over seeds; seeds: their per-seed stacks; units:
+    how the windows (held-out episodes, tasks) and the rollout episodes (tasks) group."""
     predicted, actual = -per_window.mean(axis=1), per_episode.mean(axis=1)
     point = agreement(predicted, actual)
     stats = {k: pearson_r(predicted, actual) if k == "pearson_r" else getattr(point, k)
              for k in WITH_PEARSON}
     stats["p_value"] = kendall_p_value(predicted, actual)
     return stats, bootstrap_two_axes(-per_window, per_episode, n_resamples=n_resamples,
-                                     seed=random_seed, confidence=CONFIDENCE, seeds=seeds)
+                                     seed=random_seed, confidence=CONFIDENCE, seeds=seeds,
+                                     units=units)
 
 
 def _on_candidates(out: ClosedLoop, per_window: np.ndarray, per_episode: np.ndarray,
-                   seeds: SeedStacks, candidates: frozenset[str], random_seed: int) -> None:
+                   seeds: SeedStacks, candidates: frozenset[str], random_seed: int,
+                   units: tuple[Units, Units]) -> None:
     """The agreement again over the candidate items (rows of `per_window` in out.items' order)."""
     rows = np.array([i for i, item in enumerate(out.items) if item in candidates], dtype=int)
     out.candidates = [out.items[i] for i in rows]
@@ -134,7 +139,7 @@ def _on_candidates(out: ClosedLoop, per_window: np.ndarray, per_episode: np.ndar
     kept = SeedStacks(seeds.predicted[rows], seeds.actual[rows], seeds.count[rows],
                       seeds.item[rows])
     out.candidate_agreement, out.candidate_intervals = agreement_with_success(
-        per_window[rows], per_episode[rows], kept, out.n_resamples, random_seed)
+        per_window[rows], per_episode[rows], kept, out.n_resamples, random_seed, units)
 
 
 def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
@@ -177,10 +182,13 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     if len(out.items) < 2:
         out.missing = f"only one rolled-out item ({out.items[0]}): nothing to rank"
         return out
+    # Drawn as the rankings draw: held-out episodes within tasks, then their windows; rollout
+    # episodes within their task (each its own unit); seeds per item (full.seeds).
+    units = (record_units(rolled[0]), Units(np.arange(len(keys)), np.array([k[0] for k in keys])))
     out.agreement, out.intervals = agreement_with_success(per_window, per_episode, full.seeds,
-                                                          n_resamples, random_seed)
+                                                          n_resamples, random_seed, units)
     if candidates is not None:
-        _on_candidates(out, per_window, per_episode, full.seeds, candidates, random_seed)
+        _on_candidates(out, per_window, per_episode, full.seeds, candidates, random_seed, units)
     out.measures = measure_agreements(rolled_items, candidates, n_resamples=n_resamples,
                                       seed=random_seed)
     return out
