@@ -118,7 +118,7 @@ def test_bootstrap_of_a_tied_prediction_is_undefined_with_reason():
 
 def _seed_case(errors_by_seed, success_by_seed, windows=6, episodes=6):
     """SeedStacks whose windows and episodes carry no variance: every spread is the seeds'."""
-    from bench.analysis.agreement import SeedStacks
+    from bench.analysis.two_axes import SeedStacks
 
     pred = -np.repeat(np.asarray(errors_by_seed, float)[:, :, None], windows, axis=2)
     act = np.repeat(np.asarray(success_by_seed, float)[:, :, None], episodes, axis=2)
@@ -130,7 +130,7 @@ def test_a_bootstrap_over_seeds_widens_what_the_seeds_disagree_on():
     """Planted: the middle item's seed 0 is the best offline and the worst in closed loop, its
     seed 1 the reverse; over the means the orders agree (tau 1), over windows and episodes alone
     the interval is [1, 1]; drawing seeds as well must reach below it."""
-    from bench.analysis.agreement import bootstrap_two_axes
+    from bench.analysis.two_axes import bootstrap_two_axes
 
     pred, act, seeds = _seed_case([[0.1, 0.1], [0.05, 0.35], [0.3, 0.3]],
                                   [[0.9, 0.9], [0.1, 0.95], [0.2, 0.2]])
@@ -141,7 +141,7 @@ def test_a_bootstrap_over_seeds_widens_what_the_seeds_disagree_on():
 
 
 def test_one_seed_per_item_gives_the_two_axis_intervals_exactly():
-    from bench.analysis.agreement import SeedStacks, bootstrap_two_axes
+    from bench.analysis.two_axes import SeedStacks, bootstrap_two_axes
 
     rng = np.random.default_rng(3)
     pred, act = rng.normal(size=(4, 1, 9)), rng.random((4, 1, 7))
@@ -157,7 +157,7 @@ def test_the_two_axis_draw_takes_episodes_as_the_unit_when_given_units():
     times within its episode adds no information. Drawn by episodes (units), the interval is
     the same as before the copies (the same draws of 4 episodes); drawn window by window, it
     narrows as if there were 3x the data."""
-    from bench.analysis.agreement import bootstrap_two_axes
+    from bench.analysis.two_axes import bootstrap_two_axes
     from bench.analysis.hierarchy import Units
 
     rng = np.random.default_rng(5)

@@ -7,7 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from bench.analysis.agreement import Undefined, bootstrap_two_axes, pearson_r
+from bench.analysis.agreement import Undefined, pearson_r
+from bench.analysis.two_axes import bootstrap_two_axes
 from bench.analysis.rollouts import closed_loop_all, rollout_agreement
 from bench.grid.kinds import record_label
 from bench.stats import wilson_interval

@@ -19,11 +19,10 @@ from typing import Callable
 
 import numpy as np
 
-from bench.analysis.agreement import (
-    BY_NAME, Interval, Measure, SeedStacks, Undefined, bootstrap_two_axes, masked_mean,
-    percentile_intervals,
-)
-from bench.analysis.rankings import CONFIDENCE, PRIMARY
+from bench.analysis.agreement import BY_NAME, Interval, Measure, Undefined, percentile_intervals
+from bench.analysis.two_axes import SeedStacks, bootstrap_two_axes, masked_mean
+from bench.analysis.hierarchy import Units, window_weights, windows_as_units
+from bench.analysis.rankings import CONFIDENCE, PRIMARY, record_units
 
 # The report table's columns, in order (names of bench.analysis.agreement.BY_NAME).
 TABLE_STATISTICS = ("tau_b", "spearman_rho", "pearson_r", "mmrv", "top1_regret")
@@ -53,6 +52,13 @@ class Rolled:
     def seed_count(self) -> np.ndarray:
         return np.array([len(self.groups[i]) for i in self.items])
 
+    @property
+    def units(self) -> tuple[Units, Units]:
+        """How the scored windows (held-out episodes within tasks) and the rollout episodes
+        (each its own unit, within its task) are drawn: bench.analysis.hierarchy."""
+        first = self.groups[self.items[0]][0]
+        return record_units(first), Units(np.arange(len(self.episode_task)), self.episode_task)
+
 
 @dataclass(frozen=True)
 class Rows:
@@ -67,6 +73,14 @@ class Rows:
     # The held-out windows the errors' columns are, as indices of every scored window (None:
     # all of them): what lets two measures of one window axis be drawn together (difference).
     columns: np.ndarray | None = None
+    units: tuple[Units, Units] | None = None  # Rolled.units: every scored window, the episodes
+
+    def axis_units(self) -> tuple[Units, Units] | None:
+        """`units` of the errors' own columns (a subset of the scored windows: `columns`)."""
+        if self.units is None or self.columns is None:
+            return self.units
+        windows, episodes = self.units
+        return Units(windows.episode[self.columns], windows.task[self.columns]), episodes
 
 
 @dataclass(frozen=True)
@@ -78,7 +92,7 @@ class OfflineMeasure:
 
 def seed_stack(per_seed: list[list]) -> np.ndarray:
     """(I, S, K) from I lists of per-seed (K,) values, an item with fewer than S seeds padded
-    with NaN (never drawn: bench.analysis.agreement.SeedStacks)."""
+    with NaN (never drawn: bench.analysis.two_axes.SeedStacks)."""
     width = max(len(seeds) for seeds in per_seed)
     out = np.full((len(per_seed), width, len(per_seed[0][0])), np.nan)
     for i, seeds in enumerate(per_seed):
@@ -103,7 +117,8 @@ def _rows(rolled: Rolled, stack: np.ndarray, note: str = "") -> Rows:
     """One row per item: its errors (mean over seeds) and success, with their per-seed stacks."""
     seeds = SeedStacks(-stack, rolled.success_by_seed, rolled.seed_count,
                        np.arange(len(rolled.items)))
-    return Rows(rolled.items, np.nanmean(stack, axis=1), rolled.success, note=note, seeds=seeds)
+    return Rows(rolled.items, np.nanmean(stack, axis=1), rolled.success, note=note, seeds=seeds,
+                units=rolled.units)
 
 
 def full_chunk(rolled: Rolled) -> Rows:
@@ -203,7 +218,7 @@ def _per_task(rolled: Rolled) -> Rows | Undefined:
     seeds = SeedStacks(by_seed.predicted[rows], by_seed.actual[rows], by_seed.count[rows], rows)
     return Rows(labels, np.array(err_rows), np.array(succ_rows),
                 (np.array(wmask, dtype=float), np.array(emask, dtype=float)),
-                note=f"{len(labels)} item x task pairs", seeds=seeds)
+                note=f"{len(labels)} item x task pairs", seeds=seeds, units=rolled.units)
 
 
 MEASURES = (
@@ -280,7 +295,7 @@ def measure_agreement(measure: OfflineMeasure, rolled: Rolled | Rows | Undefined
     out.intervals = bootstrap_two_axes(-rows.errors, rows.success, n_resamples=n_resamples,
                                        seed=seed, confidence=confidence,
                                        statistics=TABLE_STATISTICS, masks=rows.masks,
-                                       seeds=rows.seeds)
+                                       seeds=rows.seeds, units=rows.axis_units())
     return out
 
 
@@ -331,9 +346,9 @@ def _difference(a: Measure, b: Measure) -> Measure:
 
 def _replicate(rows: Rows, weights: np.ndarray, windows: np.ndarray, episodes: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray] | None:
-    """(predicted (n,), actual (n,)) of `rows` under one draw: seed weights (n, S), how many
-    times each scored window (W,) and each episode (E,) was drawn; None if none of the
-    windows the rows read was drawn."""
+    """(predicted (n,), actual (n,)) of `rows` under one draw: seed weights (n, S), the weight
+    of each scored window (W,) and each episode (E,) in the draw; None if none of the windows
+    the rows read was drawn."""
     p, a = rows.seeds.apply(weights)
     w = windows if rows.columns is None else windows[rows.columns]
     if w.sum() == 0:
@@ -345,18 +360,20 @@ def paired_difference(a: Rows, b: Rows, *, n_resamples: int, seed: int = 0,
                       confidence: float = CONFIDENCE) -> Interval | Undefined:
     """Percentile interval of VERDICT_STATISTIC(b) - VERDICT_STATISTIC(a) when both measures
     rank the same items on one window axis: each replicate draws the items' seeds, the scored
-    windows and the episodes ONCE for both (a's columns are every window), so what the two
-    share cancels. Undefined where they rank other rows (per task) or no replicate is defined."""
+    windows (held-out episodes, then windows) and the rollout episodes ONCE for both (a's
+    columns are every window), so what the two share cancels. Undefined where they rank other rows (per task) or no replicate is defined."""
     if a.labels != b.labels or a.masks is not None or b.masks is not None:
         return Undefined(f"ranks {b.note or 'other rows'}, not the items")
     n_windows, n_episodes = a.errors.shape[1], a.success.shape[1]
     stat = BY_NAME[VERDICT_STATISTIC]
     rng, seed_rng = np.random.default_rng(seed), np.random.default_rng([seed, 1])
+    units = a.units or (windows_as_units(n_windows), windows_as_units(n_episodes))
+    # each replicate's weight on every scored window and episode (the hierarchy's draw)
+    window_draws, episode_draws = (window_weights(u, n_resamples, rng) for u in units)
     diffs, reason = [], "no replicate drew a window of both"
-    for _ in range(n_resamples):
+    for k in range(n_resamples):
         weights = a.seeds.weights(seed_rng)
-        windows = np.bincount(rng.integers(0, n_windows, n_windows), minlength=n_windows)
-        episodes = np.bincount(rng.integers(0, n_episodes, n_episodes), minlength=n_episodes)
+        windows, episodes = window_draws[k], episode_draws[k]
         drawn = [_replicate(r, weights, windows, episodes) for r in (a, b)]
         if None in drawn:
             continue

@@ -9,9 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bench.analysis.agreement import (
-    Interval, Measure, SeedStacks, Undefined, bootstrap_two_axes, kendall_tau_b,
-)
+from bench.analysis.agreement import Interval, Measure, Undefined, kendall_tau_b
+from bench.analysis.two_axes import SeedStacks, bootstrap_two_axes
 from bench.analysis.offline_measures import seed_stack
 from bench.analysis.rankings import PRIMARY
 from bench.grid.kinds import record_label
@@ -84,7 +83,7 @@ class RobustOrder:
     perturbed (means over each item's seeds), and whether the offline robustness ranking (lower
     perturbed MSE first) predicts the closed-loop one (higher perturbed success first): Kendall
     tau-b over the items with the closed loop's paired bootstrap (each item's seeds, then the
-    windows and the episodes drawn: bench.analysis.agreement.bootstrap_two_axes)."""
+    windows and the episodes drawn: bench.analysis.two_axes.bootstrap_two_axes)."""
 
     backbone: str
     suite: str

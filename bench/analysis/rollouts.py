@@ -30,13 +30,13 @@ from typing import Sequence
 import numpy as np
 
 from bench.analysis.agreement import (
-    Interval, Measure, SeedStacks, Undefined, WITH_PEARSON, agreement, bootstrap_two_axes,
-    kendall_p_value, pearson_r,
+    Interval, Measure, Undefined, WITH_PEARSON, agreement, kendall_p_value, pearson_r,
 )
+from bench.analysis.two_axes import SeedStacks, bootstrap_two_axes
 from bench.analysis.offline_measures import (MeasureAgreement, Rolled, full_chunk,
                                              measure_agreements, seed_stack)
 from bench.analysis.hierarchy import Units
-from bench.analysis.rankings import CONFIDENCE, record_units
+from bench.analysis.rankings import CONFIDENCE
 from bench.grid.kinds import record_label
 from bench.stats import wilson_interval
 
@@ -182,9 +182,7 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     if len(out.items) < 2:
         out.missing = f"only one rolled-out item ({out.items[0]}): nothing to rank"
         return out
-    # Drawn as the rankings draw: held-out episodes within tasks, then their windows; rollout
-    # episodes within their task (each its own unit); seeds per item (full.seeds).
-    units = (record_units(rolled[0]), Units(np.arange(len(keys)), np.array([k[0] for k in keys])))
+    units = rolled_items.units  # as the rankings draw; seeds per item: full.seeds
     out.agreement, out.intervals = agreement_with_success(per_window, per_episode, full.seeds,
                                                           n_resamples, random_seed, units)
     if candidates is not None:
