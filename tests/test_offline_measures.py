@@ -143,6 +143,14 @@ def test_per_task_agreement_over_item_x_task_pairs():
     assert m.value["pearson_r"] == pytest.approx(np.corrcoef(-np.array(m.error), m.success)[0, 1])
     lo, hi = m.interval_of("spearman_rho")
     assert -1 <= lo <= hi <= 1
+    # One held-out episode per task (the closed-loop study's split): each row reads its own
+    # task's episode, so the draw keeps every task's; across tasks it would leave rows empty.
+    one = dict(window_episode=[i % 2 for i in range(N_WINDOWS)])
+    cl = rollout_agreement([item("a", a, {3: 0.8, 7: 0.35}, **one),
+                            item("b", b, {3: 0.6, 7: 0.3}, **one)], "smolvla", "spatial",
+                           n_resamples=60)
+    assert all(by_name(cl)["per task"].interval_of(k) is not None
+               for k in ("tau_b", "spearman_rho", "mmrv"))
 
 
 def test_records_without_the_new_fields_leave_the_measures_not_measured():

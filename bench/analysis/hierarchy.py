@@ -41,6 +41,9 @@ class Units:
     episode: np.ndarray
     task: np.ndarray
     source: str = "record"
+    # Draw within tasks whatever they hold: for rows that each read one task's windows (a task
+    # with one episode keeps it in every draw, its windows drawn within it).
+    by_task: bool = False
 
     @property
     def episodes(self) -> np.ndarray:
@@ -48,9 +51,9 @@ class Units:
 
     @property
     def stratified(self) -> bool:
-        """Episodes drawn within tasks: only when every task holds at least two."""
+        """Episodes drawn within tasks: when every task holds at least two, or `by_task`."""
         per_task = [len(np.unique(self.episode[self.task == t])) for t in np.unique(self.task)]
-        return min(per_task) >= 2
+        return self.by_task or min(per_task) >= 2
 
 
 def windows_as_units(n_windows: int) -> Units:

@@ -218,7 +218,8 @@ def _per_task(rolled: Rolled) -> Rows | Undefined:
     seeds = SeedStacks(by_seed.predicted[rows], by_seed.actual[rows], by_seed.count[rows], rows)
     return Rows(labels, np.array(err_rows), np.array(succ_rows),
                 (np.array(wmask, dtype=float), np.array(emask, dtype=float)),
-                note=f"{len(labels)} item x task pairs", seeds=seeds, units=rolled.units)
+                note=f"{len(labels)} item x task pairs", seeds=seeds,
+                units=tuple(replace(u, by_task=True) for u in rolled.units))
 
 
 MEASURES = (
