@@ -21,14 +21,16 @@ from dataclasses import dataclass, field
 from typing import Collection, Sequence
 
 from backbones.tiny_sizes import RUNGS, TinySize, size_of
+from bench.analysis.candidates import candidate_items
 from bench.analysis.rankings import (DEFAULT_RESAMPLES, Ranking, WindowMismatchError,
                                      rank_encoders)
+from bench.analysis.tiers import ALL, CANDIDATES, small_model_agreement
 from bench.analysis.transfer import Transfer, transfer_intervals, transfer_pair
 from bench.grid.kinds import GRAFT
 
 SIZE, FAMILY = "size", "family"
 BOTH, NEITHER = "both", "neither"
-ALL_ITEMS, CANDIDATE_ITEMS = "all encoders", "candidates"
+ALL_ITEMS, CANDIDATE_ITEMS = "all encoders", "the candidates"
 
 CHANGE_RULE = (
     "A comparison **changes the choice** when the two backbones' top tiers share no encoder "
@@ -176,3 +178,28 @@ def family_scale(records: Sequence, candidates: Collection[str] | None = None, *
             out.append(suite_verdict(records, suite, candidates, n_resamples=n_resamples,
                                      seed=seed))
     return out
+
+
+def screening_rungs(records: Sequence) -> list[tuple[str, str, str]]:
+    """(small, large, suite) of every smaller ladder size with grafts on a suite where its
+    family's largest size present has grafts too: "screen on the small model of the family",
+    a rung of the screen's ladder for that large model (bench.analysis.tiers
+    small_model_agreement)."""
+    out = []
+    for suite in sorted({r.suite for r in records if r.kind == GRAFT}):
+        backbones = {r.backbone for r in records if r.kind == GRAFT and r.suite == suite}
+        out += [(small, large, suite) for axis, small, large in ladder_pairs(backbones)
+                if axis == SIZE]
+    return out
+
+
+def small_model_agreements(records: Sequence, candidates: Collection[str] | None = None, *,
+                           n_resamples: int = 1000, seed: int = 0) -> list:
+    """TierAgreement of every screening rung, over all encoders and over the candidates (the
+    screen's two item sets; `candidates` default: bench.analysis.candidates' of `records`;
+    bench.analysis.tiers.small_model_agreement)."""
+    candidates = candidate_items(records) if candidates is None else candidates
+    return [small_model_agreement(records, small, large, suite, n_resamples, seed,
+                                  items=items, item_set=item_set)
+            for small, large, suite in screening_rungs(records)
+            for item_set, items in ((ALL, None), (CANDIDATES, candidates))]
