@@ -4,6 +4,8 @@ ranking planted to flip with family but not size is called "family", one that fl
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from bench.analysis.family_scale import (ALL_ITEMS, BOTH, CANDIDATE_ITEMS, FAMILY, NEITHER, SIZE,
@@ -121,3 +123,83 @@ def test_only_suites_with_a_comparison_get_a_verdict_and_other_backbones_stay_ou
     found = family_scale(records, n_resamples=RESAMPLES)
     assert [v.suite for v in found] == ["spatial"]
     assert found[0].outside == ["pi0"] and found[0].verdict.startswith("not size")
+
+
+# -- the small model as a rung of the screen, and the report's section ------------------------
+
+SIX = {"a": 0.10, "b": 0.12, "c": 0.14, "d": 0.16, "e": 0.18, "f": 0.20}  # MIN_ENCODERS items
+SIX_DOWN = {e: SIX[k] for e, k in zip(SIX, reversed(list(SIX)))}
+
+
+def test_the_small_model_rung_agrees_with_the_large_as_planted():
+    from bench.analysis.tiers import small_model_agreement
+
+    same = ladder_records({"smolvla": SIX, "smolvla_l": SIX})
+    rung = small_model_agreement(same, "smolvla", "smolvla_l", "spatial", RESAMPLES)
+    assert rung.tier == "small model smolvla" and rung.backbone == "smolvla_l"
+    assert rung.point.tau_b == pytest.approx(1.0) and rung.point.top1_regret == 0.0
+    assert rung.intervals["tau_b"].low == pytest.approx(1.0)
+    flipped = ladder_records({"smolvla": SIX, "smolvla_l": SIX_DOWN})
+    rung = small_model_agreement(flipped, "smolvla", "smolvla_l", "spatial", RESAMPLES)
+    assert rung.point.tau_b == pytest.approx(-1.0)
+    assert rung.point.top1_regret == pytest.approx(0.10, rel=0.05)  # a's 0.20 vs d's 0.10
+    assert rung.intervals["tau_b"].high == pytest.approx(-1.0)
+
+
+def test_a_small_model_with_other_cells_is_drawn_per_window_and_says_so():
+    from bench.analysis.tiers import small_model_agreement
+
+    records = (ladder_records({"smolvla": SIX}, releases=2, seeds=2)
+               + ladder_records({"smolvla_l": SIX}, releases=1, seeds=1))
+    rung = small_model_agreement(records, "smolvla", "smolvla_l", "spatial", RESAMPLES)
+    assert rung.tier == "small model smolvla (its cells not drawn)"
+    assert rung.missing is None and rung.intervals["tau_b"].replicates == RESAMPLES
+
+
+def test_the_report_says_family_or_scale_with_the_small_model_rung_and_its_cost(tmp_path):
+    from bench.report.build import build_report
+    from tests.factories import save_record
+
+    levels = {**{b: SIX for b in ("smolvla", "smolvla_l")},
+              **{b: SIX_DOWN for b in ("pi05_s", "pi05_l")}}
+    for record in ladder_records(levels):
+        save_record(tmp_path / "res", record)
+    text = build_report(tmp_path / "res", tmp_path / "REPORT.md", n_resamples=RESAMPLES,
+                        plots=False).read_text()
+    section = text.split("## Family or scale")[1].split("\n## ")[0]
+    assert ("**spatial** (on all encoders): the ranking changes with family, not with size "
+            "(size: 0 of 2 comparisons change the choice; family: 2 of 2") in section
+    assert "smolvla (0.41M) -> smolvla_l (13.91M)" in section
+    assert section.count("| small model smolvla ") == 2  # all items; the candidates: not measured
+    assert "| spatial | pi05_s        | pi05_l        | 4" in section  # its cost: 4 s a cell each
+    assert "100.0%" in section
+    summary = json.loads((tmp_path / "REPORT_summary.json").read_text())
+    assert summary["family_scale"][0]["verdict"] == FAMILY
+
+
+def test_a_report_without_two_sizes_to_compare_has_no_section(tmp_path):
+    from bench.report.build import build_report
+    from tests.factories import save_record
+
+    for record in ladder_records({"smolvla": SIX, "pi05": SIX_DOWN}):
+        save_record(tmp_path / "res", record)
+    text = build_report(tmp_path / "res", tmp_path / "REPORT.md", n_resamples=RESAMPLES,
+                        plots=False).read_text()
+    assert "Family or scale" not in text and "small model" not in text
+
+
+def test_the_screens_agreement_table_holds_the_small_model_rung(tmp_path):
+    from bench.report.screen import agreement_table, screen_agreements
+    from bench.results.store import load_results
+    from tests.factories import make_calibration_study, save_record
+
+    make_calibration_study(tmp_path / "res", SIX, backbone="smolvla_l")  # grafts and screens
+    for record in ladder_records({"smolvla": SIX_DOWN}, releases=1):
+        save_record(tmp_path / "res", record)
+    results = load_results(tmp_path / "res")
+    rows = screen_agreements([r.scores for r in results.screens], results.records, RESAMPLES)
+    rung = [a for a in rows if a.tier.startswith("small model smolvla")]
+    assert [(a.backbone, a.item_set) for a in rung] == [("smolvla_l", "all"),
+                                                        ("smolvla_l", "candidates")]
+    assert rung[0].point.tau_b == pytest.approx(-1.0)
+    assert "| small model smolvla | 6          | -1 [-1, -1]" in agreement_table(rung)

@@ -37,6 +37,10 @@ class ReportContext:
     naive_filled: list[str] = field(default_factory=list)
     # The labels of the candidate items (bench.analysis.candidates): encoders and "native".
     candidates: frozenset[str] = frozenset()
+    # Family or scale over the tiny ladder (bench.analysis.family_scale): a SuiteVerdict per suite
+    # with a comparison, and the small-model rung's TierAgreements (both item sets).
+    family_scale: list = field(default_factory=list)
+    small_model: list = field(default_factory=list)
 
     @property
     def records(self) -> list[dict]:
