@@ -19,7 +19,7 @@ in LeRobot's pi0.5), action expert 0.75 w wide with SmolVLA's own expert MLP rul
 (lerobot smolvlm_with_expert.get_intermediate_size), the same vision tower. Parameters cannot be
 matched as well: what differs is the family itself (pi0.5's adaptive-RMSNorm time conditioning in
 the expert, its 384-word vocabulary holding the state bins, an untied output layer), so pi0.5
-holds 1.21-1.24x SmolVLA's parameters at every rung; `matched_pairs` lists the pairs and the
+holds 1.21-1.22x SmolVLA's parameters at every rung; `matched_pairs` lists the pairs and the
 report quotes both counts. Rung xs is today's tiny pi0.5 (depth 2, expert 32 wide, 1 key-value
 head), kept as it is so its releases and records resume; it has no SmolVLA twin. Today's tiny
 SmolVLA (w 64, L 4) is rung s exactly (tests/test_tiny_sizes.py builds `smolvla_arch(64, 4)` and
@@ -28,9 +28,9 @@ finds the same weights).
 `params` is the build's parameter count with the recipe's inputs (two 64 px cameras, an 8-dim
 state, 7-dim actions, chunk 10): all of them train natively (bench.resources.releases), checked
 by tests/test_tiny_sizes.py. `step_s` is one native training step at the recipe's batch (16),
-one torch thread, measured as CPU seconds (the least disturbed figure on a shared machine;
-studies/family_scale/README.md has the measurement): the native recipe's 1,500 steps then take
-1,500 x step_s, and l was chosen as the largest whose pi0.5 trains in about 30 minutes.
+one torch thread, the median CPU seconds of 6 steps (the least disturbed figure on a shared
+machine; studies/family_scale/README.md has the measurement): the native recipe's 1,500 steps then
+take 1,500 x step_s, and l is the largest whose pi0.5 trains in about 30 minutes (26 min).
 
 Plain data (no torch): the registry (backbones/__init__.py) registers one entry per size here.
 """
@@ -107,13 +107,13 @@ def _add(size: TinySize) -> None:
 
 
 # One entry per size. step_s: studies/family_scale/README.md ("The ladder").
-_add(TinySize("pi05", "pi05", "xs", 203_264, 0.086))
-_add(TinySize("smolvla", "smolvla", "s", 409_728, 0.064))  # = smolvla_arch(64, 4)
-_add(TinySize("pi05_s", "pi05", "s", 497_632, 0.135, pi05_arch(64, 4)))
-_add(TinySize("smolvla_m", "smolvla", "m", 2_978_304, 0.175, smolvla_arch(160, 6)))
-_add(TinySize("pi05_m", "pi05", "m", 3_610_544, 0.316, pi05_arch(160, 6)))
-_add(TinySize("smolvla_l", "smolvla", "l", 13_910_784, 0.486, smolvla_arch(320, 8)))
-_add(TinySize("pi05_l", "pi05", "l", 17_026_784, 1.085, pi05_arch(320, 8)))
+_add(TinySize("pi05", "pi05", "xs", 203_264, 0.070))
+_add(TinySize("smolvla", "smolvla", "s", 409_728, 0.062))  # = smolvla_arch(64, 4)
+_add(TinySize("pi05_s", "pi05", "s", 497_632, 0.133, pi05_arch(64, 4)))
+_add(TinySize("smolvla_m", "smolvla", "m", 2_978_304, 0.163, smolvla_arch(160, 6)))
+_add(TinySize("pi05_m", "pi05", "m", 3_610_544, 0.349, pi05_arch(160, 6)))
+_add(TinySize("smolvla_l", "smolvla", "l", 13_910_784, 0.536, smolvla_arch(320, 8)))
+_add(TinySize("pi05_l", "pi05", "l", 17_026_784, 1.039, pi05_arch(320, 8)))
 
 
 def size_of(name: str) -> TinySize | None:

@@ -23,7 +23,7 @@ INTRO = (
     "measured at several sizes of the tiny ladder (backbones/tiny_sizes.py: the language model "
     "and action expert scaled, the vision tower, token grid and prompt the family's own; sizes "
     "s, m, l matched across families by width, depth and attention shapes, pi0.5 holding "
-    "1.21-1.24x SmolVLA's parameters at each). **Size**: each smaller size against its family's "
+    "1.21-1.22x SmolVLA's parameters at each). **Size**: each smaller size against its family's "
     "largest (choose on the small model, deploy on the large). **Family**: SmolVLA against "
     "pi0.5 at each matched size. Every figure is on {items}; intervals: the rankings' "
     "hierarchical bootstrap (releases, seeds, held-out episodes, windows), both backbones of a "
