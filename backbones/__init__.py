@@ -14,6 +14,7 @@ import importlib
 from dataclasses import dataclass
 
 from backbones.seam import AdapterModule, check_adapter
+from backbones.tiny_sizes import SIZES as TINY_SIZES
 
 
 @dataclass(frozen=True)
@@ -33,12 +34,24 @@ class BackboneEntry:
     stats: str = "dataset"
     # Is this the study's choice (base releases) or an option beside it.
     study: bool = True
-    # Parameters of the real release: the report orders backbones small to large by it.
+    # Parameters of the real release: the report orders backbones small to large by it (a
+    # size of the tiny ladder: its family's, then the ladder's rung).
     params: float = float("inf")
+    # A size of the tiny ladder (backbones.tiny_sizes) that exists only in the tiny world: its
+    # rung; no hub release (repo_id ""), so a hub profile refuses it at start-up.
+    tiny_size: str | None = None
 
     def __post_init__(self) -> None:
         if self.stats not in ("dataset", "checkpoint"):
             raise ValueError(f"backbone {self.name!r}: stats={self.stats!r}, not 'dataset' or 'checkpoint'")
+        if (self.tiny_size is None) == (not self.repo_id):
+            raise ValueError(f"backbone {self.name!r}: a hub release needs a repo_id, a tiny-only "
+                             f"size none (repo_id={self.repo_id!r}, tiny_size={self.tiny_size!r})")
+
+    @property
+    def on_hub(self) -> bool:
+        """Has a release on the hub (else: a size of the tiny ladder, the tiny world only)."""
+        return self.tiny_size is None
 
 
 BACKBONES: dict[str, BackboneEntry] = {}
@@ -72,6 +85,17 @@ register(BackboneEntry("pi05_libero", "pi05", "backbones.pi05", "lerobot/pi05_li
                        "pi0.5-3.3B fine-tuned on LIBERO (its own saved stats)",
                        revision="dbf8a3f794a9c4297b44f40b752712f50073d945", stats="checkpoint",
                        study=False, params=3.3e9))
+
+
+# The tiny ladder's other sizes (backbones.tiny_sizes), each with its family's adapter, after the
+# real releases so that a policy type's first entry stays its study backbone.
+for _size in TINY_SIZES.values():
+    if _size.name not in BACKBONES:
+        _family = BACKBONES[_size.family]
+        register(BackboneEntry(
+            _size.name, _family.policy_type, _family.module, "",
+            f"tiny {_family.name} at size {_size.rung} ({_size.params:,} parameters; "
+            "the tiny world only)", study=False, params=_family.params, tiny_size=_size.rung))
 
 
 def get_entry(name: str) -> BackboneEntry:

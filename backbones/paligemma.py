@@ -25,6 +25,7 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import Any, Mapping
 
 import torch
 from torch import Tensor
@@ -215,16 +216,19 @@ def build_tiny_policy(
     action_dim: int = 7,
     chunk_size: int = 10,
     seed: int = 0,
+    arch: Mapping[str, Any] | None = None,
 ) -> PaliGemmaBackbone:
     """A real LeRobot policy of `backbone_cls.family` with tiny sizes, offline, deterministic
-    from `seed`."""
+    from `seed`; `arch`: TinyPaliGemmaArch fields of another size of the tiny ladder
+    (backbones.tiny_sizes), None the base size."""
     require_pinned_lerobot()
     from lerobot.configs import FeatureType, PolicyFeature
     from lerobot.policies.factory import make_pre_post_processors
 
     family = backbone_cls.family
     _check_stats(stats, state_dim, action_dim, family)
-    arch = TinyPaliGemmaArch(vocab_size=_round_up(len(tiny_vocabulary()), 64))
+    arch = TinyPaliGemmaArch(**{"vocab_size": _round_up(len(tiny_vocabulary()), 64),
+                                **(arch or {})})
     if image_hw[0] != image_hw[1] or image_hw[0] % arch.patch_size:
         raise ValueError(f"image_hw {image_hw} must be square and a multiple of patch {arch.patch_size}")
     tokenizer_dir = ensure_tiny_tokenizer(cache_dir() / TOKENIZER_DIRNAME)

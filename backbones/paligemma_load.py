@@ -13,7 +13,7 @@ import contextlib
 import io
 import json
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Any, Callable, Mapping, NamedTuple
 
 from lerobot_policy_graft.configuration_graft import config_from_pretrained
 from lerobot_policy_graft.families import PaliGemmaFamily
@@ -216,11 +216,13 @@ def paligemma_adapter(family: PaliGemmaFamily, module: str,
 
     def build_tiny_policy(stats: dict, camera_keys=hub.LIBERO_CAMERAS,
                           image_hw: tuple[int, int] = (64, 64), state_dim: int = 8,
-                          action_dim: int = 7, chunk_size: int = 10, seed: int = 0):
+                          action_dim: int = 7, chunk_size: int = 10, seed: int = 0, *,
+                          arch: Mapping[str, Any] | None = None):
         """A real LeRobot policy of this family with tiny sizes (~0.2M parameters), offline,
-        deterministic from `seed`."""
+        deterministic from `seed`; `arch`: another size of the tiny ladder (TinyPaliGemmaArch
+        fields, backbones.tiny_sizes)."""
         return paligemma.build_tiny_policy(backbone_cls, stats, camera_keys, image_hw,
-                                           state_dim, action_dim, chunk_size, seed)
+                                           state_dim, action_dim, chunk_size, seed, arch)
 
     def load(path_or_repo_id: str, stats: dict | None = None, *, revision: str | None = None,
              device: str | None = None):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Protocol, Sequence
 
 if TYPE_CHECKING:
     from backbones.base import Backbone, BackboneInfo
@@ -28,8 +28,10 @@ class AdapterModule(Protocol):
 
     def build_tiny_policy(self, stats: dict, camera_keys: Sequence[str] = ...,
                           image_hw: tuple[int, int] = (64, 64), state_dim: int = ...,
-                          action_dim: int = ..., chunk_size: int = 10, seed: int = 0) -> Backbone:
-        """A real LeRobot policy of the family at tiny sizes, offline, the same for a seed."""
+                          action_dim: int = ..., chunk_size: int = 10, seed: int = 0, *,
+                          arch: Mapping[str, Any] | None = None) -> Backbone:
+        """A real LeRobot policy of the family at tiny sizes, offline, the same for a seed;
+        `arch`: the numbers of another size of the tiny ladder (backbones.tiny_sizes)."""
 
     def load_policy(self, path_or_repo_id: str, stats: dict | None = None, *,
                     revision: str | None = None, device: str | None = None) -> Backbone:

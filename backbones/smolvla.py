@@ -20,6 +20,7 @@ from __future__ import annotations
 import shutil
 import sys
 from pathlib import Path
+from typing import Any, Mapping
 
 import torch
 from lerobot_policy_graft.families import SMOLVLA
@@ -186,12 +187,14 @@ def build_tiny_policy(
     seed: int = 0,
     *,
     device: str = "cpu",
+    arch: Mapping[str, Any] | None = None,
 ) -> SmolVLABackbone:
-    """A real SmolVLAPolicy on the tiny local SmolVLM (~0.4M params), same weights for a seed."""
+    """A real SmolVLAPolicy on the tiny local SmolVLM (~0.4M params), same weights for a seed;
+    `arch`: another size of the tiny ladder (backbones.tiny_sizes, tiny_smolvla.sized_vlm)."""
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
-    config = tiny_config(camera_keys, image_hw, state_dim, action_dim, chunk_size, device)
+    config = tiny_config(camera_keys, image_hw, state_dim, action_dim, chunk_size, device, arch)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         policy = SmolVLAPolicy(config)

@@ -21,6 +21,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any, Mapping
 
 import torch
 
@@ -104,14 +105,36 @@ def libero_smolvla_config(camera_keys, image_shape, state_dim, action_dim, **ove
     return SmolVLAConfig(input_features=inputs, output_features=outputs, **overrides)
 
 
+def sized_vlm(arch: Mapping[str, Any] | None = None) -> tuple[dict, dict]:
+    """(the tiny SmolVLM spec, SmolVLAConfig overrides) of one size of the tiny ladder
+    (backbones.tiny_sizes). `arch` holds what differs from the base tiny build: "text.<field>"
+    and "vision.<field>" replace TINY_VLM's numbers, any other key is a SmolVLAConfig field
+    (expert_width_multiplier). None or {}: the base build, exactly."""
+    spec = {k: (dict(v) if isinstance(v, dict) else v) for k, v in TINY_VLM.items()}
+    config: dict = {}
+    for key, value in (arch or {}).items():
+        part, _, name = key.partition(".")
+        if name and part in ("text", "vision"):
+            if name not in spec[part]:
+                raise ValueError(f"tiny SmolVLA arch {key!r}: TINY_VLM[{part!r}] has no field "
+                                 f"{name!r}; it has {sorted(spec[part])}")
+            spec[part][name] = value
+        else:
+            config[key] = value
+    return spec, config
+
+
 def tiny_config(camera_keys=IMAGE_KEYS, image_hw=(64, 64), state_dim=LIBERO_STATE_DIM,
-                action_dim=LIBERO_ACTION_DIM, chunk_size=10, device="cpu"):
-    """The tiny SmolVLA: images padded to the tiny tower's 64 px, chunk `chunk_size`."""
-    side = TINY_VLM["vision"]["image_size"]
+                action_dim=LIBERO_ACTION_DIM, chunk_size=10, device="cpu",
+                arch: Mapping[str, Any] | None = None):
+    """The tiny SmolVLA: images padded to the tiny tower's 64 px, chunk `chunk_size`; `arch`:
+    a size of the ladder (sized_vlm), None the base size."""
+    spec, overrides = sized_vlm(arch)
+    side = spec["vision"]["image_size"]
     return libero_smolvla_config(
         camera_keys, (3, *image_hw), state_dim, action_dim,
-        vlm_model_name=str(tiny_vlm_folder()), resize_imgs_with_padding=(side, side),
-        chunk_size=chunk_size, n_action_steps=chunk_size, device=device,
+        vlm_model_name=str(_vlm_folder("tiny_smolvlm", spec)), resize_imgs_with_padding=(side, side),
+        chunk_size=chunk_size, n_action_steps=chunk_size, device=device, **overrides,
     )
 
 

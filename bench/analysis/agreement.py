@@ -263,18 +263,19 @@ def bootstrap_agreement(predicted: np.ndarray, actual: np.ndarray, n_resamples: 
     seeds, held-out episodes (`units`) and windows ONCE for all n items (replicate_draws) and
     re-averages both tiers over them.
 
-    predicted: (n,) fixed scores, or per-window scores of `actual`'s shape on its windows;
-    actual: (n, W) or (n, R, S, W) per-window scores (higher is better: -MSE; NaN rows for
-    absent cells). baselines: {name: (n,) scores}
-    of the naive baselines on the same items: the result also holds NAIVE_GAP, the interval of
-    naive_gap on the same replicates (the tier and the baselines against one draw of the graft).
-    Percentile interval over the replicates where a statistic is defined; Undefined when none
-    is."""
+    predicted: (n,) fixed scores, per-window scores of `actual`'s shape, or (n, W) on its
+    windows with cells of its own held (only the windows drawn); actual: (n, W) or
+    (n, R, S, W) per-window scores (higher is better: -MSE; NaN rows for absent cells).
+    baselines: {name: (n,) scores} of the naive baselines on the same items: the result also
+    holds NAIVE_GAP, the interval of naive_gap on the same replicates (the tier and the
+    baselines against one draw of the graft). Percentile interval over the replicates where a
+    statistic is defined; Undefined when none is."""
     actual = np.asarray(actual, dtype=float)
     predicted = np.asarray(predicted, dtype=float)
-    if actual.ndim not in (2, 4) or predicted.shape not in ((len(actual),), actual.shape):
-        raise ValueError(f"actual must be (n, W) or (n, R, S, W) and predicted (n,) or of "
-                         f"actual's shape; got {actual.shape} and {predicted.shape}")
+    if actual.ndim not in (2, 4) or predicted.shape not in ((len(actual),), actual.shape,
+                                                            (len(actual), actual.shape[-1])):
+        raise ValueError(f"actual must be (n, W) or (n, R, S, W) and predicted (n,), (n, W) or "
+                         f"of actual's shape; got {actual.shape} and {predicted.shape}")
     base = {k: np.asarray(v, dtype=float) for k, v in (baselines or {}).items()}
     values: dict[str, list[float]] = {k: [] for k in STATISTICS}
     if baselines is not None:

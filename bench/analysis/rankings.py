@@ -369,12 +369,15 @@ def rank_encoders(records: Sequence[dict], backbone: str, suite: str, *,
 
 
 def backbone_order(backbones: Sequence[str]) -> list[str]:
-    """Backbones smallest first (the registry's parameter counts), unknown ones after, by name."""
+    """Backbones smallest first (the registry's parameter counts; within a family, the tiny
+    ladder's sizes by rung), unknown ones after, by name."""
     from backbones import BACKBONES  # plain dataclasses: no adapter is imported
+    from backbones.tiny_sizes import RUNGS, size_of
 
-    def size(b: str) -> float:
-        entry = BACKBONES.get(b)
-        return entry.params if entry is not None else float("inf")
+    def size(b: str) -> tuple[float, int]:
+        entry, rung = BACKBONES.get(b), size_of(b)
+        return (entry.params if entry is not None else float("inf"),
+                RUNGS.index(rung.rung) if rung is not None else len(RUNGS))
 
     return sorted(set(backbones), key=lambda b: (size(b), b))
 

@@ -218,3 +218,43 @@ def short_graft_agreement(records: Sequence, backbone: str, suite: str, variant:
     return tier_agreement({e: -float(v.mean()) for e, v in short.items()}, records, backbone,
                           suite, tier, n_resamples, seed, {e: -v for e, v in cells.items()},
                           **kwargs)
+
+
+SMALL_MODEL = "small model"
+
+
+def small_model_tier(small: str, cells_drawn: bool = True) -> str:
+    """The rung's name in tables: 'small model smolvla' (its releases and seeds held at their
+    mean when they could not be drawn with the large model's)."""
+    return f"{SMALL_MODEL} {small}" + ("" if cells_drawn else " (its cells not drawn)")
+
+
+def small_model_agreement(records: Sequence, small: str, large: str, suite: str,
+                          n_resamples: int = 1000, seed: int = 0, **kwargs) -> TierAgreement:
+    """"Screen on the small model of the family" as a tier for its large model: the small
+    backbone's graft scored -MSE (mean over its releases and seeds) against the large one's
+    graft on the same suite's held-out windows. Drawn per window with the large model's cells
+    when both hold the same releases x seeds (each small cell paired with the large cell of the
+    same index: independent trainings, drawn together), else its mean per window with the
+    windows drawn and its cells held (the tier's name says so). kwargs: tier_agreement's."""
+    item_set = kwargs.get("item_set", ALL)
+    mean, problem = graft_per_window(records, small, suite)
+    large_windows = next((r.scores.window_ids for r in records if r.kind == GRAFT
+                          and (r.backbone, r.suite) == (large, suite)), None)
+    if not problem and mean and large_windows is not None:
+        first = next(r for r in records if r.kind == GRAFT and (r.backbone, r.suite)
+                     == (small, suite))
+        if first.scores.window_ids != large_windows:
+            problem = (f"{small} and {large} were scored on other windows of {suite}: not "
+                       "paired, no agreement computed")
+    if problem:
+        return TierAgreement(large, suite, small_model_tier(small), missing=problem,
+                             item_set=item_set)
+    cells, _ = graft_cells(records, small, suite)
+    large_cells, _ = graft_cells(records, large, suite)
+    shape = next((v.shape for v in large_cells.values()), None)
+    drawn = all(v.shape == shape for v in cells.values())
+    per_window = {e: -(v if drawn else mean[e]) for e, v in cells.items()}
+    return tier_agreement({e: -float(v.mean()) for e, v in mean.items()}, records, large,
+                          suite, small_model_tier(small, drawn), n_resamples, seed, per_window,
+                          **kwargs)

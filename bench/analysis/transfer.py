@@ -20,8 +20,8 @@ from typing import Sequence
 import numpy as np
 import scipy.stats
 
-from bench.analysis.agreement import (as_float, is_defined, kendall_p_value, kendall_tau_b,
-                                      pairwise_tau_b, weighted_tau)
+from bench.analysis.agreement import (Measure, Undefined, as_float, is_defined, kendall_p_value,
+                                      kendall_tau_b, pairwise_tau_b, top1_regret, weighted_tau)
 from bench.analysis.hierarchy import replicate_means
 from bench.analysis.rankings import (PRIMARY, Ranking, WindowMismatchError, backbone_order,
                                      cell_arrays, graft_records)
@@ -36,15 +36,32 @@ SUPPORT_RULES = (
 )
 
 
+def relative_regret(mse_source: Sequence[float], mse_target: Sequence[float]) -> Measure:
+    """Top-1 regret of choosing on the source backbone and deploying on the target, relative to
+    the target's best: (target MSE of the source's leader - target's lowest MSE) / target's
+    lowest MSE, >= 0 (bench.analysis.agreement.top1_regret's tie rule: the worst of tied picks).
+    Relative, because MSE levels are not comparable across backbones."""
+    target = np.asarray(mse_target, dtype=float)
+    regret = top1_regret(-np.asarray(mse_source, dtype=float), -target)
+    if not is_defined(regret):
+        return regret
+    if not target.min() > 0:
+        return Undefined(f"the target's lowest MSE is {target.min()}: no relative regret")
+    return float(regret / target.min())
+
+
 def rank_agreement(mse_a: Sequence[float], mse_b: Sequence[float]) -> dict:
-    """Kendall tau-b (scipy, exact p where no ties) and top-weighted tau of two MSE vectors (n,).
+    """Kendall tau-b (scipy, exact p where no ties), top-weighted tau of two MSE vectors (n,),
+    and the relative top-1 regret both ways (`top1_regret`: a's leader on b, `top1_regret_back`:
+    b's leader on a; relative_regret).
 
     Lower MSE is better, so bench.analysis.agreement gets -MSE: weighted tau's hyperbolic
     weigher then weights agreement at the top of the ranking (best encoders) most. An undefined
     statistic is NaN here (the report prints n/a) and its reason is under "undefined"."""
     a, b = -np.asarray(mse_a, dtype=float), -np.asarray(mse_b, dtype=float)
     stats = {"tau_b": kendall_tau_b(a, b), "p_value": kendall_p_value(a, b),
-             "weighted_tau": weighted_tau(a, b)}
+             "weighted_tau": weighted_tau(a, b), "top1_regret": relative_regret(-a, -b),
+             "top1_regret_back": relative_regret(-b, -a)}
     out: dict = {"n": len(a)} | {k: as_float(v) for k, v in stats.items()}
     undefined = {k: v.reason for k, v in stats.items() if not is_defined(v)}
     if undefined:
@@ -256,10 +273,23 @@ def _tau_interval(small: np.ndarray, large: np.ndarray, confidence: float = 0.95
     return [float(np.quantile(kept, alpha)), float(np.quantile(kept, 1 - alpha))]
 
 
+def _regret_interval(source: np.ndarray, target: np.ndarray,
+                     confidence: float = 0.95) -> list | None:
+    """Percentile interval of relative_regret over paired replicates (n, B) of the source's and
+    the target's means (the source's pick in each replicate, on the target's same replicate)."""
+    values = [relative_regret(source[:, b], target[:, b]) for b in range(source.shape[1])]
+    kept = [v for v in values if is_defined(v) and np.isfinite(v)]
+    if not kept:
+        return None
+    alpha = (1 - confidence) / 2
+    return [float(np.quantile(kept, alpha)), float(np.quantile(kept, 1 - alpha))]
+
+
 def transfer_intervals(transfers: Sequence[Transfer], records: Sequence, *,
                        n_resamples: int = 1000, seed: int = 0) -> None:
     """Each complete transfer's tau-b interval (`agreement["tau_b_ci"]`, and the candidates'
-    in `candidate_agreement`): both backbones' encoder means drawn by the rankings' hierarchical
+    in `candidate_agreement`) and its relative top-1 regret's both ways (`top1_regret_ci`,
+    `top1_regret_back_ci`): both backbones' encoder means drawn by the rankings' hierarchical
     bootstrap with one seed, so both draw the same held-out episodes of their shared suite."""
     for t in transfers:
         if not t.complete:
@@ -274,3 +304,5 @@ def transfer_intervals(transfers: Sequence[Transfer], records: Sequence, *,
             large = _draws(records, t.large, t.suite, encoders, n_resamples, seed)
             if small is not None and large is not None:
                 target["tau_b_ci"] = _tau_interval(small, large)
+                target["top1_regret_ci"] = _regret_interval(small, large)
+                target["top1_regret_back_ci"] = _regret_interval(large, small)

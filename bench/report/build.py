@@ -20,6 +20,7 @@ from typing import Callable, Sequence
 from bench.analysis.candidates import candidate_items
 from bench.analysis.rankings import DEFAULT_RESAMPLES, rank_all
 from bench.analysis.controls import control_deltas, vision_checks, wrapper_neutrality
+from bench.analysis.family_scale import family_scale, small_model_agreements
 from bench.analysis.rollouts import closed_loop_all
 from bench.analysis.transfer import support_counts, transfer_all, transfer_intervals
 from bench.analysis.working_group import working_groups
@@ -28,6 +29,7 @@ from bench.results.store import Results, load_results
 from bench.report.budget import TITLE as BUDGET_TITLE, budget_section, budgets
 from bench.report.closed_loop import closed_loop_section
 from bench.report.context import ReportContext
+from bench.report.family_scale import TITLE as FAMILY_SCALE_TITLE, family_scale_section
 from bench.report.lead import answer_lines
 from bench.report.naive import with_naive_baselines
 from bench.report.provenance import per_task_section, protocol_constants, provenance_section
@@ -50,6 +52,7 @@ SECTIONS: list[tuple[str, Callable[[ReportContext], str]]] = [
     (BUDGET_TITLE, budget_section),
     ("Vision use", vision_section),
     ("Rank transfer between backbones", transfer_section),
+    (FAMILY_SCALE_TITLE, family_scale_section),  # only when the grid holds ladder sizes to compare
     ("Tie bands", tie_section),
     ("Seed cells", seed_section),
     ("Wrapper neutrality", wrapper_section),
@@ -79,6 +82,7 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
                              candidates=candidates) if rankings else []
     transfer_intervals(transfers, records, n_resamples=n_resamples, seed=random_seed)
     screens, filled = with_naive_baselines([r.scores for r in results.screens], records)
+    verdicts = family_scale(records, candidates, n_resamples=n_resamples, seed=random_seed)
     return ReportContext(results=results, out_path=out_path, rankings=rankings,
                          transfers=transfers, support=support_counts(transfers),
                          wrapper=wrapper_neutrality(records), controls=control_deltas(records),
@@ -95,7 +99,11 @@ def analyse(results: Results, out_path: Path, *, n_resamples: int = DEFAULT_RESA
                          screens=screens, naive_filled=filled, candidates=candidates,
                          working_groups=working_groups(records, candidates,
                                                        n_resamples=n_resamples,
-                                                       random_seed=random_seed))
+                                                       random_seed=random_seed),
+                         family_scale=verdicts,
+                         small_model=small_model_agreements(
+                             records, candidates, n_resamples=n_resamples, seed=random_seed)
+                         if verdicts else [])
 
 
 def _guarded(name: str, render: Callable[[ReportContext], str | None],
@@ -188,6 +196,7 @@ def summary(ctx: ReportContext) -> dict:
         "closed_loop": ctx.closed_loop, "working_groups": ctx.working_groups,
         "vision_use": ctx.vision,
         "screen_agreement": ctx.screen_agreements,
+        "family_scale": ctx.family_scale, "small_model_rung": ctx.small_model,
         "screen_calibration": ctx.screen_calibrations,
         "protocol_constants": protocol_constants(ctx.records),
         "cells": {"finished": len(ctx.records), "failed": [f.cell_id for f in res.failed],

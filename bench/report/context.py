@@ -39,6 +39,10 @@ class ReportContext:
     candidates: frozenset[str] = frozenset()
     # The verdict within the closed loop's working group (bench.analysis.working_group).
     working_groups: list = field(default_factory=list)
+    # Family or scale over the tiny ladder (bench.analysis.family_scale): a SuiteVerdict per suite
+    # with a comparison, and the small-model rung's TierAgreements (both item sets).
+    family_scale: list = field(default_factory=list)
+    small_model: list = field(default_factory=list)
 
     @property
     def records(self) -> list[dict]:

@@ -12,13 +12,15 @@ from typing import Sequence
 
 from bench.analysis.agreement import STATISTICS, TIE_RULE, Interval, Undefined
 from bench.analysis.candidates import candidate_items
+from bench.analysis.family_scale import screening_rungs
 from bench.analysis.tiers import (ALL, CANDIDATES, MIN_CANDIDATES, MIN_ENCODERS,
                                   graft_per_window, short_graft_agreement, short_tier,
-                                  tier_agreement)
+                                  small_model_agreement, tier_agreement)
 from bench.grid.kinds import SHORT_GRAFT, get_kind
 from bench.report.format import num, table
 from bench.report.naive import AT_REPORT_TIME, with_naive_baselines
-from bench.report.screen_cost import cost_table
+from bench.report.screen_cost import (SMALL_MODEL_COST_HEADERS, SMALL_MODEL_COST_TEXT, cost_table,
+                                      small_model_cost_rows)
 from bench.screen.proxies import (INPUT_SETS, PROXIES, label_free_proxies, naive_proxies,
                                   proxy_names, supervised_proxies)
 from bench.screen.records import GAIN, HELDOUT, VALUE
@@ -83,23 +85,25 @@ def naive_text(a) -> str:
     return _with_interval(a.naive_gap, a.naive_gap_interval) + best
 
 
-def agreement_table(agreements: Sequence) -> str:
+def agreement_table(agreements: Sequence, with_naive: bool = True) -> str:
     """One row per (backbone, suite, item set, cheaper tier) with the point statistic and its
     paired hierarchical bootstrap interval, or why it was not measured; the tier's tau-b minus the
-    best naive baseline's (paired) and whether the screen recommends it; then the tie rule."""
+    best naive baseline's (paired) and whether the screen recommends it (`with_naive`: tiers
+    measured beside the screens' naive baselines); then the tie rule."""
+    naive = 2 if with_naive else 0
     rows = []
     for a in agreements:
         head = [a.backbone, a.suite, a.item_set, a.tier, len(a.encoders)]
         if a.missing or a.point is None:
-            rows.append(head + [a.missing or "not measured"] + [""] * (len(STATISTICS) + 1))
+            rows.append(head + [a.missing or "not measured"] + [""] * (len(STATISTICS) - 1 + naive))
             continue
         rows.append(head + [_with_interval(getattr(a.point, k), a.intervals.get(k))
                             for k in STATISTICS]
-                    + [naive_text(a), "yes" if a.recommended else "no"])
-    return (table(rows, ["backbone", "suite", "items", "tier", "encoders", "Kendall tau-b",
-                         "weighted tau", "MMRV (MSE)", "top-1 regret (MSE)",
-                         "tau-b minus the best naive (paired)", "recommended"])
-            + f"\n\nTies: {TIE_RULE}")
+                    + [naive_text(a), "yes" if a.recommended else "no"][:naive])
+    headers = ["backbone", "suite", "items", "tier", "encoders", "Kendall tau-b", "weighted tau",
+               "MMRV (MSE)", "top-1 regret (MSE)", "tau-b minus the best naive (paired)",
+               "recommended"]
+    return table(rows, headers[:len(headers) - 2 + naive]) + f"\n\nTies: {TIE_RULE}"
 
 
 def recommendation_lines(agreements: Sequence) -> list[str]:
@@ -127,7 +131,8 @@ def _panels(screens: Sequence) -> list[tuple[str, str]]:
 
 def _panel_agreements(mine: Sequence, records: Sequence, backbone: str, suite: str,
                       n_resamples: int, seed: int, **kwargs) -> list:
-    """Every proxy's and short graft's TierAgreement on one panel and item set; kwargs:
+    """Every proxy's, short graft's and smaller model's (a smaller size of the panel backbone's
+    family, bench.analysis.family_scale) TierAgreement on one panel and item set; kwargs:
     tier_agreement's baselines, items and item_set (a naive baseline gets no baselines)."""
     out = []
     for proxy in PROXIES.values():
@@ -135,8 +140,11 @@ def _panel_agreements(mine: Sequence, records: Sequence, backbone: str, suite: s
         own = {**kwargs, "baselines": None} if proxy.naive else kwargs
         out.append(tier_agreement(scores, records, backbone, suite, proxy.name, n_resamples,
                                   seed, **own))
-    return out + [short_graft_agreement(records, backbone, suite, v, n_resamples, seed, **kwargs)
-                  for v in get_kind(SHORT_GRAFT).variants]
+    out += [short_graft_agreement(records, backbone, suite, v, n_resamples, seed, **kwargs)
+            for v in get_kind(SHORT_GRAFT).variants]
+    return out + [small_model_agreement(records, small, large, s, n_resamples, seed, **kwargs)
+                  for small, large, s in screening_rungs(records)
+                  if (large, s) == (backbone, suite)]
 
 
 def screen_agreements(screens: Sequence, records: Sequence, n_resamples: int,
@@ -261,6 +269,12 @@ def calibration_parts(selections: Sequence, studies: dict[str, Calibration]) -> 
     return parts
 
 
+def small_model_cost(records: Sequence) -> list[str]:
+    """The small-model rung's cost table with its heading, or nothing without a rung."""
+    rows = small_model_cost_rows(records)
+    return [SMALL_MODEL_COST_TEXT, table(rows, SMALL_MODEL_COST_HEADERS)] if rows else []
+
+
 def screen_section(ctx) -> str | None:
     """The section, or None when the store holds no screen (the report leaves it out)."""
     res = ctx.results
@@ -272,7 +286,10 @@ def screen_section(ctx) -> str | None:
              "[state] alone on the grafts' held-out windows (higher is better); entropy is "
              "label-free. The short-graft tiers (short_1_8, short_1_4) are the graft trained "
              "for 1/8 and 1/4 of its steps (whole schedule, compressed), ranked by their own "
-             "held-out MSE; `--screen-by short` ranks by short_1_4. A screen averages each camera's token grid: what an encoder carries in "
+             "held-out MSE; `--screen-by short` ranks by short_1_4. Where the grid holds "
+             "several sizes of a family (backbones/tiny_sizes.py), the family's smaller "
+             "models' grafts are a rung too (`small model <name>`, against the largest). "
+             "A screen averages each camera's token grid: what an encoder carries in "
              "where things are is lost here, not in the graft (docs/SCREENING.md).", screen_table(screens) if screens else "_No finished screen._"]
     if res.screen_failures:
         parts.append("Screens that failed (their grafts are dropped): " + "; ".join(
@@ -290,6 +307,7 @@ def screen_section(ctx) -> str | None:
               "each graft tier's wall time per cell, mean over seeds; screen / graft per encoder, "
               "then the mean and the worst: the ladder's goal is at most 5% for every encoder)",
               cost_table(res.screens, ctx.records),
+              *small_model_cost(ctx.records),
               "**What the screen dropped**",
               "\n".join(dropped_lines(res.selections)) or "_No --screen selection stored._"]
     calibration = calibration_parts(res.selections, ctx.screen_calibrations)

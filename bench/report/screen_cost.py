@@ -7,13 +7,16 @@ extraction not counted), the feature extraction (its stored file's build time, w
 it: a screen that found the graft's features stored is not free), each short graft's and the
 graft's wall seconds per cell (RunInfo.total_s, mean over seeds) and screen / graft. Then one
 summary row: the mean of each column over the encoders, and the worst screen / graft with its
-encoder. Pure: stored screens and records in, markdown out."""
+encoder. Then, where a grid holds several sizes of a family (backbones.tiny_sizes), the cost of
+"screening on the small model of the family": its graft seconds per cell against the family's
+largest size's. Pure: stored screens and records in, markdown out."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Sequence
 
+from bench.analysis.family_scale import screening_rungs
 from bench.analysis.tiers import short_tier
 from bench.grid.kinds import GRAFT, SHORT_GRAFT, get_kind
 from bench.report.format import num, table
@@ -105,3 +108,22 @@ def cost_table(stored: Sequence, records: Sequence) -> str:
                         "extraction s (whichever tier ran it)"]
                  + [f"{short_tier(v)} s / cell" for v in variants]
                  + ["graft s / cell", "screen / graft"])
+
+
+def small_model_cost_rows(records: Sequence) -> list[list[str]]:
+    """Per screening rung: the small and the large model's graft seconds per cell (mean over
+    their cells: RunInfo.total_s) and their ratio, the rung's cost per encoder."""
+    rows = []
+    for small, large, suite in screening_rungs(records):
+        s, big = (mean_seconds(records, b, suite, GRAFT, None) for b in (small, large))
+        ratio = _percent(s / big if s is not None and big else None)
+        rows.append([suite, small, large, num(s, 3), num(big, 3), ratio])
+    return rows
+
+
+SMALL_MODEL_COST_HEADERS = ["suite", "small model", "large model", "small graft s / cell",
+                            "large graft s / cell", "small / large"]
+SMALL_MODEL_COST_TEXT = (
+    "**Cost of screening on the small model** (per encoder: one graft cell of the small model "
+    "against one of the large; the small model's native training, once per release, is not "
+    "counted)")

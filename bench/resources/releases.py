@@ -22,6 +22,7 @@ import torch
 from backbones import adapter_module, get_entry
 from backbones.base import BackboneUnavailable, stats_fingerprint
 from backbones.hub import saved_normalizer_stats
+from backbones.tiny_sizes import build_args, size_of
 from ondisk.filelock import exclusive
 from ondisk.hubcache import download_command, folder_revision, resolved_revision
 from bench.progress import ProgressSink, say
@@ -65,7 +66,10 @@ def architecture_fingerprint(backbone) -> str:
 
 def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str,
                 release: int = 0) -> str:
+    """The cache key of tiny `name`'s release `release`: its recipe, data, architecture
+    fingerprint and, for a size of the tiny ladder, its rung (two sizes never share a key)."""
     p = profile.protocol
+    size = size_of(name)
     blob = json.dumps({
         "v": RELEASE_VERSION, "backbone": name, "chunk": chunk_size, "arch": arch,
         "suites": sorted(s.fingerprint for s in suites),
@@ -75,6 +79,8 @@ def release_key(name: str, profile: Profile, suites, chunk_size: int, arch: str,
         # Only when set: the releases trained before the field existed keep their keys.
         **({"image_shift": p.native_image_shift} if p.native_image_shift else {}),
         **({"release": release} if release else {}),
+        # Only for a ladder size beside its family's base build: the base keeps its key.
+        **({"size": size.rung} if size is not None and not size.base else {}),
     }, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
@@ -229,10 +235,10 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
     # The untrained build (seed r) both keys the cache and, on a miss, is what gets trained.
     side, tiny_stats = profile.protocol.tiny_image_size, union_stats(suites, train_frames)
     untrained = module.build_tiny_policy(tiny_stats, suites[0].camera_keys, image_hw=(side, side),
-                                         chunk_size=chunk_size, seed=release)
+                                         chunk_size=chunk_size, seed=release, **build_args(name))
     if side != Protocol.tiny_image_size:
         default = module.build_tiny_policy(tiny_stats, suites[0].camera_keys, chunk_size=chunk_size,
-                                           seed=0)
+                                           seed=0, **build_args(name))
         if default.info.native_grid == untrained.info.native_grid:  # a knob that moves nothing
             raise ValueError(f"[protocol] tiny_image_size = {side}: the tiny {name} reads "
                              f"{default.info.native_grid} image tokens at any size; remove it "
