@@ -1,4 +1,4 @@
-"""The start-up check (issue 23): each bad option, name or user path of `pytest bench` is ONE
+"""The start-up check: each bad option, name or user path of `pytest bench` is ONE
 UsageError screen (exit 4, no frames, no cell run), checked at pytest_configure, before
 collection; duplicates are folded and said. And every fetch command the paper preflight prints
 fetches what it says, as the pinned `hf` CLI's own parser reads it.

@@ -43,7 +43,7 @@ class Workspace:
     profile: Profile
     store: ResultStore
     # Where every long step reports (bench.progress): required, so no step takes a default
-    # sink that pytest captures (issue 53).
+    # sink that pytest captures.
     progress: ProgressSink
     # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
     rollouts: int = 0
