@@ -26,7 +26,7 @@ def _world(tiny_ws):
 
 def _no_training(name, *args, **kwargs):
     raise AssertionError(f"the tiny {name} was trained: its recipe's key is not in "
-                         "bench.resources.shipped.SHIPPED (ship it: python -m "
+                         "bench/resources/shipped/index.json (ship it: python -m "
                          "bench.resources.shipped GRAFTBENCH_CACHE/released/<backbone>-<key>)")
 
 
@@ -42,15 +42,17 @@ def test_the_default_recipe_loads_the_shipped_release_without_training(name, tin
     # Its saved stats are the ones this world's suites give: records name the same normaliser.
     expected = releases.normalizer_for(name, TINY, suites, train).fingerprint
     assert policy.normalizer_fingerprint() == expected
-    source = shipped.SHIPPED_DIR / shipped.SHIPPED[folder.name]
+    source = shipped.SHIPPED_DIR / shipped.shipped()[folder.name]
     assert checkpoint["revision"] == folder_revision(source) is not None
     assert {p.relative_to(folder): p.read_bytes() for p in folder.rglob("*") if p.is_file()} == \
         {p.relative_to(source): p.read_bytes() for p in source.rglob("*") if p.is_file()}
 
 
 def test_every_shipped_release_is_pinned_and_holds_no_pickle():
-    assert sorted(shipped.SHIPPED.values()) == sorted(p.name for p in shipped.SHIPPED_DIR.iterdir())
-    for cache_name, pinned in shipped.SHIPPED.items():
+    index = shipped.shipped()
+    assert sorted(index.values()) == sorted(p.name for p in shipped.SHIPPED_DIR.iterdir()
+                                            if p.is_dir())
+    for cache_name, pinned in index.items():
         folder = check_pinned(cache_name.rsplit("-", 1)[0], shipped.SHIPPED_DIR / pinned)
         suffixes = {p.suffix for p in folder.rglob("*") if p.is_file()}
         assert suffixes <= {".safetensors", ".json"}, (pinned, suffixes)
@@ -58,7 +60,7 @@ def test_every_shipped_release_is_pinned_and_holds_no_pickle():
 
 
 def test_a_changed_shipped_file_is_refused_and_nothing_is_copied(tmp_path, monkeypatch):
-    cache_name, pinned = next(iter(shipped.SHIPPED.items()))
+    cache_name, pinned = next(iter(shipped.shipped().items()))
     copy = tmp_path / "shipped"
     shutil.copytree(shipped.SHIPPED_DIR, copy)
     with open(copy / pinned / "model.safetensors", "r+b") as weights:
@@ -73,7 +75,7 @@ def test_a_changed_shipped_file_is_refused_and_nothing_is_copied(tmp_path, monke
 
 
 def test_a_shipped_copy_that_changes_on_the_way_is_not_kept(tmp_path, monkeypatch):
-    cache_name, pinned = next(iter(shipped.SHIPPED.items()))
+    cache_name, pinned = next(iter(shipped.shipped().items()))
     monkeypatch.setattr(shipped, "content_hash", lambda folder: "0" * 16)  # what the copy hashes to
     target = tmp_path / "released" / cache_name
     target.parent.mkdir()

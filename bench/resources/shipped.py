@@ -5,7 +5,7 @@ backbone on one core), before any cell can run. The releases of the default reci
 profiles' protocol on the generated suites) are shipped instead, under bench/resources/shipped/,
 in the pinned form of bench.grid.pinned_release: a folder named `<backbone>-<content hash>`
 whose files (safetensors weights and stats, configs) are sha256-checked against that name
-before use. `SHIPPED` maps the release key their recipe trains (the cache folder's name,
+before use. shipped/index.json maps the release key their recipe trains (the cache folder's name,
 bench.resources.releases.release_key: backbone, data fingerprints, architecture, native
 protocol, release index) to that folder. A run whose key is shipped copies it into its cache,
 checked again, and loads it from there as if it had trained it; any other recipe trains.
@@ -18,12 +18,13 @@ tests/test_shipped_releases.py fail, until its releases are shipped anew:
 
     python -m bench.resources.shipped GRAFTBENCH_CACHE/released/<backbone>-<key>
 
-pins that folder here and prints its `SHIPPED` entry.
+pins that folder here and enters it in the index.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import sys
@@ -32,18 +33,20 @@ from pathlib import Path
 from bench.grid.pinned_release import RELEASE_FILE, check_pinned, content_hash, pin
 
 SHIPPED_DIR = Path(__file__).with_name("shipped")
-# The cache folder a recipe trains (<backbone>-<release key>) -> its shipped, pinned folder.
-SHIPPED: dict[str, str] = {
-    "smolvla-6a224571acee": "smolvla-ca5960dec2e02602",
-    "pi05-e556bd15124e": "pi05-20104b8951ab73c4",
-    "pi0-1540a20251c2": "pi0-99edf2e4eb0dfa5a",  # not in the default grid: the tests' third
-}
+# {the cache folder a recipe trains (<backbone>-<release key>): its shipped, pinned folder}, one
+# entry per shipped release (the default grid's two, and the tests' third backbone's).
+INDEX = "index.json"
+
+
+def shipped() -> dict[str, str]:
+    """The index: cache folder name -> shipped folder name."""
+    return json.loads((SHIPPED_DIR / INDEX).read_text())
 
 
 def shipped_release(cache_name: str) -> Path | None:
     """The shipped folder standing for the cache folder `cache_name` (None: none shipped),
     its content hash checked (ValueError naming the fix if its files were changed)."""
-    pinned = SHIPPED.get(cache_name)
+    pinned = shipped().get(cache_name)
     if pinned is None:
         return None
     backbone = cache_name.rsplit("-", 1)[0]
@@ -77,8 +80,9 @@ def main(argv: list[str] | None = None) -> None:
               "release folder (GRAFTBENCH_CACHE/released/<backbone>-<key>)", file=sys.stderr)
         raise SystemExit(4)
     pinned = pin(source, SHIPPED_DIR)
-    print(f"shipped: {pinned}\nits SHIPPED entry (bench/resources/shipped.py): "
-          f'"{source.name}": "{pinned.name}",')
+    index = {**shipped(), source.name: pinned.name}
+    (SHIPPED_DIR / INDEX).write_text(json.dumps(dict(sorted(index.items())), indent=1) + "\n")
+    print(f"shipped: {pinned}, for {source.name} (in {SHIPPED_DIR / INDEX})")
 
 
 if __name__ == "__main__":
