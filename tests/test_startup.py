@@ -27,6 +27,7 @@ import bench.sim.env  # noqa: F401  (its libero_available is replaced by tests b
 import bench.suites.user  # noqa: F401
 import encoders  # noqa: F401
 from ondisk.paths import REPO_ROOT
+from tests.bench_inprocess import ONE_PROCESS
 
 pytest_plugins = ["pytester"]
 
@@ -41,7 +42,8 @@ def bench_run(pytester):
 
     def run(*args: str):
         out = pytester.runpytest_inprocess(
-            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", "--results-dir", str(results),
+            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", *ONE_PROCESS, "--results-dir",
+            str(results),
             "--report", str(pytester.path / "REPORT.md"), *args)
         out.screen = "\n".join(out.outlines + out.errlines)
         out.records = sorted(results.glob("cells/*.json"))
