@@ -5,6 +5,7 @@ never import the training loop; the records never import the cell that writes th
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -79,7 +80,8 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _import_graph() -> dict[str, set[str]]:
+@functools.cache  # three tests read it: parsed once
+def _import_graph() -> dict[str, frozenset[str]]:
     """module -> the modules of ours it imports, anywhere in its AST (inside functions and under
     TYPE_CHECKING too); `from pkg import sub` counts as importing pkg.sub, not pkg."""
     modules = {_module_name(p): p for p in _modules() + _plugin_modules()}
@@ -93,7 +95,7 @@ def _import_graph() -> dict[str, set[str]]:
                 for alias in node.names:
                     sub = f"{node.module}.{alias.name}"
                     deps.add(sub if sub in modules else node.module)
-        graph[name] = {d for d in deps if d in modules and d != name}
+        graph[name] = frozenset(d for d in deps if d in modules and d != name)
     return graph
 
 
