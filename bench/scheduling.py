@@ -24,7 +24,8 @@ DEFAULT_WORKERS = 2
 
 def default_workers(config: pytest.Config) -> int | None:
     """xdist workers for a `pytest bench` run given no -n (None: leave it to xdist, one process):
-    min(CPUs, DEFAULT_WORKERS) when the run measures cells of the tiny world here. Not for the
+    min(CPUs, DEFAULT_WORKERS, what the memory available holds: bench.memory) when the run
+    measures cells of the tiny world here. Not for the
     hub world (a GPU run chooses its -n), your own --policy, the simulator's suites, a job array,
     --collect-only, --pdb, a run of anything but the grid, or an xdist worker itself."""
     if (getattr(config.option, "numprocesses", "absent") is not None  # given, or no xdist
@@ -40,7 +41,12 @@ def default_workers(config: pytest.Config) -> int | None:
     profile = PROFILES.get(name)
     if profile is None or profile.source != "tiny" or profile.suite_source is not None:
         return None  # an unknown name is the session's to refuse
+    from bench.memory import estimate, machine_memory
+
     workers = min(len(os.sched_getaffinity(0)), DEFAULT_WORKERS)
+    _, available = machine_memory()  # fewer workers where their memory is not there (0: unknown)
+    while workers > 1 and available and estimate(profile, workers).total > available:
+        workers -= 1
     return workers if workers > 1 else None
 
 

@@ -48,6 +48,16 @@ def test_the_tiny_grid_takes_both_cores_without_n(cpus):
     assert scheduling.default_workers(config("bench")) is None
 
 
+def test_two_workers_only_where_their_memory_is(cpus, monkeypatch):
+    from bench import memory
+
+    two = memory.estimate(TINY, 2).total
+    monkeypatch.setattr(memory, "machine_memory", lambda: (2 * two, two))
+    assert scheduling.default_workers(config("bench")) == 2
+    monkeypatch.setattr(memory, "machine_memory", lambda: (2 * two, two - 1))
+    assert scheduling.default_workers(config("bench")) is None  # one process: it fits alone
+
+
 @pytest.mark.parametrize("case", [
     config("bench", numprocesses=0),  # -n 0: one process, asked for
     config("bench", numprocesses=3),  # -n 3: xdist's as given
