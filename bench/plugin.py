@@ -14,13 +14,20 @@ import pytest
 from bench.grid.cells import (CellSpec, ScreenCase, control_cells, graft_cells, grid_cells,
                               screen_cases, staggered, tier_cells)
 from bench.options import pytest_addoption  # noqa: F401  (the hook, found here by name)
-from bench.scheduling import backbone_scheduler, configure_scale
+from bench.scheduling import backbone_scheduler, configure_scale, default_workers
 from bench.session import GraftSession, Selection
 from bench.summary import cell_id_of
 
 SESSION_KEY = pytest.StashKey[GraftSession]()
 DESELECTED_KEY = pytest.StashKey[list]()  # ids of grid cases that -k/-m deselected
 GRID_MODULE = Path(__file__).with_name("test_grid.py")
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's, which turns -n into workers
+def pytest_cmdline_main(config: pytest.Config) -> None:
+    workers = default_workers(config)
+    if workers is not None:
+        config.option.numprocesses = workers
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -7,7 +7,7 @@ when it is a terminal), a `TerminalSink` (inside pytest), a `WorkerSink` (an xdi
 user's terminal, which the worker's stderr still is), a `LogSink` (a job array task: its log), or
 `QUIET` (the null sink). Wherever a session calls in, `progress` is a required argument (no
 default sink: tests/test_progress_sinks.py checks the signatures), so a long step cannot fall
-silent by forgetting it, as the sim suite's demonstrations did (issue 53: ten silent minutes).
+silent by forgetting it, as the sim suite's demonstrations once did (ten silent minutes).
 """
 
 from __future__ import annotations

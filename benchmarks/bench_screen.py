@@ -1,5 +1,5 @@
-"""The screen tier beside the graft it screens for, in one run (issue 26's 5% goal), and the
-screen's proxies at the real study's size (issue 51):
+"""The screen tier beside the graft it screens for, in one run (a screen should cost under 5% of
+a graft), and the screen's proxies at the real study's size:
 
     .venv/bin/pytest benchmarks/bench_screen.py --benchmark-only -p no:randomly
     .venv/bin/pytest benchmarks/bench_screen.py --benchmark-only -p no:randomly -k synthetic

@@ -167,7 +167,7 @@ register(EncoderSpec(
     BlindEncoder)
 
 
-# The known-answer ladder (issue 26): the image at falling resolution, then with rising noise,
+# The known-answer ladder: the image at falling resolution, then with rising noise,
 # down to blind. A rung is the image's r x r block means (minus 0.5) flattened into 3*r*r
 # channels of one token, repeated on a 2x2 grid (the smallest grid an encoder gives:
 # tests/test_encoders.py); one token, because a screen averages each camera's grid, and a grid

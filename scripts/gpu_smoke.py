@@ -1,4 +1,4 @@
-"""GPU smoke of a graft on real-size, randomly initialised SmolVLA and pi0.5 (issue 14).
+"""GPU smoke of a graft on real-size, randomly initialised SmolVLA and pi0.5.
 
 Per backbone: build the architecture offline (no weights, no hub), then a few projector steps of a
 graft and one evaluation batch, in bf16 autocast on CUDA (bench.loops.train.frozen_autocast),

@@ -1,4 +1,4 @@
-"""A robustness case beside its graft cell, in one process (docs/PERFORMANCE.md, issue 39).
+"""A robustness case beside its graft cell, in one process (docs/PERFORMANCE.md).
 
 Measures the tiny protocol's BACKBONE-spatial-pixels-seed0 graft cell, then its robustness case
 with all 21 perturbations (rerun, the perturbed features already stored) two ways, alternating:

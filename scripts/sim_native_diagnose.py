@@ -1,4 +1,4 @@
-"""Why does the tiny native policy never succeed? A diagnostic outside the test suite (issue 27).
+"""Why does the tiny native policy never succeed? A diagnostic outside the test suite.
 
 1. Open loop: the trained release's action chunks on the demonstrations' own frames against the
    demonstrations' actions (raw units, per dimension; gripper sign agreement).

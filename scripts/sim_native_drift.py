@@ -1,4 +1,4 @@
-"""Where does the native policy leave its demonstration? (issue 27 diagnostic, not a test)
+"""Where does the native policy leave its demonstration? (a diagnostic, not a test)
 
 From a TRAINING demonstration's own init state and env seed, roll the release out and print,
 at every re-plan, the eef position error against the demo at the same step and the policy's

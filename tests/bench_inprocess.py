@@ -26,6 +26,11 @@ from ondisk.paths import REPO_ROOT
 from tests.worlds import lent_workspace
 
 
+# A run in this process stays in it: without -n a tiny-world run would start two xdist workers
+# (bench.scheduling.default_workers), fresh interpreters the lent world cannot reach.
+ONE_PROCESS = ("-n", "0")
+
+
 @dataclass(frozen=True)
 class BenchRun:
     """What a `pytest bench` run gave: its exit code and its terminal output."""
@@ -93,7 +98,7 @@ def run_bench(*args: str, shared: bool = True, figures: bool = False,
         try:
             with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
                 code = pytest.main([str(REPO_ROOT / "bench"), "-p", "no:cacheprovider",
-                                    "--capture=sys", *args], plugins=plugins)
+                                    "--capture=sys", *ONE_PROCESS, *args], plugins=plugins)
         finally:
             torch.set_num_threads(threads)
     return BenchRun(int(code), out.getvalue(), err.getvalue())
@@ -107,7 +112,7 @@ def bench_run(pytester):
     is the folder."""
     def run(*args: str):
         out = pytester.runpytest_inprocess(
-            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", "--results-dir",
+            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", *ONE_PROCESS, "--results-dir",
             str(pytester.path / "results"), "--report", str(pytester.path / "REPORT.md"), *args)
         out.screen = "\n".join(out.outlines + out.errlines)
         out.records = sorted((pytester.path / "results").glob("cells/*.json"))

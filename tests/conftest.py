@@ -96,14 +96,18 @@ def bench_cli():
 # per group under -n 2; the rest keep the collection's order.
 SPLIT = {"tests/test_known_answers.py"}  # by the test's parameter id (its backbone)
 LONGEST_FIRST = (
-    "tests/test_known_answers.py[pi05]", "tests/test_known_answers.py[pi0]",
-    "tests/test_hub_world.py", "tests/test_sim_demos.py", "tests/test_known_answers.py[smolvla]",
-    "tests/test_xdist.py", "tests/test_own_policy.py", "tests/test_export.py",
+    "tests/test_sim_frames.py", "tests/test_known_answers.py[pi05]",
+    "tests/test_robustness.py", "tests/test_known_answers.py[pi0]", "tests/test_hub_world.py",
+    "tests/test_sim_demos.py", "tests/test_known_answers.py[smolvla]", "tests/test_xdist.py",
+    "tests/test_own_policy.py", "tests/test_export.py", "tests/test_startup.py",
+    "tests/test_claims.py", "tests/test_screening.py", "tests/test_plugin_standalone.py",
     "tests/test_executors.py", "tests/test_sim_batched.py", "tests/test_screen_run.py",
-    "tests/test_short_graft.py", "tests/test_sim_rollout.py",
-    "tests/test_gpu_smoke.py", "tests/test_grid_plugin.py", "tests/test_screen.py",
-    "tests/test_newcomer.py", "tests/test_projector_reuse.py", "tests/test_known_answers.py",
-    "tests/test_gridfile.py", "tests/test_features.py", "tests/test_determinism.py",
+    "tests/test_tuned_encoder.py", "tests/test_user_encoder.py", "tests/test_short_graft.py",
+    "tests/test_sim_rollout.py", "tests/test_gpu_smoke.py", "tests/test_suites.py",
+    "tests/test_robust_loop.py", "tests/test_pack_grafts.py", "tests/test_tiers.py",
+    "tests/test_grid_plugin.py", "tests/test_screen.py", "tests/test_newcomer.py",
+    "tests/test_projector_reuse.py", "tests/test_known_answers.py", "tests/test_gridfile.py",
+    "tests/test_features.py", "tests/test_determinism.py",
 )
 
 

@@ -1,4 +1,4 @@
-"""Bad input to every entry point (issue 52): `pytest bench`, `python -m bench.report`,
+"""Bad input to every entry point: `pytest bench`, `python -m bench.report`,
 `bench.export`, `bench.offline_hub`, `bench.sim.demos` each stop before measuring or writing
 anything, in one short screen naming the option (or variable), the value and the fix, with ONE
 exit code for bad input: 4, pytest's usage error (a literal here, not the code's constant, which

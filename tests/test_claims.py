@@ -93,7 +93,7 @@ def test_two_runs_on_one_results_dir_measure_each_cell_once(bench_cli, tmp_path)
            "OMP_NUM_THREADS": "1"}
     other = subprocess.Popen(
         [sys.executable, "-m", "pytest", str(REPO_ROOT / "bench"), "-p", "no:cacheprovider",
-         "-p", "tests.slow_cells", *TWO_CELLS, "--results-dir", str(tmp_path / "results"),
+         "-n", "0", "-p", "tests.slow_cells", *TWO_CELLS, "--results-dir", str(tmp_path / "results"),
          "--report", str(tmp_path / "A.md")],
         cwd=REPO_ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 180

@@ -23,6 +23,7 @@ import encoders
 from encoders import dinov2_focus as focus
 from encoders.real import WeightConversionError
 from ondisk.paths import REPO_ROOT
+from tests.bench_inprocess import ONE_PROCESS
 
 pytest_plugins = ["pytester"]
 
@@ -175,7 +176,7 @@ def test_a_missing_or_altered_wheel_stops_at_start_up_in_one_line(pytester, monk
               if fault == "uninstalled" else dataclasses.replace(focus.FOCUS, sha256="0" * 64))
     monkeypatch.setattr(focus, "FOCUS", broken)
     out = pytester.runpytest_inprocess(
-        str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", "--results-dir",
+        str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", *ONE_PROCESS, "--results-dir",
         str(pytester.path / "results"), "--report", str(pytester.path / "REPORT.md"),
         "--backbones", "pi05", "--encoders", "pixels,dinov2_s_focus", "--seeds", "0")
     screen = "\n".join(out.outlines + out.errlines)

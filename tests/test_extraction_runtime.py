@@ -1,6 +1,7 @@
-"""The feature store's extraction runtime (bench.resources.extraction, issue 51): torch's features and
-keys exactly today's; onnxruntime's keyed apart, close to torch's and the same bits run to run;
-every failure of the onnxruntime path falls back to torch, keyed as torch's, with its reason."""
+"""The feature store's extraction runtime (bench.resources.extraction): torch's features and
+keys exactly those of the torch-only store; onnxruntime's keyed apart, close to torch's and the
+same bits run to run; every failure of the onnxruntime path falls back to torch, keyed as
+torch's, with its reason."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from bench.loops.encode import encode_grid, encode_pooled
 from encoders import build_encoder
 from tests.test_features import CAMERAS, FakeSuite, everything
 
-# feature_key(encoder, FakeSuite(), (2, 2)) as the code before issue 51 computed it (git 47c0a4f):
+# feature_key(encoder, FakeSuite(), (2, 2)) as the torch-only store computed it (git 47c0a4f):
 # torch's stores keep their names, so no cache is rebuilt and no number moves.
 TODAYS_KEYS = {
     "dinov2_s": "2e259008ed114b50eac0d18f4d61aeee9227044fc661dfdad36184cce05f682f",

@@ -1,4 +1,4 @@
-"""Issue 53: a first-use sim suite renders its demonstrations for ~10 minutes inside `pytest
+"""A first-use sim suite renders its demonstrations for ~10 minutes inside `pytest
 bench`; its per-attempt lines must reach the terminal, not pytest's captured stderr (they did
 not: `_sim_suite_path` called `demos.generate` without the session's sink).
 

@@ -1,4 +1,4 @@
-"""Issue 53: no long step falls silent. Where a session calls in, `progress` is a required
+"""No long step falls silent. Where a session calls in, `progress` is a required
 argument (no default sink to forget it on); an xdist worker's and a job array task's lines are
 written, not dropped; the shared countdown says how far and how long is left."""
 

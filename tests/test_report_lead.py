@@ -1,4 +1,4 @@
-"""The report answers the run it was given (issue 38): its first lines are the winner of each
+"""The report answers the run it was given: its first lines are the winner of each
 backbone x suite with its top tier and its margin over the next encoder (interval), the transfer
 answer only where both backbones ran; a section with nothing to show is one line; each encoder's
 source, weights id and input size beside the rankings, and caveats true for the encoders that

@@ -1,4 +1,4 @@
-"""The robustness tier (issue 39): the perturbation table, its known answers on the tiny world,
+"""The robustness tier: the perturbation table, its known answers on the tiny world,
 its bad input, and `pytest bench --robustness` end to end.
 
 Known answers: `blind` degrades by exactly 0 under every perturbation; severity 0 gives the

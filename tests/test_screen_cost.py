@@ -1,4 +1,4 @@
-"""What a screen costs against the graft it screens for (issue 51): REPORT.md's per-encoder cost
+"""What a screen costs against the graft it screens for: REPORT.md's per-encoder cost
 table on planted seconds, and the extraction runtime a cell's record names."""
 
 from __future__ import annotations

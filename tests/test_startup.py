@@ -1,4 +1,4 @@
-"""The start-up check (issue 23): each bad option, name or user path of `pytest bench` is ONE
+"""The start-up check: each bad option, name or user path of `pytest bench` is ONE
 UsageError screen (exit 4, no frames, no cell run), checked at pytest_configure, before
 collection; duplicates are folded and said. And every fetch command the paper preflight prints
 fetches what it says, as the pinned `hf` CLI's own parser reads it.
@@ -27,6 +27,7 @@ import bench.sim.env  # noqa: F401  (its libero_available is replaced by tests b
 import bench.suites.user  # noqa: F401
 import encoders  # noqa: F401
 from ondisk.paths import REPO_ROOT
+from tests.bench_inprocess import ONE_PROCESS
 
 pytest_plugins = ["pytester"]
 
@@ -41,7 +42,8 @@ def bench_run(pytester):
 
     def run(*args: str):
         out = pytester.runpytest_inprocess(
-            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", "--results-dir", str(results),
+            str(REPO_ROOT / "bench"), "-p", "no:cacheprovider", *ONE_PROCESS, "--results-dir",
+            str(results),
             "--report", str(pytester.path / "REPORT.md"), *args)
         out.screen = "\n".join(out.outlines + out.errlines)
         out.records = sorted(results.glob("cells/*.json"))

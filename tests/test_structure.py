@@ -1,9 +1,11 @@
 """Checks anyone can run on the code's shape: modules a reader can hold, functions on one screen,
-and no package that reaches up a layer (the adapters never import the training loop)."""
+every module in a named layer, and no import that climbs to a layer above its own (the adapters
+never import the training loop; the records never import the cell that writes them)."""
 
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -78,7 +80,8 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _import_graph() -> dict[str, set[str]]:
+@functools.cache  # three tests read it: parsed once
+def _import_graph() -> dict[str, frozenset[str]]:
     """module -> the modules of ours it imports, anywhere in its AST (inside functions and under
     TYPE_CHECKING too); `from pkg import sub` counts as importing pkg.sub, not pkg."""
     modules = {_module_name(p): p for p in _modules() + _plugin_modules()}
@@ -92,7 +95,7 @@ def _import_graph() -> dict[str, set[str]]:
                 for alias in node.names:
                     sub = f"{node.module}.{alias.name}"
                     deps.add(sub if sub in modules else node.module)
-        graph[name] = {d for d in deps if d in modules and d != name}
+        graph[name] = frozenset(d for d in deps if d in modules and d != name)
     return graph
 
 
@@ -137,7 +140,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def _sub_package(module: str) -> str:
-    """bench.cell.freeze -> bench.run; bench.session -> bench.session; backbones.pi05 -> backbones."""
+    """bench.cell.freeze -> bench.cell; bench.session -> bench.session; backbones.pi05 -> backbones."""
     parts = module.split(".")
     if parts[0] == "bench" and len(parts) > 2:
         return ".".join(parts[:2])
@@ -173,3 +176,91 @@ def test_no_import_cycle_between_sub_packages():
         for d in deps:
             graph.setdefault(d, set())
     assert {tuple(c) for c in _cycles(graph)} == KNOWN_PACKAGE_CYCLES
+
+
+# The layers, top to bottom (docs/ARCHITECTURE.md, "The layers"): a module imports modules of
+# its own layer and of the layers below it, never of one above. Each entry is a file or a folder
+# (ending in "/") relative to the repository or to the plugin's project folder; every module of
+# ours must fall under exactly one, so a new module is placed on purpose, not by default.
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("front: the pytest front", (
+        "bench/plugin.py", "bench/session.py", "bench/options.py", "bench/scheduling.py",
+        "bench/summary.py", "bench/test_grid.py", "bench/startup.py", "bench/memory.py",
+        "bench/data_bounds.py", "bench/preflight.py")),
+    ("study: what a study makes of its records", (
+        "bench/analysis/", "bench/report/", "bench/regression/", "bench/export/",
+        "bench/robust/", "bench/outputs.py")),
+    ("cell: a cell's measurement", ("bench/cell/", "bench/resources/", "bench/loops/")),
+    ("records: the record, its store and the screen's scores", (
+        "bench/results/", "bench/screen/")),
+    ("worlds: the data a cell reads", ("bench/suites/", "bench/sim/", "bench/offline_hub.py")),
+    ("core: what a cell is, and the leaves", (
+        "bench/__init__.py", "bench/grid/", "bench/option_values.py", "bench/table.py",
+        "bench/stats.py", "bench/progress.py")),
+    ("registries: the encoders and the policy adapters", ("encoders/", "backbones/")),
+    ("floor: the disk and the standalone plugin", (
+        "ondisk/", "lerobot_policy_graft/", "graftcore/")),
+)
+
+
+def _place(path: Path) -> str:
+    """A module's path as the layer table spells it (the plugin's relative to its project)."""
+    root = PLUGIN_ROOT if path.is_relative_to(PLUGIN_ROOT) else REPO_ROOT
+    return path.relative_to(root).as_posix()
+
+
+def layer_of(place: str) -> list[str]:
+    """The layers whose entries hold `place` (a file as `_place` spells it): one, if placed."""
+    return [name for name, entries in LAYERS
+            if any(place == e or e.endswith("/") and place.startswith(e) for e in entries)]
+
+
+def test_every_module_has_one_layer():
+    modules = [_place(p) for p in _modules() + _plugin_modules()]
+    unplaced = [m for m in modules if len(layer_of(m)) != 1]
+    assert not unplaced, (
+        f"modules in no layer or in several: {unplaced}; place each in ONE entry of LAYERS "
+        "(tests/test_structure.py) and in docs/ARCHITECTURE.md's list of layers")
+    stale = [e for _, entries in LAYERS for e in entries
+             if not any(m == e or e.endswith("/") and m.startswith(e) for m in modules)]
+    assert not stale, f"LAYERS entries that hold no module: {stale}"
+
+
+def climbing_imports(graph: dict[str, set[str]], places: dict[str, str]) -> list[str]:
+    """'A (layer a) imports B (layer b)' for every import of `graph` whose target's layer is
+    above its importer's (LAYERS' order); `places`: module -> its place in the table."""
+    rank = {name: i for i, (name, _) in enumerate(LAYERS)}
+    layer = {m: found[0] for m, place in places.items() if len(found := layer_of(place)) == 1}
+    climbs = []  # a module in no layer is test_every_module_has_one_layer's to name
+    for module, deps in sorted(graph.items()):
+        for dep in sorted(deps):
+            if module in layer and dep in layer and rank[layer[dep]] < rank[layer[module]]:
+                climbs.append(f"{module} ({layer[module]}) imports {dep} ({layer[dep]})")
+    return climbs
+
+
+def test_no_import_climbs_a_layer():
+    """Every import counts, those inside functions and under TYPE_CHECKING included."""
+    places = {_module_name(p): _place(p) for p in _modules() + _plugin_modules()}
+    climbs = climbing_imports(_import_graph(), places)
+    assert not climbs, "imports that climb to a layer above their own:\n" + "\n".join(climbs)
+
+
+def test_a_climbing_import_is_named_with_both_layers():
+    """The check itself, on a made-up graph: the records importing the cell that writes them."""
+    places = {"bench.results.store": "bench/results/store.py",
+              "bench.cell.service": "bench/cell/service.py"}
+    graph = {"bench.results.store": {"bench.cell.service"},
+             "bench.cell.service": {"bench.results.store"}}
+    assert climbing_imports(graph, places) == [
+        "bench.results.store (records: the record, its store and the screen's scores) imports "
+        "bench.cell.service (cell: a cell's measurement)"]
+
+
+def test_the_architecture_page_lists_the_same_layers():
+    """docs/ARCHITECTURE.md's table of layers names LAYERS' layers, in their order."""
+    text = (REPO_ROOT / "docs" / "ARCHITECTURE.md").read_text()
+    table = text.split("## The layers", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split("|")[1].strip() for line in table.splitlines()
+            if line.startswith("| ") and not line.startswith(("| layer |", "| --- |"))]
+    assert rows == [name.split(":")[0] for name, _ in LAYERS]

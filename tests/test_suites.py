@@ -347,3 +347,37 @@ def test_every_table_refuses_an_unknown_name_in_one_shape():
                                  ("spatial", "blur", "graft", "smolvla", "pixels")):
         assert line.startswith(f"unknown {what} "), line
         assert f"(did you mean {close!r}" in line and "; valid " in line, line
+
+
+def _fake_generation(made: list[str]):
+    def generate(final, name, seed, progress):
+        made.append(name)
+        (final / "meta").mkdir(parents=True)
+        (final / "meta" / "info.json").write_text("{}")
+        return final
+    return generate
+
+
+def test_two_workers_generate_the_tiny_suites_side_by_side(tmp_path, monkeypatch):
+    """Worker k begins with the k-th suite; a suite another process is generating is left to it
+    (its lock held), and loading it then waits for it instead of generating it twice."""
+    from ondisk.filelock import exclusive
+
+    monkeypatch.setenv("GRAFTBENCH_CACHE", str(tmp_path))
+    made: list[str] = []
+    monkeypatch.setattr(synthetic, "_generate_into", _fake_generation(made))
+    names = sorted(synthetic.SUITE_PARAMS)
+    assert len(names) == 2
+    synthetic.prepare_tiny_suites(names, 1, progress=QUIET)
+    assert made == [names[1], names[0]]
+    synthetic.prepare_tiny_suites(names, 0, progress=QUIET)  # all there: nothing again
+    assert made == [names[1], names[0]]
+
+    made.clear()
+    monkeypatch.setenv("GRAFTBENCH_CACHE", str(tmp_path / "second"))
+    other = synthetic._suite_folder(names[0])
+    with exclusive(other.with_name(other.name + ".lock")):  # the other worker's, generating
+        synthetic.prepare_tiny_suites(names, 0, progress=QUIET)
+        assert made == [names[1]]
+    assert synthetic.tiny_suite_path(names[0], progress=QUIET) == other
+    assert made == [names[1], names[0]]  # the lock came free with nothing there: made once

@@ -1,4 +1,4 @@
-"""Offline measures beside the full-chunk MSE, each against closed-loop success (issue 54).
+"""Offline measures beside the full-chunk MSE, each against closed-loop success.
 
 Every measure is computed from what a cell record keeps (no retraining) and is one entry of
 MEASURES: a name, a one-line definition and a function that turns the rolled-out items of one

@@ -1,4 +1,4 @@
-"""Packed grafts: K projectors trained through ONE frozen-backbone pass a step (issue 51, item 3).
+"""Packed grafts: K projectors trained through ONE frozen-backbone pass a step.
 
 The backbone is frozen and a sample never meets another in it (attention and norms act within a
 sample), so K graft cells of one backbone can share its forward and backward: each cell draws its

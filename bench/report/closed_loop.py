@@ -121,7 +121,7 @@ def rollout_hardware(records) -> dict[str, list[str]]:
 
 def hardware_caveat(found: dict[str, list[str]]) -> str:
     """The caveat naming each machine the episodes were rolled out on, and what that moves."""
-    # The figures: studies/sim/REBUILD.md, "A graft on other kernels" (issue 54).
+    # The figures: studies/sim/REBUILD.md, "A graft on other kernels".
     return (f"**Rollouts ran on {len(found)} machines' kernels** ({cells_by(found)}). Episodes "
             "do not rebuild across kernels: one pinned Lite0 graft rolled out under AVX2 instead "
             "of AVX-512 kernels changed 12 of its 40 episodes' outcomes (28 -> 26 successes); "

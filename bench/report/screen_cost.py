@@ -1,6 +1,6 @@
 """REPORT.md's "Cost per encoder" table (the screen section): what each tier of the ladder cost
 each screened encoder, so that "the screen costs at most 5% of a graft cell for every encoder"
-(issue 51) reads off one column.
+reads off one column.
 
 Per backbone x suite, one row per screened encoder: the screen's own solve (ScreenScores.seconds,
 extraction not counted), the feature extraction (its stored file's build time, whichever tier ran

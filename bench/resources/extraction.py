@@ -1,5 +1,5 @@
 """The runtime a feature store extracts with: torch eager (the encoder's own forward) or the same
-timm model exported to ONNX and run by onnxruntime (issue 51: ~3x fewer ms an image for
+timm model exported to ONNX and run by onnxruntime (~3x fewer ms an image for
 EfficientNet-Lite0 at 224 px on one CPU thread, docs/PERFORMANCE.md).
 
 `extractor(encoder, runtime, probe)` returns None for torch (features.encode_grid, today's

@@ -4,8 +4,10 @@ A random-init tiny VLA has no meaningful native tower, so the offline world trai
 policy natively (all of it, its own tower included) on the training episodes of the tiny suites,
 saves it with save_pretrained and from then on loads it through the same from_pretrained path as
 a real checkpoint. Deterministic, keyed by (config, data fingerprints, protocol), rebuilt only
-when missing. The key does not hold the CPU's kernels or the thread count, which change the
-weights (studies/sim/REBUILD.md): a committed study pins its release (bench.grid.pinned_release).
+when missing; the default recipe's releases are shipped (bench.resources.shipped) and copied in
+instead of trained. The key does not hold the CPU's kernels or the thread count, which change
+the weights (studies/sim/REBUILD.md): a committed study pins its release
+(bench.grid.pinned_release).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from bench.results.provenance import stable_seed
 from bench.loops.augment import shift_images
 from ondisk.libero_format import STATE_KEY
 from bench.loops.train import FitConfig, fit
+from bench.resources.shipped import install_shipped, shipped_release
 from bench.resources.user_policies import policy_facts, user_checkpoint_id
 
 RELEASE_VERSION = "1"
@@ -250,10 +253,18 @@ def load_released(name: str, profile: Profile, suites, train_frames, cache: Path
         # xdist workers and array tasks sharing a cache: one trains, the others wait and load it.
         with exclusive(folder.with_name(folder.name + ".lock")):
             if not (folder / "graftbench_release.json").exists():
-                say(progress, f"training the tiny released {name} (release {release}) natively "
-                              f"({profile.protocol.native_steps} steps, once; cached in {folder})")
-                train_tiny_release(name, untrained, profile, suites, train_frames, folder,
-                                   chunk_size, progress, release)
+                shipped = shipped_release(folder.name)
+                if shipped is not None:  # the default recipe's: ~1 min of training saved
+                    say(progress, f"the tiny released {name} (release {release}): the shipped "
+                                  f"{shipped.name}, not trained (content hash checked; cached "
+                                  f"in {folder})")
+                    install_shipped(shipped, folder)
+                else:
+                    say(progress, f"training the tiny released {name} (release {release}) "
+                                  f"natively ({profile.protocol.native_steps} steps, once; "
+                                  f"cached in {folder})")
+                    train_tiny_release(name, untrained, profile, suites, train_frames, folder,
+                                       chunk_size, progress, release)
     return module.load_policy(str(folder)), checkpoint_id(name, profile, folder)
 
 

@@ -4,6 +4,7 @@ pooled-feature caches. Built lazily, once per pytest session (or per worker unde
 from __future__ import annotations
 
 import copy
+import os
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -43,7 +44,7 @@ class Workspace:
     profile: Profile
     store: ResultStore
     # Where every long step reports (bench.progress): required, so no step takes a default
-    # sink that pytest captures (issue 53).
+    # sink that pytest captures.
     progress: ProgressSink
     # Closed-loop episodes per task for every cell (0: offline MSE only). LIBERO-backed suites.
     rollouts: int = 0
@@ -74,6 +75,9 @@ class Workspace:
         return Path(self._session_dir.name)
 
     def suite(self, name: str):
+        if (not self._suites and self.profile.data_source == "tiny"
+                and name in self.released_suites() and name not in dict(self.profile.datasets)):
+            self._prepare_tiny_suites()
         if name not in self._suites:
             why = ""
             if name not in self.profile.suites and self.profile.data_source == "tiny":
@@ -91,6 +95,15 @@ class Workspace:
                                f"({time.monotonic() - start:.0f} s)")
             self._suites[name] = suite
         return self._suites[name]
+
+    def _prepare_tiny_suites(self) -> None:
+        """The tiny suites a release trains on, generated where missing before any is loaded:
+        each xdist worker begins with another one, so that two workers generate both at once."""
+        from bench.suites.synthetic import prepare_tiny_suites
+
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")  # xdist names its workers gwN
+        first = int(worker[2:]) if worker[2:].isdigit() else 0
+        prepare_tiny_suites(list(self.released_suites()), first, progress=self.progress)
 
     def _demos(self, name: str):
         """The sim suite's DemoSpec when --sim-tasks / --sim-demos change it, else None."""

@@ -1,4 +1,4 @@
-"""Batched closed-loop rollouts: B envs of one task in LeRobot's own gym vector env (issue 27).
+"""Batched closed-loop rollouts: B envs of one task in LeRobot's own gym vector env.
 
 `run_batched(act, spec, batch=B)` rolls out the same episodes as B = 1 (bench.sim.rollout): the
 same init states (episode e -> n-1-e) and env seeds, so cells stay paired, and the same

@@ -55,7 +55,8 @@ class DemoSpec:
     # generated before it keep theirs).
     action_noise: float = 0.0
     # The expert's speed (ExpertParams.speed, 0 < s <= 1): below 1 its translation actions stay
-    # within +-s, unsaturated (issue 27). 1: the original expert, and not part of the key either.
+    # within +-s, unsaturated (a learned policy undershot saturated ones). 1: the original
+    # expert, and not part of the key either.
     expert_speed: float = 1.0
 
     def __post_init__(self):
@@ -299,7 +300,7 @@ def write_suite(spec: DemoSpec, work: _Work, attempts: dict, root: Path,
 def generate(spec: DemoSpec, root: str | Path | None, progress: ProgressSink) -> Path:
     """Generate (or resume, or reuse) the demonstration suite of `spec` (None `root`: in the
     cache); returns its folder. `progress` is required: a session's own sink, or STDERR from
-    the command line; the default used to be stderr, captured by pytest (issue 53)."""
+    the command line; a default of stderr would be captured by pytest, and silent."""
     final = Path(root) if root is not None else suite_path(spec)
     if (final / "meta" / "info.json").is_file():
         return final

@@ -45,7 +45,7 @@ class RenderSettings:
 
     LIBERO's defaults are a 4096 shadow map, 4x multisampling and reflective materials
     (150-300 ms a frame on 2 CPU cores); the cheaper defaults here cost 50-80 ms at a mean pixel
-    difference of ~5.5/255 (issue 8). Whether either matches the official GPU renders is unknown.
+    difference of ~5.5/255. Whether either matches the official GPU renders is unknown.
     """
 
     image_size: int = 128  # square camera images (public LeRobot LIBERO datasets: 256)

@@ -80,7 +80,7 @@ class ExpertParams:
     object_grip_below_top: float = 0.03  # LIBERO-Object: eef this far under the item's top
     object_drop_margin: float = 0.03  # LIBERO-Object: item bottom above the basket rim on release
     gain: float = 12.0  # action units per metre of position error, clipped to [-1, 1] (x POS_SCALE)
-    # Below 1 (issue 27): the translation is capped at `speed` with its direction kept (same gain
+    # Below 1: the translation is capped at `speed` with its direction kept (same gain
     # inside the cap: halving it let the loaded arm sag out of the transit tolerance), so moves
     # are no longer saturated at +-1 per axis (a constant label carries no feedback, and a learned
     # policy undershot it); waypoint timeouts grow by 1/speed. 1: the original per-axis clip.
