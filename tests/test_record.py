@@ -37,6 +37,7 @@ NOT_RECORDS = {
     "bench/suites/synthetic.py": {"seed"},  # a suite's generation parameters
     "bench/analysis/transfer.py": {"suite"},  # a rank-transfer comparison row
     "bench/report/sections.py": {"suite"},  # the same row, rendered
+    "bench/analysis/family_scale.py": {"suite"},  # a suite's family-or-scale verdict row
     # The robustness tier's own formats: its summary rows, its perturbation's JSON, the feature
     # store key of perturbed windows, and the robustness record's `base` (what it rescored).
     "bench/analysis/robustness.py": {"backbone", "suite", "n_windows"},
