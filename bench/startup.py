@@ -202,32 +202,34 @@ def check_sim_suites_possible(profile, label: str) -> None:
                 f"installed; fix: {INSTALL_HINT}, or use --profile tiny (generated suites)")
 
 
+def _count_beside_rollouts(flag: str, value, rollouts: int, unit: str, one: str,
+                           does: str) -> int:
+    """A count option of the rollouts: 1 when absent; refused below 1, or above 1 without
+    --rollouts (alone it would act on nothing, silently)."""
+    if value is None or value == 1:
+        return 1
+    if value < 1:
+        raise pytest.UsageError(f"{flag} {value}: give {unit} >= 1 (1: {one})")
+    if not rollouts:
+        raise pytest.UsageError(f"{flag} {value}: it {does} the episodes of --rollouts, which "
+                                "is not given; fix: add --rollouts N")
+    return int(value)
+
+
 def check_rollout_batch(batch, rollouts: int) -> int:
     """--rollout-batch: a whole number of envs >= 1, and only beside --rollouts (alone it would
     batch nothing, silently)."""
-    if batch is None or batch == 1:
-        return 1
-    if batch < 1:
-        raise pytest.UsageError(f"--rollout-batch {batch}: give envs per task rolled out at "
-                                "once >= 1 (1: one env in-process)")
-    if not rollouts:
-        raise pytest.UsageError(f"--rollout-batch {batch}: it batches the episodes of "
-                                "--rollouts, which is not given; fix: add --rollouts N")
-    return int(batch)
+    return _count_beside_rollouts("--rollout-batch", batch, rollouts,
+                                  "envs per task rolled out at once", "one env in-process",
+                                  "batches")
 
 
 def check_rollout_workers(workers, rollouts: int, batch: int) -> int:
     """--rollout-workers: worker processes >= 1, only beside --rollouts and not beside a
     --rollout-batch (a worker steps one env; a batch steps B in one vector env)."""
-    if workers is None or workers == 1:
-        return 1
-    if workers < 1:
-        raise pytest.UsageError(f"--rollout-workers {workers}: give worker processes >= 1 "
-                                "(1: the simulator in this process)")
-    if not rollouts:
-        raise pytest.UsageError(f"--rollout-workers {workers}: it runs the episodes of "
-                                "--rollouts, which is not given; fix: add --rollouts N")
-    if batch > 1:
+    workers = _count_beside_rollouts("--rollout-workers", workers, rollouts, "worker processes",
+                                     "the simulator in this process", "runs")
+    if workers > 1 and batch > 1:
         raise pytest.UsageError(f"--rollout-workers {workers} with --rollout-batch {batch}: "
                                 "choose one (workers are the faster on a few CPU cores)")
     return int(workers)
