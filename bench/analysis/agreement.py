@@ -287,11 +287,11 @@ def bootstrap_agreement(predicted: np.ndarray, actual: np.ndarray, n_resamples: 
         replicate = {k: getattr(a, k) for k in STATISTICS}
         if baselines is not None:
             replicate[NAIVE_GAP] = naive_gap(s, r, {k: _mean_over(v, w) for k, v in base.items()})
-        _keep(values, reasons, replicate)
+        keep_replicate(values, reasons, replicate)
     return percentile_intervals(values, reasons, n_resamples, confidence)
 
 
-def _keep(values: dict[str, list[float]], reasons: dict[str, str],
+def keep_replicate(values: dict[str, list[float]], reasons: dict[str, str],
           replicate: dict[str, Measure]) -> None:
     """One bootstrap replicate's statistics: a defined value kept, an undefined one's reason."""
     for k, v in replicate.items():

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.analysis.agreement import (BY_NAME, WITH_PEARSON, Interval, Undefined, _keep,
+from bench.analysis.agreement import (BY_NAME, WITH_PEARSON, Interval, Undefined, keep_replicate,
                                       percentile_intervals)
 from bench.analysis.hierarchy import window_weights
 
@@ -100,5 +100,5 @@ def bootstrap_two_axes(predicted: np.ndarray, actual: np.ndarray, n_resamples: i
             e = rng.integers(0, actual.shape[1], actual.shape[1])
             s = masked_mean(p[:, w], None if pm is None else pm[:, w])
             r = masked_mean(a[:, e], None if am is None else am[:, e])
-        _keep(values, reasons, {k: BY_NAME[k](s, r) for k in statistics})
+        keep_replicate(values, reasons, {k: BY_NAME[k](s, r) for k in statistics})
     return percentile_intervals(values, reasons, n_resamples, confidence)
