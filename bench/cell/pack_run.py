@@ -81,6 +81,6 @@ def scored(ws, plan: CellPlan, item) -> CellResult:
     if item.error is not None:
         raise item.error
     cell, graft = plan.cell, item.graft
-    return score_cell(cell, ws, plan.context, ws.backbone(cell.backbone, cell.suite, cell.release),
+    return score_cell(cell, ws, plan.context, ws.lend(cell.backbone, cell.suite, cell.release),
                       graft.inputs, graft, item.fitted, dict(item.timings),
                       spent=sum(item.timings.values()))
