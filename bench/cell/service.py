@@ -14,6 +14,7 @@ typed outcome (bench.cell.outcome). The screen's measurements go through `screen
 (bench.cell.pack_run), each still claimed, written, failed and reported one by one.
 
 It imports nothing of pytest: the session turns what it raises into a case's failure.
+Nothing it calls is handed the service: the plan, the pack and the runner return to it.
 """
 
 from __future__ import annotations
@@ -57,7 +58,8 @@ class CellService:
     `feature_transform(cell)`: a planted degradation for the cell (the baseline's), or None;
     `order()`: the run's selected cell ids, for "cell i/n" in the start line;
     `pack_candidates(cell)`: the selected cells that may share `cell`'s pack, in run order
-    (with `settings.pack_grafts` > 1; bench.cell.pack_run picks and claims its mates)."""
+    (with `settings.pack_grafts` > 1; this service claims the mates that
+    bench.cell.pack_run.may_join admits)."""
 
     def __init__(self, profile, store, workspace: Callable, settings: RunSettings, *,
                  runner: Callable = measure_here, measure_with: Callable | None = None,
