@@ -18,7 +18,7 @@ from typing import Callable, Mapping
 from bench.grid.cells import CellSpec
 from bench.grid.kinds import GRAFT
 from bench.results.current import RunConditions, fewer_episodes, is_current
-from bench.results.record import Record
+from bench.results.record import Record, checkpoint_revision
 
 FEATURES_MODES = ("cache", "loop")
 
@@ -108,15 +108,16 @@ class CellPlan:
 
 
 def plan(cell: CellSpec, stored: Record | None, run: RunConditions, *,
-         weights: Callable[[RunConditions], RunConditions] | None = None,
+         workspace: Callable[[], object] | None = None,
          rerun: bool = False, features_mode: str = "cache",
          projectors: Mapping[tuple, TrainedProjector] | None = None,
          feature_transform: Callable | None = None,
          rebuilds: Callable[[CellSpec, Record], bool] = lambda cell, record: False) -> CellPlan:
     """Resume, extend or measure `cell`, whose stored record is `stored` (None: none readable).
-    `run`: the conditions a stored record must match (bench.results.current); `weights(run)`:
-    `run` with the conditions that need the policy looked up (revision, normalizer_fingerprint),
-    asked only when the stored record passes `run` but perhaps its episode count. A record that
+    `run`: the conditions a stored record must match (bench.results.current); `workspace()`:
+    the (lazy) workspace the conditions that need the policy are looked up in (revision,
+    normalizer_fingerprint: `on_weights`), asked only when the stored record passes `run` but
+    perhaps its episode count (None: not looked up). A record that
     passes all but holds fewer episodes per task is extended when `rebuilds(cell, stored)` (its
     policy can be rebuilt from the store: bench.cell.extend.rebuilds_policy)."""
     context = cell_context(cell, features_mode, projectors=projectors,
@@ -127,9 +128,17 @@ def plan(cell: CellSpec, stored: Record | None, run: RunConditions, *,
         return CellPlan(cell, context, discard=degraded)
     if not is_current(stored, replace(run, rollouts=0)):
         return CellPlan(cell, context)
-    full = weights(run) if weights is not None else run
+    full = on_weights(run, cell, workspace()) if workspace is not None else run
     if is_current(stored, full):
         return CellPlan(cell, context, resume=stored)
     if fewer_episodes(stored, full) and rebuilds(cell, stored):
         return CellPlan(cell, context, extend=stored)
     return CellPlan(cell, context)
+
+
+def on_weights(run: RunConditions, cell: CellSpec, ws) -> RunConditions:
+    """`run` with the weights and normaliser `cell` is measured on, as the workspace `ws` lends
+    them (loads the policy)."""
+    where = (cell.backbone, cell.suite, cell.release)
+    return replace(run, revision=checkpoint_revision(ws.checkpoint(*where)),
+                   normalizer_fingerprint=ws.normalizer(*where).fingerprint)

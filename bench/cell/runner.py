@@ -30,7 +30,7 @@ from bench.results.record import (
 )
 from bench.suites.windows import raw_batch
 from bench.loops.train import FitConfig, fit, frozen_autocast
-from bench.resources.workspace import Workspace
+from bench.resources.workspace import Lent, Workspace
 
 
 class _Captured(Exception):
@@ -104,12 +104,11 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
     p, kind = ws.profile.protocol, cell.spec
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
-    suite, split = ws.suite(cell.suite), ws.split(cell.suite)
-    backbone = (ws.fresh_backbone(cell.backbone, cell.suite, cell.release) if kind.lora
-                else ws.backbone(cell.backbone, cell.suite, cell.release))
+    lent = ws.lend(cell.backbone, cell.suite, cell.release, fresh=kind.lora)
+    backbone = lent.backbone
     device = next(backbone.policy.parameters()).device
     reset_peak_memory(device)
-    inputs = cell_inputs(cell, p, suite, split, backbone, device)
+    inputs = cell_inputs(cell, p, lent.suite, lent.split, backbone, device)
     timings["build"] = time.perf_counter() - t_start
 
     graft, training = None, Fitted(curve=[])
@@ -122,19 +121,20 @@ def measure(cell: CellSpec, ws: Workspace, context: CellContext) -> CellResult:
         timings["train"] = time.perf_counter() - t0
     else:
         timings["features"] = timings["train"] = 0.0
-    return score_cell(cell, ws, context, backbone, inputs, graft, training, timings,
+    return score_cell(cell, ws, context, lent, inputs, graft, training, timings,
                       spent=time.perf_counter() - t_start)
 
 
-def score_cell(cell: CellSpec, ws: Workspace, context: CellContext, backbone,
+def score_cell(cell: CellSpec, ws: Workspace, context: CellContext, lent: Lent,
                inputs: CellInputs, graft: Graft | None, training: Fitted,
                timings: dict[str, float], spent: float) -> CellResult:
     """The cell's trained graft (or none) scored on the held-out windows, rolled out when the run
     asks: its record (no projector file yet: the service writes both) and the trained projector.
     `timings`: the phases so far (seconds); `spent`: the seconds they took in all (a packed
-    cell: its share of the pack, bench.cell.pack_run)."""
+    cell: its share of the pack, bench.cell.pack_run). `lent`: what the workspace lent the cell;
+    `ws` is read for the run's settings only (protocol, rollouts, store, progress)."""
     p, kind = ws.profile.protocol, cell.spec
-    suite, split = ws.suite(cell.suite), ws.split(cell.suite)
+    suite, split, backbone = lent.suite, lent.split, lent.backbone
     device = next(backbone.policy.parameters()).device
     t_scoring = t0 = time.perf_counter()
     scores = score(backbone, suite, split.windows, p.eval_batch_size, p.eval_noise_seed,
@@ -142,7 +142,7 @@ def score_cell(cell: CellSpec, ws: Workspace, context: CellContext, backbone,
                    features_for=inputs.eval_features(kind.eval_inputs),
                    images_for=inputs.eval_images(kind.eval_inputs))
     timings["eval"] = time.perf_counter() - t0
-    measured = measured_under(cell, ws, backbone, inputs, context)
+    measured = measured_under(cell, ws, lent, inputs, context)
     rollouts = None
     if ws.rollouts:
         t0 = time.perf_counter()
@@ -250,17 +250,18 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
     return Fitted(curve, probe_losses, steps=fit_cfg.steps)
 
 
-def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
+def measured_under(cell: CellSpec, ws: Workspace, lent: Lent, inputs: CellInputs,
                    context: CellContext) -> MeasuredUnder:
+    """What `cell` was measured under, from what the workspace lent it (`lent`) and the run's
+    profile and feature dtype (`ws`)."""
     p, features_mode = ws.profile.protocol, context.features_mode
     transform = context.feature_transform if inputs.encoder is not None else None
     grid_file = ws.profile.grid_file  # absent without --grid: those records stay as they were
-    camera_map, dataset = user_world_fields(cell, ws, backbone)
+    camera_map, dataset = user_world_fields(cell, ws.profile, lent)
     return MeasuredUnder(
         profile=ws.profile.name, protocol=p.to_dict(), protocol_hash=p.hash,
-        checkpoint=checkpoint_of(ws.checkpoint(cell.backbone, cell.suite, cell.release),
-                                 ws.normalizer(cell.backbone, cell.suite, cell.release).source,
-                                 backbone.normalizer_fingerprint()),
+        checkpoint=checkpoint_of(lent.checkpoint, lent.normalizer.source,
+                                 lent.backbone.normalizer_fingerprint()),
         grid=list(inputs.grid),
         features_mode=features_mode if inputs.encoder is not None else None,
         feature_dtype=ws.feature_dtype if inputs.features is not None else None,
@@ -273,15 +274,16 @@ def measured_under(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
     )
 
 
-def user_world_fields(cell: CellSpec, ws: Workspace, backbone) -> tuple[dict | None, dict | None]:
+def user_world_fields(cell: CellSpec, profile, lent: Lent) -> tuple[dict | None, dict | None]:
     """A --policy's camera pairing and a --dataset's identity (None for the registry's)."""
     camera_map = dataset = None
-    if ws.is_user_policy(cell.backbone):
+    backbone = lent.backbone
+    if lent.user_policy:
         rename = getattr(backbone, "rename_map", {}) or {}
         camera_map = {rename.get(k, k): k for k in backbone.camera_keys}
-    datasets = dict(ws.profile.datasets)
+    datasets = dict(profile.datasets)
     if cell.suite in datasets:
-        suite = ws.suite(cell.suite)
+        suite = lent.suite
         dataset = {"source": datasets[cell.suite], "root": suite.root,
                    "repo_id": suite.repo_id, "fingerprint": suite.fingerprint,
                    "fps": suite.fps, "cameras": list(suite.camera_keys)}

@@ -14,12 +14,14 @@ typed outcome (bench.cell.outcome). The screen's measurements go through `screen
 (bench.cell.pack_run), each still claimed, written, failed and reported one by one.
 
 It imports nothing of pytest: the session turns what it raises into a case's failure.
+Nothing it calls is handed the service: the plan, the pack and the runner return to it.
 """
 
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
+from functools import partial
 from typing import Callable, Sequence
 
 from bench.grid.cells import CellSpec
@@ -56,7 +58,8 @@ class CellService:
     `feature_transform(cell)`: a planted degradation for the cell (the baseline's), or None;
     `order()`: the run's selected cell ids, for "cell i/n" in the start line;
     `pack_candidates(cell)`: the selected cells that may share `cell`'s pack, in run order
-    (with `settings.pack_grafts` > 1; bench.cell.pack_run picks and claims its mates)."""
+    (with `settings.pack_grafts` > 1; this service claims the mates that
+    bench.cell.pack_run.may_join admits)."""
 
     def __init__(self, profile, store, workspace: Callable, settings: RunSettings, *,
                  runner: Callable = measure_here, measure_with: Callable | None = None,
@@ -106,11 +109,10 @@ class CellService:
         s = self.settings
         run = RunConditions(protocol_hash=self.profile.protocol.hash,
                             feature_dtype=s.feature_dtype, rollouts=s.rollouts)
-        return plan(cell, self.store.load(cell.id), run,
-                    weights=lambda wanted: self._weights(cell, wanted),
+        return plan(cell, self.store.load(cell.id), run, workspace=self.workspace,
                     rerun=s.rerun, features_mode=s.features_mode, projectors=self.projectors,
                     feature_transform=self.feature_transform(cell),
-                    rebuilds=lambda c, record: rebuilds_policy(c, record, self.store.root))
+                    rebuilds=partial(rebuilds_policy, results_dir=self.store.root))
 
     def progress(self):
         return self.workspace().progress
@@ -157,15 +159,6 @@ class CellService:
             self.progress(), f"{cell.id}: another process is measuring it (its claim "
                              f"{self.store.claim_path(cell.id)}); waiting for its record"))
 
-    def _weights(self, cell: CellSpec, run):
-        """`run` with the weights and normaliser this cell is measured on (loads the policy)."""
-        from bench.results.record import checkpoint_revision
-
-        ws = self.workspace()
-        where = (cell.backbone, cell.suite, cell.release)
-        return replace(run, revision=checkpoint_revision(ws.checkpoint(*where)),
-                       normalizer_fingerprint=ws.normalizer(*where).fingerprint)
-
     def _measure(self, cell_plan: CellPlan):
         cell = cell_plan.cell
         if cell_plan.discard:  # a degraded record never outlives its run
@@ -175,15 +168,70 @@ class CellService:
             if self.measure_with is not None:
                 result = self.measure_with(cell_plan)
             elif self.settings.pack_grafts > 1 and self.claim:
-                from bench.cell.pack_run import measure_packed
-
-                result = measure_packed(self, cell_plan)  # with mates, when it finds them
+                result = self._measure_pack(cell_plan)  # with mates, when it finds them
             else:
                 result = self.runner(cell, self.workspace(), cell_plan.context)
             return self.write(cell_plan, result)
         except Exception as e:
             self.note_failure(cell, e)
             raise
+
+    def _measure_pack(self, lead: CellPlan) -> CellResult:
+        """`lead`'s result, its cell trained in a pack with the mates this service claims
+        (bench.cell.pack_run trains and scores; each mate is written here as it is scored, the
+        lead returned last like a runner's result), or alone when it cannot lead or finds none."""
+        from bench.cell import pack_run
+
+        ws = self.workspace()
+        with contextlib.ExitStack() as claims:  # the mates' claims, held until all are written
+            mates = self._claim_mates(lead, claims) if pack_run.can_lead(lead) else []
+            if not mates:
+                return self.runner(lead.cell, ws, lead.context)
+            plans = [lead] + mates
+            say(self.progress(), f"pack of {len(plans)} grafts through one {lead.cell.backbone} "
+                                 f"pass ({lead.cell.suite}): {', '.join(p.cell.id for p in plans)}")
+            for mate in mates:
+                if mate.discard:  # a degraded record never outlives its run
+                    self.store.forget(mate.cell.id)
+            items = pack_run.train(ws, plans)
+            if items is None:  # the lead alone, as unpacked; the mates each meet it when reached
+                return self.runner(lead.cell, ws, lead.context)
+            for mate, item in zip(mates, items[1:]):
+                try:
+                    record = self.write(mate, pack_run.scored(ws, mate, item))
+                except Exception as e:  # this mate alone fails; the pack's others go on
+                    self.note_failure(mate.cell, e)
+                    self.pack_failures[mate.cell.id] = e
+                    continue
+                self.records[mate.cell.id], self.outcomes[mate.cell.id] = record, MEASURED
+            return pack_run.scored(ws, lead, items[0])
+
+    def _claim_mates(self, lead: CellPlan, claims: contextlib.ExitStack) -> list[CellPlan]:
+        """Plans of up to K-1 mates for `lead` (bench.cell.pack_run.may_join), each claimed without
+        waiting (the claims entered on `claims`): one another process holds is left to it, and so
+        is one whose plan resumes, extends or takes its graft's projector (its own case does)."""
+        from bench.cell.pack_run import may_join
+
+        wanted, mates = self.settings.pack_grafts - 1, []
+        for mate in self.pack_candidates(lead.cell):
+            if len(mates) == wanted:
+                break
+            if (mate.id == lead.cell.id or mate.id in self.records or mate.id in self.pack_failures
+                    or not may_join(mate, lead.cell, self.settings.features_mode)):
+                continue
+            one = contextlib.ExitStack()
+            if not one.enter_context(self.store.try_cell_lock(mate.id)):
+                one.close()  # another process measures it: its record is its claimant's
+                continue
+            self.set_aside(mate)
+            mate_plan = self.plan(mate)
+            if (mate_plan.resume is not None or mate_plan.extend is not None
+                    or mate_plan.context.reuse is not None):
+                one.close()  # its case resumes / extends it, takes its graft's projector
+                continue
+            claims.enter_context(one.pop_all())
+            mates.append(mate_plan)
+        return mates
 
     def _extend(self, cell_plan: CellPlan):
         """The stored record with the episodes the run wants more of (bench.cell.extend), in

@@ -39,6 +39,19 @@ class Split:
     windows: torch.Tensor  # (N_windows,) global frame indices of held-out windows
 
 
+@dataclass(frozen=True)
+class Lent:
+    """What the workspace lends one cell, asked for once at its start (`Workspace.lend`): its
+    suite and held-out split, the released policy, its checkpoint and normaliser."""
+
+    suite: object  # bench.suites.Suite
+    split: Split
+    backbone: object  # the policy adapter (backbones.base.Backbone), frozen
+    checkpoint: dict  # {repo_id, revision}
+    normalizer: Normalizer
+    user_policy: bool  # a --policy of the user's own (not the registry's)
+
+
 @dataclass
 class Workspace:
     profile: Profile
@@ -174,6 +187,16 @@ class Workspace:
                 )
             self._backbones[key] = bb
         return self._backbones[key]
+
+    def lend(self, name: str, suite: str, release: int = 0, *, fresh: bool = False) -> Lent:
+        """What a cell of policy `name` (its release `release`) on `suite` reads, loaded in one
+        pass: the suite, its split, the policy (`fresh`: a private copy, `fresh_backbone`), its
+        checkpoint and normaliser."""
+        loaded, split = self.suite(suite), self.split(suite)
+        backbone = (self.fresh_backbone(name, suite, release) if fresh
+                    else self.backbone(name, suite, release))
+        return Lent(loaded, split, backbone, self.checkpoint(name, suite, release),
+                    self.normalizer(name, suite, release), self.is_user_policy(name))
 
     def checkpoint(self, name: str, suite: str | None = None, release: int = 0) -> dict:
         """{repo_id, revision} of the policy `name` (release `release`) is measured on (loading
