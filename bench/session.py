@@ -86,7 +86,6 @@ class GraftSession:
         self._screening = None
         self.report_written: Path | None = None
         self.report_error: str | None = None  # why REPORT.md could not be written, if it failed
-        self._cell_array = None  # bench.cell.executors.CellArray, when --executor is not local
         # Names, user paths, output folders: checked here when this run collects the grid (an
         # xdist worker's controller checked them); else at collection (bench.plugin).
         self._names_checked = collects_grid(config) and not hasattr(config, "workerinput")
@@ -210,23 +209,41 @@ class GraftSession:
             self._cells = CellService(
                 self.profile, self.store, self.workspace, settings,
                 runner=self.seams.cell_runner or measure_here,
-                measure_with=self._measure_submitted if o.executor != "local" else None,
+                job_array=self._job_array(settings) if o.executor != "local" else None,
+                array_candidates=self._array_candidates,
                 feature_transform=lambda cell: self.baseline.feature_transform(
                     cell, self.workspace),
                 order=lambda: self.selection.cells, claim=o.executor == "local",
                 pack_candidates=self._pack_candidates)
         return self._cells
 
+    def _job_array(self, settings):
+        """--executor slurm|submitit-local: the job array the cell service hands the plans of the
+        cells to measure (bench.cell.executors; each task runs a cell service of its own)."""
+        from bench.cell.executors import CellArray, JobArray
+
+        array = CellArray(self.options.executor, self.results_dir / "submitit", self.options.slurm)
+        return JobArray(array, self.profile, self.results_dir, settings, self.rollout_batching)
+
+    def _selected_specs(self) -> list[CellSpec]:
+        """The selected cells (after -k / -m), in run order."""
+        from bench.grid.cells import grid_cells
+
+        specs = {c.id: c for c in grid_cells(self.profile, self.screen_options is not None)}
+        return [specs[i] for i in self.selection.cells if i in specs]
+
+    def _array_candidates(self) -> list[CellSpec]:
+        """The selected cells an --executor job array may measure, in run order: none the screen
+        dropped (the cell service submits those without a current record)."""
+        return [c for c in self._selected_specs()
+                if not (self.screening and self.screening.dropped_reason(c))]
+
     def _pack_candidates(self, cell: CellSpec) -> list[CellSpec]:
         """The selected cells that may share `cell`'s pack (--pack-grafts), in run order: of its
         backbone x suite and tier (short grafts run before the screen's selection exists), none
         the screen dropped."""
-        from bench.grid.cells import grid_cells
-
-        specs = {c.id: c for c in grid_cells(self.profile, self.screen_options is not None)}
-        alike = [specs[i] for i in self.selection.cells if i in specs
-                 and (specs[i].backbone, specs[i].suite, specs[i].spec.tier)
-                 == (cell.backbone, cell.suite, cell.spec.tier)]
+        where = (cell.backbone, cell.suite, cell.spec.tier)
+        alike = [c for c in self._selected_specs() if (c.backbone, c.suite, c.spec.tier) == where]
         if self.screening is None or cell.spec.tier:
             return alike
         return [c for c in alike if not self.screening.dropped_reason(c)]
@@ -270,28 +287,6 @@ class GraftSession:
         elif report.failed:
             self.outcomes[cell] = failed(failure_line(self.results_dir, cell,
                                                       report.longreprtext))
-
-    def _measure_submitted(self, cell_plan):
-        """--executor slurm|submitit-local, the cell service's `measure_with`: the first cell
-        submits every selected cell that has no current record as ONE job array (each task runs
-        the cell service in its own process: bench.cell.executors); each waits for its task."""
-        from bench.cell.executors import CellArray, CellJob
-        from bench.cell.plan import CellResult
-        from ondisk.paths import cache_dir
-
-        if self._cell_array is None:
-            self._cell_array = CellArray(self.options.executor, self.results_dir / "submitit",
-                                         self.options.slurm)
-            from bench.grid.cells import grid_cells
-
-            specs = {c.id: c for c in grid_cells(self.profile, self.screen_options is not None)}
-            cells = [specs[i] for i in self.selection.cells if i in specs]  # after -k / -m
-            todo = [c for c in cells if self.cells.plan(c).resume is None
-                    and not (self.screening and self.screening.dropped_reason(c))]
-            paths = (str(self.results_dir), str(cache_dir()))
-            self._cell_array.submit([CellJob(c, self.profile, *paths, self.cells.settings,
-                                             self.rollout_batching) for c in todo])
-        return CellResult(self._cell_array.result(cell_plan.cell.id), stored=True)
 
     # --- the session's ends -----------------------------------------------------------------
     def preflight(self, cells: list[CellSpec]) -> None:

@@ -115,3 +115,63 @@ def test_the_array_task_measures_through_the_service(tmp_path, monkeypatch):
     assert executors.run_cell_job(job) == "record"
     assert seen == [(cell.id, True, "bf16", True)]
     assert os.environ["GRAFTBENCH_CACHE"] == str(tmp_path / "cache")
+
+
+def test_the_service_plans_the_job_array_and_hands_it_the_plans(tmp_path, monkeypatch):
+    """--executor: the first cell measured makes the SERVICE plan the array's candidates and hand
+    those that do not resume to the job array, once; each cell's record is its own task's (written
+    there, not again here); a cell the array was not handed fails in its own failure record. The
+    array is handed plans and returns results: it is never handed the service."""
+    from types import SimpleNamespace
+
+    from bench.cell import executors, service
+    from bench.cell.plan import CellContext, CellPlan
+    from bench.grid.cells import CellSpec
+    from bench.grid.protocol import TINY
+    from bench.results.store import ResultStore, load_failure
+
+    cells = [CellSpec("graft", "pi05", "spatial", seed, "pixels") for seed in (0, 1, 2)]
+    resumed = cells[1].id  # its stored record stands for the run: not submitted
+
+    def stand_in_plan(cell, stored, run, **kwargs):
+        return CellPlan(cell, CellContext(), resume="its record" if cell.id == resumed else None)
+
+    class Task:  # a finished array task: the record it wrote
+        def __init__(self, cell_id):
+            self.record = SimpleNamespace(cell_id=cell_id, mse_in=lambda: 0.25,
+                                          run=SimpleNamespace(total_s=1.0))
+
+        def result(self):
+            return self.record
+
+    batches = []
+
+    class Submitted(executors.CellArray):  # submitit's part played here: each job done
+        def submit(self, cell_jobs):
+            batches.append(cell_jobs)
+            self.jobs.update({j.cell.id: Task(j.cell.id) for j in cell_jobs})
+
+    monkeypatch.setattr(service, "plan", stand_in_plan)
+    monkeypatch.setenv("GRAFTBENCH_CACHE", str(tmp_path / "cache"))
+    store, settings = ResultStore(tmp_path / "results"), service.RunSettings(feature_dtype="bf16")
+    array = executors.JobArray(Submitted("submitit-local", tmp_path / "submitit"), TINY,
+                               store.root, settings)
+    cells_service = service.CellService(
+        TINY, store, lambda: SimpleNamespace(progress=None), settings, job_array=array,
+        array_candidates=lambda: cells, claim=False)
+
+    assert cells_service.run(cells[0]).cell_id == cells[0].id
+    assert [[j.cell.id for j in batch] for batch in batches] == [[cells[0].id, cells[2].id]]
+    job = batches[0][0]
+    assert (job.profile, job.results_dir, job.settings) == (TINY, str(store.root), settings)
+    assert job.cache_dir == str(tmp_path / "cache")
+    assert cells_service.run(cells[1]) == "its record"
+    assert cells_service.run(cells[2]).cell_id == cells[2].id
+    assert len(batches) == 1, "one array for the run"
+    assert store.load(cells[0].id) is None, "the task wrote the record: the service does not"
+
+    unselected = CellSpec("graft", "pi05", "spatial", 0, "blind")
+    with pytest.raises(KeyError, match="was not submitted"):
+        cells_service.run(unselected)
+    assert "was not submitted" in load_failure(store.root, unselected.id).error
+    assert len(batches) == 1

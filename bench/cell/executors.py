@@ -2,7 +2,9 @@
 
 `--executor slurm` submits every selected cell that has no current record as one Slurm job array
 through submitit; `--executor submitit-local` does the same with submitit's LocalExecutor (one
-subprocess per cell on this machine: the test stand-in for a cluster). Each array task runs
+subprocess per cell on this machine: the test stand-in for a cluster). The cell service decides
+which cells those are and plans them; it hands the plans to a `JobArray`, which submits them and
+returns each cell's result, and calls nothing of the service's back. Each array task runs
 `run_cell_job` in a fresh process: it rebuilds a Workspace from plain, picklable inputs (cell spec,
 profile, paths), runs the cell and writes its record to the shared results store. Each pytest case
 then waits for its own task and reports that task's record (or its traceback).
@@ -16,12 +18,13 @@ import contextlib
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Sequence
 
 from bench.grid.cells import CellSpec
-from ondisk.paths import REPO_ROOT
+from ondisk.paths import REPO_ROOT, cache_dir
 from bench.grid.protocol import Profile
 from bench.results.record import Record
+from bench.cell.plan import CellPlan, CellResult
 from bench.cell.service import RunSettings
 from bench.sim.batching import IN_PROCESS, Batching
 
@@ -139,3 +142,27 @@ class CellArray:
         if cell_id not in self.jobs:
             raise KeyError(f"cell {cell_id!r} was not submitted; submitted: {sorted(self.jobs)}")
         return self.jobs[cell_id].result()
+
+
+@dataclass
+class JobArray:
+    """The cell service's way to a job array: the plans it hands over, submitted once as ONE
+    `CellArray` (a CellJob each, with this run's profile, results dir, cache and settings), and
+    each plan's result: the record its task wrote to the shared store."""
+
+    cells: CellArray
+    profile: Profile
+    results_dir: Path
+    settings: RunSettings
+    rollout_batching: Batching = IN_PROCESS
+
+    def submit(self, plans: Sequence[CellPlan]) -> None:
+        """Submit the cells of `plans` as one array (the service chose and planned them)."""
+        paths = (str(self.results_dir), str(cache_dir()))
+        self.cells.submit([CellJob(p.cell, self.profile, *paths, self.settings,
+                                   self.rollout_batching) for p in plans])
+
+    def result(self, cell_plan: CellPlan) -> CellResult:
+        """Wait for the task of `cell_plan`'s cell: its record, already stored (or the task's
+        error; KeyError for a cell that was not submitted)."""
+        return CellResult(self.cells.result(cell_plan.cell.id), stored=True)

@@ -5,16 +5,19 @@ an xdist worker), a submitit / Slurm array task (bench.cell.executors.run_cell_j
 outside pytest (`run_cell`) all call `CellService.run`. It claims the cell on the results store
 (another process measuring it makes this one wait, then resume), sets an unreadable record aside,
 reads the stored record once and plans (bench.cell.plan: resume it or measure, with what), measures
-through its runner (bench.cell.runner, which returns and writes nothing) or `measure_with` (an array
-task), then alone writes what came of it: the record with its projector file, or the failure record
-when measuring raised; it keeps the projector a later cell takes, and returns the record with a
-typed outcome (bench.cell.outcome). The screen's measurements go through `screen` alike
-(bench.cell.screening keeps only the selection), and its short grafts through `run`. With
-`pack_grafts` > 1 a measured cell may lead a pack of graft cells trained together
-(bench.cell.pack_run), each still claimed, written, failed and reported one by one.
+through its runner (bench.cell.runner, which returns and writes nothing) or its job array (the
+first cell measured plans the array's cells and hands over those to measure; bench.cell.executors
+submits them and returns each one's result), then alone writes what came of it: the record with
+its projector file, or the failure record when measuring raised; it keeps the projector a later
+cell takes, and returns the record with a typed outcome (bench.cell.outcome). The screen's
+measurements go through `screen` alike (bench.cell.screening keeps only the selection), and its
+short grafts through `run`. With `pack_grafts` > 1 a measured cell may lead a pack of graft cells
+trained together (bench.cell.pack_run), each still claimed, written, failed and reported one by
+one.
 
 It imports nothing of pytest: the session turns what it raises into a case's failure.
-Nothing it calls is handed the service: the plan, the pack and the runner return to it.
+Nothing it calls is handed the service: the plan, the pack, the job array and the runner return
+to it.
 """
 
 from __future__ import annotations
@@ -54,7 +57,9 @@ def measure_here(cell: CellSpec, ws, context) -> CellResult:
 class CellService:
     """Plans, measures and writes one cell at a time for one results store. `workspace()` gives
     the (lazy) workspace; `runner(cell, ws, context) -> CellResult` measures in this process;
-    `measure_with(plan) -> CellResult`, when given, measures elsewhere (a job array);
+    `job_array`, when given, measures elsewhere (bench.cell.executors.JobArray: `submit(plans)`,
+    `result(plan) -> CellResult`): `array_candidates()`, the selected cells it may measure in run
+    order, are planned here and those that do not resume handed to it at the first measurement;
     `feature_transform(cell)`: a planted degradation for the cell (the baseline's), or None;
     `order()`: the run's selected cell ids, for "cell i/n" in the start line;
     `pack_candidates(cell)`: the selected cells that may share `cell`'s pack, in run order
@@ -62,14 +67,16 @@ class CellService:
     bench.cell.pack_run.may_join admits)."""
 
     def __init__(self, profile, store, workspace: Callable, settings: RunSettings, *,
-                 runner: Callable = measure_here, measure_with: Callable | None = None,
+                 runner: Callable = measure_here, job_array=None,
+                 array_candidates: Callable[[], Sequence[CellSpec]] = tuple,
                  feature_transform: Callable = lambda cell: None,
                  order: Callable[[], Sequence[str]] = tuple, claim: bool = True,
                  projectors: dict | None = None,
                  pack_candidates: Callable[[CellSpec], Sequence[CellSpec]] = lambda cell: ()
                  ) -> None:
         self.profile, self.store, self.workspace, self.settings = profile, store, workspace, settings
-        self.runner, self.measure_with = runner, measure_with
+        self.runner, self.job_array, self.array_candidates = runner, job_array, array_candidates
+        self._array_submitted = False  # the job array: submitted once, at the first measurement
         self.feature_transform, self.order, self.claim = feature_transform, order, claim
         self.pack_candidates = pack_candidates
         # Projectors measured cells handed back (CellContext.keep_as): later plans take them.
@@ -94,7 +101,7 @@ class CellService:
             cell_plan = self.plan(cell)
             if cell_plan.resume is not None:
                 record, outcome = cell_plan.resume, RESUMED
-            elif cell_plan.extend is not None and self.measure_with is None:
+            elif cell_plan.extend is not None and self.job_array is None:
                 # (a job array measures elsewhere: its task measures the cell again, rerun)
                 record, outcome = self._extend(cell_plan), MEASURED
             else:
@@ -165,8 +172,8 @@ class CellService:
             self.store.forget(cell.id)
         self._say_start(cell_plan)
         try:
-            if self.measure_with is not None:
-                result = self.measure_with(cell_plan)
+            if self.job_array is not None:
+                result = self._measure_in_array(cell_plan)
             elif self.settings.pack_grafts > 1 and self.claim:
                 result = self._measure_pack(cell_plan)  # with mates, when it finds them
             else:
@@ -175,6 +182,18 @@ class CellService:
         except Exception as e:
             self.note_failure(cell, e)
             raise
+
+    def _measure_in_array(self, cell_plan: CellPlan) -> CellResult:
+        """`cell_plan`'s result from its task in the job array. The first cell measured submits
+        the array: the plans of `array_candidates()` that do not resume (each task measures its
+        cell again, rerun, and writes it); every cell then waits for its own task."""
+        if not self._array_submitted:
+            # Once, even when planning or submitting raises: each later cell then fails as not
+            # submitted (the array's KeyError, in its own failure record), never resubmitted.
+            self._array_submitted = True
+            plans = [p for c in self.array_candidates() if (p := self.plan(c)).resume is None]
+            self.job_array.submit(plans)
+        return self.job_array.result(cell_plan)
 
     def _measure_pack(self, lead: CellPlan) -> CellResult:
         """`lead`'s result, its cell trained in a pack with the mates this service claims
