@@ -31,7 +31,7 @@ DEFAULT_PROFILE = "tiny"
 def pytest_addoption(parser: pytest.Parser) -> None:
     g = parser.getgroup("graftbench", "graftbench grid")
     g.addoption("--profile",
-                help="tiny (offline default, 28 cells), tiny-full (136 cells), paper, sim")
+                help="tiny (offline default, 14 cells; --seeds 0,1: 28), tiny-full (136 cells), paper, sim")
     g.addoption("--grid", metavar="FILE.toml",
                 help="a study in a TOML file (schema: bench/grid/gridfile.py); its path, sha256 and "
                      "text go into every record. Options given here override its values: "

@@ -41,7 +41,7 @@ def test_every_graft_cell_once_and_ids_unique(profile):
 
 
 def test_a_seed_more_adds_that_seeds_cells_and_nothing_else():
-    grafts = {c.id for c in graft_cells(TINY)}
+    grafts = {c.id for c in graft_cells(with_overrides(TINY, seeds=(0, 1)))}
     more = {c.id for c in graft_cells(with_overrides(TINY, seeds=(0, 1, 2)))}
     added = sorted(more - grafts)
     assert grafts < more and all(i.endswith("-seed2") for i in added)
@@ -51,10 +51,14 @@ def test_a_seed_more_adds_that_seeds_cells_and_nothing_else():
 
 
 def test_default_grid_is_the_full_tiny_grid_cut_down_on_the_same_protocol():
-    assert TINY.protocol == TINY_FULL.protocol and TINY.seeds == TINY_FULL.seeds == (0, 1)
+    assert TINY.protocol == TINY_FULL.protocol and TINY.seeds == (0,) and TINY_FULL.seeds == (0, 1)
     full = {c.id for c in graft_cells(TINY_FULL) + control_cells(TINY_FULL)}
     small = [c.id for c in graft_cells(TINY) + control_cells(TINY)]
-    assert set(small) < full and len(small) == 28 and len(full) == 136
+    assert set(small) < full and len(small) == 14 and len(full) == 136
+    # --seeds 0,1: the earlier default's 28 cells, each still its tiny-full twin.
+    two = [c.id for c in graft_cells(with_overrides(TINY, seeds=(0, 1)))
+           + control_cells(with_overrides(TINY, seeds=(0, 1)))]
+    assert set(two) < full and len(two) == 28 and set(small) < set(two)
 
 
 def test_profile_overrides_and_errors():

@@ -37,7 +37,7 @@ def test_tuned_cells_read_as_the_cell_run_per_encoder_with_weights_and_in_the_lo
     with pytest.raises(ValueError, match="needs an encoder"):
         CellSpec(TUNED, "pi05", "spatial", 0, None)
     # Every grid encoder with weights, not the control encoders; pixels/blind have none.
-    profile = dataclasses.replace(TINY, controls=(TUNED,), control_encoders=("pixels",))
+    profile = dataclasses.replace(TINY, controls=(TUNED,), control_encoders=("pixels",), seeds=(0, 1))
     assert tunable_encoders(("dinov2_s", "pixels", "blind", "nope")) == ("dinov2_s",)
     assert [c.id for c in control_cells(profile) if c.backbone == "smolvla"] == [
         "smolvla-spatial-dinov2_s-tuned_encoder-seed0",
