@@ -8,6 +8,7 @@ import dataclasses
 import hashlib
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -127,9 +128,16 @@ def test_a_record_of_another_release_is_not_resumed_and_the_report_names_both(tm
                             checkpoint={"repo_id": "tiny:pi05", "revision": theirs}))
     cell = CellSpec(GRAFT, "pi05", "spatial", 0, "pixels")
     run = RunConditions(protocol_hash=TINY.protocol.hash)
-    on = lambda revision: lambda r: dataclasses.replace(r, revision=revision)  # noqa: E731
-    assert plan(cell, store.load(cell.id), run, weights=on(ours)).resume is None
-    assert plan(cell, store.load(cell.id), run, weights=on(theirs)).resume is not None
+    stored = store.load(cell.id)
+    lent = stored.measured.checkpoint or {}  # the workspace lends this release's weights and normaliser
+    normalizer = SimpleNamespace(fingerprint=lent.get("normalizer_fingerprint"))
+
+    def workspace(revision):  # the workspace's lookups, as bench.cell.plan.on_weights makes them
+        return lambda: SimpleNamespace(checkpoint=lambda *where: {**lent, "revision": revision},
+                                       normalizer=lambda *where: normalizer)
+
+    assert plan(cell, stored, run, workspace=workspace(ours)).resume is None
+    assert plan(cell, stored, run, workspace=workspace(theirs)).resume is not None
     # Another item measured on this machine's release: the folder now holds both.
     store.write(make_record(backbone="pi05", encoder="blind",
                             checkpoint={"repo_id": "tiny:pi05", "revision": ours}))
