@@ -34,6 +34,7 @@ class CellInputs:
     # The encoder's weights train (bench.grid.kinds tune_encoder): training features keep its
     # autograd graph; evaluation's do not.
     tune_encoder: bool = False
+    train_frames: Tensor | None = None  # the split's training frames (global indices)
 
     @property
     def on_pixels(self) -> bool:

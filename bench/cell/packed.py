@@ -207,12 +207,13 @@ def train_pack(cells: Sequence, ws, contexts: Sequence, label: str = "packed") -
                          + ("; ".join(reasons) or f"{len(worlds)} backbone x suite pairs"))
     p = ws.profile.protocol
     cell0 = cells[0]
-    backbone, split = ws.backbone(cell0.backbone, cell0.suite, cell0.release), ws.split(cell0.suite)
+    lent = ws.lend(cell0.backbone, cell0.suite, cell0.release)
+    backbone, split = lent.backbone, lent.split
     device, probe = next(backbone.policy.parameters()).device, probe_frames(split.train_frames)
     packed, members = [], []
     for cell, context in zip(cells, contexts):
         t0 = time.perf_counter()
-        inputs = cell_inputs(cell, p, ws.suite(cell.suite), split, backbone, device)
+        inputs = cell_inputs(cell, p, lent.suite, split, backbone, device)
         t1 = time.perf_counter()
         graft = build_graft(cell, ws, backbone, inputs, context)
         t2 = time.perf_counter()

@@ -174,7 +174,7 @@ def cell_inputs(cell: CellSpec, p, suite, split, backbone, device) -> CellInputs
                       cell.spec.grid(backbone.info.native_grid, cell.variant),
                       tower=cell.spec.tower, train_shift=p.graft_image_shift,
                       shift_seed=stable_seed(cell.train_seed, "graft-image-shift"),
-                      tune_encoder=cell.spec.tune_encoder)
+                      tune_encoder=cell.spec.tune_encoder, train_frames=split.train_frames)
 
 
 def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
@@ -184,7 +184,7 @@ def build_graft(cell: CellSpec, ws: Workspace, backbone, inputs: CellInputs,
     trains."""
     p, info = ws.profile.protocol, backbone.info
     if inputs.tower:
-        channels = native_tower_channels(backbone, inputs.suite, ws.split(cell.suite).train_frames)
+        channels = native_tower_channels(backbone, inputs.suite, inputs.train_frames)
     else:
         inputs.encoder = ws.encoder(cell.encoder)
         if cell.spec.tune_encoder:  # its own copy, in the loop (stored features: the frozen one)
@@ -227,7 +227,7 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
                 context: CellContext) -> Fitted:
     """Fit the projector, or take the identical one its graft trained this session (the plan's
     `context.reuse`)."""
-    p, split = ws.profile.protocol, ws.split(cell.suite)
+    p, train_frames = ws.profile.protocol, graft.inputs.train_frames
     device = graft.inputs.device
     next_batch = graft.inputs.train_batches(cell.spec.train_rule(cell.variant))
     reused = context.reuse
@@ -235,14 +235,14 @@ def train_graft(cell: CellSpec, ws: Workspace, backbone, graft: Graft,
         graft.projector.load_state_dict(load_file(reused.path, device=str(device)))
         graft.projector.eval()
         return Fitted(reused.curve, reused.probe_losses, reused.cell_id, p.steps)
-    probe = probe_frames(split.train_frames)
+    probe = probe_frames(train_frames)
     before = probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)
     params = list(graft.projector.parameters()) + [
         q for q in backbone.policy.parameters() if q.requires_grad]
     fit_cfg = graft_fit_config(cell, p)
     # A tuned encoder trains at its own, lower rate (Protocol.encoder_lr), same schedule.
     tuned = ([(graft.inputs.encoder.parameters(), p.encoder_lr)] if graft.encoder_params else [])
-    curve = fit(backbone, params, split.train_frames, next_batch, fit_cfg, cell.train_seed,
+    curve = fit(backbone, params, train_frames, next_batch, fit_cfg, cell.train_seed,
                 feed=graft.feed, label=cell.id, progress=ws.progress, other_lrs=tuned)
     probe_losses = {"before": before,
                     "after": probe_loss(backbone, graft.feed, next_batch, probe, p.split_seed)}
