@@ -1,11 +1,12 @@
 """Rollouts that render only the frames they read, over worker processes, give the rows and the
 observations of the loop that renders every step in this process (bench.sim.frames,
-bench.sim.workers): same init states, env seeds, frames, actions and per-episode rows.
+bench.sim.workers), and so does a second run on the workers the first one left (the next cell
+of a process): same init states, env seeds, frames, actions and per-episode rows.
 
 The policy pushes the arm by what it sees (state and pixels), so a frame rendered at the wrong
 step, a placeholder read, or an episode run on another init state or seed changes what the
 policy is handed and, through its actions, the rows. `slow`: ~2.5 min on 2 shared cores (six
-LIBERO env builds, two spawned workers).
+LIBERO env builds, two spawned workers; the second run on them ~5 s of it).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import torch
 
 from bench.progress import QUIET
 from bench.sim import env as sim_env
+from bench.sim import workers as pool
 from bench.sim.batching import Batching
 from bench.sim.frames import FrameGateMissed
 from bench.sim.rollout import LIBERO, RolloutSpec, run_rollouts
@@ -52,16 +54,27 @@ def rows(result: dict) -> list[dict]:
 @pytest.mark.slow  # LIBERO scenes rendered in the simulator
 @needs_libero
 def test_gated_frames_and_workers_give_the_every_step_rollout_bit_for_bit():
-    before, gated, pooled = [], [], []
+    before, gated, pooled, again = [], [], [], []
     base = run_rollouts(recorder(before), SPEC, progress=QUIET, render=RENDER, scenes=EVERY_STEP)
     alone = run_rollouts(recorder(gated), SPEC, progress=QUIET, render=RENDER)
-    workers = run_rollouts(recorder(pooled), SPEC, progress=QUIET, render=RENDER,
-                           batching=Batching(workers=2))
-    assert rows(alone) == rows(base) and rows(workers) == rows(base)
+    try:
+        pool.discard_workers()
+        workers = run_rollouts(recorder(pooled), SPEC, progress=QUIET, render=RENDER,
+                               batching=Batching(workers=2))
+        kept = pool.kept_pool()
+        pids = [slot.process.pid for slot in kept.slots]
+        # the next cell of the process: the same workers and their envs, reset to its episodes
+        reused = run_rollouts(recorder(again), SPEC, progress=QUIET, render=RENDER,
+                              batching=Batching(workers=2))
+        assert pool.kept_pool() is kept and all(slot.process.is_alive() for slot in kept.slots)
+        assert [slot.process.pid for slot in pool.kept_pool().slots] == pids
+    finally:
+        pool.discard_workers()
+    assert rows(alone) == rows(base) and rows(workers) == rows(base) == rows(reused)
     assert [(e["task"], e["episode"], e["init_state"]) for e in base["episodes"]] == [
         (0, 0, 49), (0, 1, 48), (1, 0, 49), (1, 1, 48)]
     assert gated == before  # same observations, bytes, in the same order
-    assert sorted(pooled) == sorted(before) and len(before) == 4 * 6  # 23 steps: 6 reads
+    assert sorted(pooled) == sorted(before) == sorted(again) and len(before) == 4 * 6  # 6 reads
     assert workers["settings"]["env_mode"] == "2 workers"
 
 

@@ -1,7 +1,11 @@
-"""Closed-loop rollouts: known answers through the rollout path (expert, zero actions), pairing."""
+"""Closed-loop rollouts: known answers through the rollout path (expert, zero actions), pairing,
+and the worker pool a process keeps across runs (on a toy scene: ~1 min on 2 shared cores, six
+spawned workers)."""
 
 from __future__ import annotations
 
+import os
+import signal
 from dataclasses import replace
 
 import numpy as np
@@ -10,7 +14,9 @@ import pytest
 import torch
 
 from bench.sim import env as sim_env
-from bench.sim.rollout import RolloutSpec, rollout_env_seed, rollout_init_state
+from bench.sim.batching import Batching
+from bench.sim.rollout import (RolloutCrashed, RolloutSpec, Scenes, rollout_env_seed,
+                               rollout_init_state, run_rollouts)
 from bench.stats import wilson_interval
 from tests.sim_marks import needs_libero
 
@@ -131,3 +137,108 @@ def test_zero_action_policy_never_succeeds_and_sees_dataset_conventions():
     assert raw["observation.state"].shape == (1, 8)
     assert raw["task"] == [sim_env.task_descriptions("spatial")[0]]
     assert np.isfinite(raw["observation.state"].numpy()).all()
+
+
+class Reach:
+    """1-D reach, no simulator: success at position >= 1, the gain set by the init state and
+    env seed, so an episode run on another init state, seed or step cap changes its row."""
+
+    def __init__(self, task: int):
+        self.task, self.p, self.gain = task, 0.0, 0.0
+
+    def reset(self, init_state: int, seed: int) -> np.ndarray:
+        self.p, self.gain = 0.0, 0.05 * (1 + (init_state + seed + self.task) % 5)
+        return self._obs()
+
+    def step(self, action):
+        self.p += float(action[0]) * self.gain
+        return self._obs(), 0.0, False, False, {"is_success": self.p >= 1.0}
+
+    def _obs(self) -> np.ndarray:
+        return np.array([self.p, self.gain], np.float32)
+
+    def close(self) -> None:
+        pass
+
+
+def reach_env(suite, task, render, max_steps=None):
+    if task == 3:  # a worker that errors
+        raise RuntimeError("no scene for task 3")
+    return Reach(task)
+
+
+def reach_observe(obs, texts):
+    return {"observation.state": torch.from_numpy(np.stack(obs)), "task": list(texts)}
+
+
+def reach_descriptions(suite):
+    return ["reach", "reach further", "reach back", "reach nowhere"]
+
+
+def reach_init_states(env):
+    return 50
+
+
+def reach_reset_to(env, init_state, seed):
+    return env.reset(init_state, seed)
+
+
+# Functions by name, not lambdas: spawned workers unpickle the scenes.
+REACH = Scenes(reach_env, reach_descriptions, reach_init_states, reach_reset_to, reach_observe)
+
+
+def reach_act(raw):
+    chunk = torch.ones(1, 4, 7)
+    chunk[:, :, 0] += (raw["observation.state"][:, :1] < 0.5).float()  # faster while far
+    return chunk
+
+
+def outcomes(result: dict) -> list[tuple]:
+    return [(e["task"], e["episode"], e["init_state"], e["success"], e["steps"])
+            for e in result["episodes"]]
+
+
+def pids(pool) -> list[int]:
+    return [slot.process.pid for slot in pool.slots]
+
+
+@pytest.mark.slow  # spawns worker processes: fresh interpreters
+def test_a_kept_pool_serves_its_own_key_only_and_a_broken_one_is_replaced():
+    from bench.sim import workers
+
+    spec = RolloutSpec("spatial", tasks=(0, 1), episodes_per_task=3, seed=0, max_steps=12,
+                       n_action_steps=3)
+    shorter = replace(spec, max_steps=7)
+    alone = [outcomes(run_rollouts(reach_act, s, QUIET, scenes=REACH)) for s in (spec, shorter)]
+    assert alone[0] != alone[1]  # the step cap changes rows: a pool must not mix them up
+    two = Batching(workers=2)
+    try:
+        workers.discard_workers()
+        assert outcomes(run_rollouts(reach_act, spec, QUIET, scenes=REACH, batching=two)) == \
+            alone[0]
+        first = workers.kept_pool()
+        assert outcomes(run_rollouts(reach_act, spec, QUIET, scenes=REACH, batching=two)) == \
+            alone[0]
+        assert workers.kept_pool() is first and len(set(pids(first))) == 2  # the same workers
+        # another step cap: another key; the old pool is stopped before the new one starts
+        assert outcomes(run_rollouts(reach_act, shorter, QUIET, scenes=REACH, batching=two)) == \
+            alone[1]
+        second = workers.kept_pool()
+        assert not set(pids(second)) & set(pids(first))
+        assert not any(slot.process.is_alive() for slot in first.slots)
+        # a worker that died between runs: a fresh pool, the same rows
+        os.kill(second.slots[0].process.pid, signal.SIGKILL)
+        second.slots[0].process.join(30)
+        assert outcomes(run_rollouts(reach_act, shorter, QUIET, scenes=REACH, batching=two)) == \
+            alone[1]
+        third = workers.kept_pool()
+        assert not set(pids(third)) & set(pids(second))
+        assert not any(slot.process.is_alive() for slot in second.slots)
+        # a worker that errors (task 3's env cannot be built): its pool is not kept
+        with pytest.raises(RolloutCrashed, match="no scene for task 3"):
+            run_rollouts(reach_act, replace(shorter, tasks=(0, 3)), QUIET, scenes=REACH,
+                         batching=two)
+        assert workers.kept_pool() is None
+        assert not any(slot.process.is_alive() for slot in third.slots)
+    finally:
+        workers.discard_workers()

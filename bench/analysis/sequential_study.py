@@ -7,19 +7,23 @@
 PYTEST_ARGS: the study's grid file and options (--results-dir, --rollouts and -k are the
 runner's). Each round reads the records (every item's cells and their episodes:
 bench.analysis.sequential_records `item_study`, an item an encoder or native, its cells blocks of
-units), replays the design (bench.analysis.sequential) and runs, for each item the next round
-runs, one pytest command that selects its cells (-k "<backbone>-<suite>-<item>-") with
-`--rollouts (round + 1) * per_task`: a stored cell keeps its episodes and rolls out only the new
-ones, nothing retrained (bench.cell.extend). It stops when the design does (every adjacent pair
-declared, or the next round would overspend the budget), when the next round would pass
-`--max-per-task` (demonstrations hold the first init states of a task: start-up refuses
---rollouts beyond 50 - their count), when the episodes the study rolled out would pass the
-budget, or when a command fails (the item's record says why; rerun to continue).
+units), replays the design (bench.analysis.sequential) and runs the next round as one pytest
+command that selects the cells of every item the round runs (-k "<backbone>-<suite>-<item>- or
+..."), all with the round's `--rollouts (round + 1) * per_task`: a stored cell keeps its episodes
+and rolls out only the new ones, nothing retrained (bench.cell.extend). One command, not one per
+item, so the round's cells share one process: its start-up, and the rollout workers with their
+envs (bench.sim.workers keeps them across a process's cells), are paid once a round. It stops
+when the design does (every adjacent pair declared, or the next round would overspend the
+budget), when the next round would pass `--max-per-task` (demonstrations hold the first init
+states of a task: start-up refuses --rollouts beyond 50 - their count), when the episodes the
+study rolled out would pass the budget, or when the command fails (the items' records say why;
+rerun to continue).
 
 The design is declared once: RESULTS/sequential.json (DESIGN_FILE) holds it with the items,
-tasks and blocks, and each round's commands as they end; a rerun with another design is refused,
-one with the same continues where the last stopped (a round in flight included: cells already
-extended resume). An item that sat rounds out and is run again (racing brings an item back when
+tasks and blocks, and each round (its items and their --rollouts, or the items of a failed
+command and its exit status) as it ends; a rerun with another design is refused, one with the
+same continues where the last stopped (a round in flight included: cells already extended
+resume, the items it finished are left out of the rerun's command). An item that sat rounds out and is run again (racing brings an item back when
 its neighbours' order changes) rolls out the rounds it missed too (--rollouts counts from the
 first episode): the design leaves those rows out (a row it did not choose is no evidence,
 `unplanned="ignore"`), the budget counts them (it is of episodes rolled out).
@@ -105,10 +109,15 @@ def cell_pattern(cell_id: str) -> str:
     return re.sub(r"(-rel\d+)?-seed\d+$", "-", cell_id)
 
 
-def item_command(study: Study, progress: ItemStudy, item: str, rollouts: int,
-                 pytest_args: Sequence[str], python: str = sys.executable) -> list[str]:
+def round_command(study: Study, progress: ItemStudy, rollouts: dict[str, int],
+                  pytest_args: Sequence[str], python: str = sys.executable) -> list[str]:
+    """The one pytest command of a round: every item's cells, at the round's --rollouts."""
+    counts = set(rollouts.values())
+    if len(counts) != 1:  # plan_round gives every item of a round the same count
+        raise ValueError(f"a round's items need one --rollouts for one command: {rollouts}")
+    selected = " or ".join(cell_pattern(progress.cells[item][0]) for item in rollouts)
     return [python, "-m", "pytest", "bench", *pytest_args, "--results-dir", str(study.results),
-            "--rollouts", str(rollouts), "-k", cell_pattern(progress.cells[item][0])]
+            "--rollouts", str(counts.pop()), "-k", selected]
 
 
 def order_line(summary: dict) -> str:
@@ -138,8 +147,8 @@ def run_study(study: Study, design: SequentialDesign, pytest_args: Sequence[str]
               execute: Callable[[list[str]], int] | None = None, dry_run: bool = False,
               say: Callable[[str], None] = print) -> Round:
     """Rounds until a stop (module docstring); the last Round. `execute(command) -> exit
-    status` runs one item's pytest command (a subprocess unless a test passes its own);
-    `dry_run`: print the next round's commands, run and write nothing."""
+    status` runs a round's pytest command (a subprocess unless a test passes its own);
+    `dry_run`: print the next round's command, run and write nothing."""
     execute = execute or (lambda cmd: subprocess.run(cmd, check=False).returncode)
     path = study.results / DESIGN_FILE
     stored = check_declared(path, study.declared(design))
@@ -155,22 +164,20 @@ def run_study(study: Study, design: SequentialDesign, pytest_args: Sequence[str]
         if nxt.stop:
             say(f"[sequential] stopped: {nxt.stop}")
             return nxt
-        commands = {item: item_command(study, progress, item, n, pytest_args)
-                    for item, n in nxt.rollouts.items()}
-        for k, (item, cmd) in enumerate(commands.items(), 1):
-            say(f"[sequential] round {nxt.index}, item {k}/{len(commands)} {item} "
-                f"(--rollouts {nxt.rollouts[item]}): {shlex.join(cmd)}")
-            if dry_run:
-                continue
-            status = execute(cmd)
-            if status != 0:
-                stored["rounds"].append({"round": nxt.index, "failed": item,
-                                         "exit_status": status})
-                _write(path, stored)
-                raise SystemExit(f"[sequential] {item} exited {status} (its record or failure "
-                                 "file says why); rerun this command to continue the round")
+        cmd = round_command(study, progress, nxt.rollouts, pytest_args)
+        items = ", ".join(f"{item} (--rollouts {n})" for item, n in nxt.rollouts.items())
+        say(f"[sequential] round {nxt.index}, {len(nxt.rollouts)} item(s) {items}: "
+            f"{shlex.join(cmd)}")
         if dry_run:
             return nxt
+        status = execute(cmd)
+        if status != 0:
+            stored["rounds"].append({"round": nxt.index, "failed": list(nxt.rollouts),
+                                     "episodes_per_task": nxt.rollouts, "exit_status": status})
+            _write(path, stored)
+            raise SystemExit(f"[sequential] round {nxt.index} ({', '.join(nxt.rollouts)}) exited "
+                             f"{status} (the records or failure files say why); rerun this "
+                             "command to continue the round")
         stored["rounds"].append({"round": nxt.index, "episodes_per_task": nxt.rollouts})
         _write(path, stored)
 
@@ -201,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="episodes per task a cell may roll out (50 - the demos' init states)")
     p.add_argument("--budget", type=int, required=True, help="episodes for the whole study")
     p.add_argument("--alpha", type=float, default=0.05)
-    p.add_argument("--dry-run", action="store_true", help="print the next round's commands")
+    p.add_argument("--dry-run", action="store_true", help="print the next round's command")
     a = p.parse_args(ours)
     items = tuple(i for i in a.items.split(",") if i)
     tasks = _ints(a.tasks)

@@ -248,13 +248,12 @@ def _run_on_workers(act: ActFn, spec: RolloutSpec, report: Callable[[dict], None
                for e in range(spec.episodes_per_task) if (t, e) not in done]
     episodes += list(done.values())
     if planned:
-        slots = pool.start_workers(min(workers, len(planned)), scenes, spec.suite, render,
-                                   spec.max_steps, descriptions)
-        try:
+        # All W workers even for fewer episodes: the pool is kept for the process's next cell
+        # (bench.sim.workers.kept_workers), an idle worker just takes no episode.
+        with pool.kept_workers(workers, scenes, spec.suite, render, spec.max_steps,
+                               descriptions) as slots:
             pool.run_workers(act, planned, slots, spec, ended,
                              lambda step, where: _crash_named(step, where, kept()))
-        finally:
-            pool.stop_workers(slots)
     order = {t: i for i, t in enumerate(spec.tasks)}
     return sorted(episodes, key=lambda e: (order[e["task"]], e["episode"]))
 

@@ -8,16 +8,26 @@ time, exactly as the in-process loop does (bench.sim.rollout.run_episode), so th
 init states, env seeds and rows are the in-process ones (tests/test_sim_frames.py). The policy
 is called here because it is the cheap part (one call per `n_action_steps` simulator steps) and
 it stays loaded once. A finished worker takes the next planned episode at once.
+
+The workers outlive a run: `kept_workers` keeps one pool per process, keyed by everything its
+workers were started with, and lends it to the next run that asks for the same key (the next
+cell of a `pytest bench` process), so the process start-up and the env builds (~6 s of CPU each)
+are paid once per process, not per cell. An env is reset to each episode's init state and seed
+whichever run it served before, as between the episodes of one run. A pool is stopped when
+another key is asked for (before the new one starts: never two pools alive), when a run on it
+raises (a worker that died, errored or was left mid-episode is never lent again), and at exit.
 """
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing as mp
 import time
 import traceback
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 
@@ -55,6 +65,9 @@ def _serve(conn, scenes, suite: str, render, max_steps: int, descriptions: list[
             try:
                 if message[0] == "close":
                     return
+                if message[0] == "envs":  # kept_workers' check before lending the pool again
+                    conn.send(("envs", sorted(envs)))
+                    continue
                 if message[0] == "reset":
                     _, task, episode, env_seed = message
                     if task not in envs:
@@ -105,6 +118,64 @@ def stop_workers(slots: list[_Slot]) -> None:
         if slot.process.is_alive():
             slot.process.terminate()
             slot.process.join(timeout=5)
+
+
+@dataclass
+class _Pool:
+    key: tuple  # kept_workers' arguments
+    slots: list[_Slot]
+
+
+_kept: _Pool | None = None  # this process's pool, between runs
+
+
+@contextmanager
+def kept_workers(n: int, scenes, suite: str, render, max_steps: int,
+                 descriptions: list[str]) -> Iterator[list[_Slot]]:
+    """This process's `n` workers for these arguments: the kept pool when it was started with
+    them and every worker answers, else a fresh one (the old one stopped first). Kept after the
+    block; stopped if the block raises, since a worker may then be dead, failed, or mid-episode
+    with a reply unread."""
+    global _kept
+    key = (n, scenes, suite, render, max_steps, tuple(descriptions))
+    if _kept is not None and (_kept.key != key or not _answers(_kept.slots)):
+        discard_workers()
+    if _kept is None:
+        _kept = _Pool(key, start_workers(n, scenes, suite, render, max_steps, descriptions))
+    try:
+        yield _kept.slots
+    except BaseException:
+        discard_workers()
+        raise
+
+
+def kept_pool() -> _Pool | None:
+    """The pool kept for the next run (None: none is)."""
+    return _kept
+
+
+@atexit.register  # registered after multiprocessing's own: runs first, while pipes are open
+def discard_workers() -> None:
+    """Stop the kept pool, if any: the next run starts a fresh one."""
+    global _kept
+    pool, _kept = _kept, None
+    if pool is not None:
+        stop_workers(pool.slots)
+
+
+def _answers(slots: list[_Slot], timeout: float = 60.0) -> bool:
+    """Is every worker alive, its pipe empty, and holding the envs this process thinks it has?
+    An idle worker answers at once; anything else (a stale reply, a dead pipe) fails."""
+    for slot in slots:
+        try:
+            if not slot.process.is_alive() or slot.conn.poll():
+                return False
+            slot.conn.send(("envs",))
+            if not slot.conn.poll(timeout) or slot.conn.recv() != ("envs", sorted(slot.tasks)):
+                return False
+        except (EOFError, OSError):
+            return False
+    return True
 
 
 def run_workers(act, planned: list[tuple], slots: list[_Slot], spec,
