@@ -167,3 +167,42 @@ def test_a_dry_run_prints_the_next_rounds_commands_and_writes_nothing(tmp_path, 
     assert command.endswith("--rollouts 2 -k 'pi05-spatial-native- or pi05-spatial-effnet_lite0- "
                             "or pi05-spatial-effnet_lite0_random-'")
     assert not (tmp_path / DESIGN_FILE).exists()
+
+
+GOOD = ["--items", ",".join(TRUTH), "--backbone", "pi05", "--suite", "spatial", "--tasks", "0,1",
+        "--per-task", "2", "--budget", "500"]
+
+
+def with_option(option: str, value: str) -> list[str]:
+    args = list(GOOD)
+    if option in args:
+        args[args.index(option) + 1] = value
+    else:
+        args += [option, value]
+    return args
+
+
+@pytest.mark.parametrize("where, args, named", [
+    ("missing", GOOD, "no such folder"),
+    ("study", with_option("--items", "native,efnet"), "--items 'efnet'"),
+    ("study", with_option("--items", "native"), "--items 'native'"),
+    ("study", with_option("--items", "native,native"), "two or more distinct"),
+    ("study", with_option("--backbone", "pi5"), "did you mean 'pi05'"),
+    ("study", with_option("--tasks", "0,x"), "--tasks '0,x'"),
+    ("study", with_option("--per-task", "0"), "--per-task: 0"),
+    ("study", with_option("--budget", "-5"), "--budget: -5"),
+    ("study", with_option("--alpha", "2"), "--alpha 2.0"),
+    ("study", with_option("--max-per-task", "1"), "--max-per-task 1 is below --per-task 2"),
+], ids=["no-folder", "unknown-item", "one-item", "same-item-twice", "unknown-backbone",
+        "bad-tasks", "per-task-0", "negative-budget", "alpha-2", "max-below-per-task"])
+def test_bad_arguments_stop_in_one_line_before_any_record_is_read(tmp_path, capsys, where, args,
+                                                                   named):
+    root = tmp_path / where
+    if where == "study":
+        offline_study(root)
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    with pytest.raises(SystemExit) as stop:
+        main([str(root), *args, "--", "--grid", "g.toml"])
+    err = capsys.readouterr().err.strip()
+    assert stop.value.code == 4 and named in err and len(err.splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing written

@@ -43,6 +43,7 @@ from typing import Callable, Sequence
 
 from bench.analysis.sequential import SequentialDesign, next_round, study_state, study_summary
 from bench.analysis.sequential_records import ItemStudy, item_study
+from bench.option_values import CommandParser, refuse, whole_at_least
 
 DESIGN_FILE = "sequential.json"
 IGNORE = "ignore"  # rows the design did not choose (an item's missed rounds) are left out
@@ -188,29 +189,74 @@ def _write(path: Path, data: dict) -> None:
     atomic_write_json(path, data)
 
 
+PROG = "python -m bench.analysis.sequential_study"
+
+
 def _ints(text: str) -> tuple[int, ...]:
-    return tuple(int(t) for t in text.split(",") if t)
+    try:
+        values = tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        values = ()
+    if not values or min(values) < 0:
+        refuse(PROG, f"--tasks {text!r}: give the LIBERO task ids as a comma list, e.g. 0,1,2,3 "
+                     "(the offline run's --sim-tasks)")
+    return values
+
+
+def check_arguments(a: argparse.Namespace) -> tuple[str, ...]:
+    """Every argument checked before a record is read: one line naming the argument, its value
+    and the fix (exit USAGE_ERROR). Returns the items."""
+    from backbones import get_entry
+    from encoders.base import UnknownEncoder
+    from encoders.registry import get_spec, is_user_encoder
+
+    if not a.results.is_dir():
+        refuse(PROG, f"{a.results}: no such folder; give the results folder of the study's "
+                     "offline run (its --results-dir, the one that holds cells/)")
+    items = tuple(i.strip() for i in a.items.split(",") if i.strip())
+    if len(items) < 2 or len(set(items)) != len(items):
+        refuse(PROG, f"--items {a.items!r}: give two or more distinct items, each an encoder or "
+                     "native, e.g. native,effnet_lite0,effnet_lite1")
+    for item in items:
+        if item == "native" or is_user_encoder(item):
+            continue
+        try:
+            get_spec(item)
+        except UnknownEncoder as e:
+            refuse(PROG, f"--items {item!r}: an item is native or an encoder: {e}")
+    try:
+        get_entry(a.backbone)
+    except ValueError as e:
+        refuse(PROG, f"--backbone: {e}")
+    if not 0 < a.alpha < 1:
+        refuse(PROG, f"--alpha {a.alpha}: give a level in (0, 1), e.g. 0.05")
+    if a.max_per_task < a.per_task:
+        refuse(PROG, f"--max-per-task {a.max_per_task} is below --per-task {a.per_task}: no round "
+                     "would fit; give --max-per-task >= --per-task (at most 50 - the demos' "
+                     "init states, e.g. 21)")
+    return items
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, pytest_args = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) \
         if "--" in argv else (argv, [])
-    p = argparse.ArgumentParser(prog="python -m bench.analysis.sequential_study",
-                                description=__doc__.split("\n\n")[0])
+    p = CommandParser(prog=PROG, description=__doc__.split("\n\n")[0])
     p.add_argument("results", type=Path)
     p.add_argument("--items", required=True, help="comma list: encoders and native")
     p.add_argument("--backbone", required=True)
     p.add_argument("--suite", required=True)
     p.add_argument("--tasks", required=True, help="the LIBERO task ids (--sim-tasks)")
-    p.add_argument("--per-task", type=int, default=1, help="episodes per task and cell a round")
-    p.add_argument("--max-per-task", type=int, default=21,
+    p.add_argument("--per-task", type=whole_at_least(1, "3"), default=1,
+                   help="episodes per task and cell a round")
+    p.add_argument("--max-per-task", type=whole_at_least(1, "21"), default=21,
                    help="episodes per task a cell may roll out (50 - the demos' init states)")
-    p.add_argument("--budget", type=int, required=True, help="episodes for the whole study")
+    p.add_argument("--budget", type=whole_at_least(1, "900"), required=True,
+                   help="episodes for the whole study")
     p.add_argument("--alpha", type=float, default=0.05)
     p.add_argument("--dry-run", action="store_true", help="print the next round's command")
     a = p.parse_args(ours)
-    items = tuple(i for i in a.items.split(",") if i)
+    items = check_arguments(a)
     tasks = _ints(a.tasks)
     blocks = len(item_study(a.results, a.per_task, list(items), a.backbone, a.suite).blocks)
     study = Study(a.results, items, a.backbone, a.suite, tasks, a.per_task, a.max_per_task,
