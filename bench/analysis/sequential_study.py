@@ -43,6 +43,7 @@ from typing import Callable, Sequence
 
 from bench.analysis.sequential import SequentialDesign, next_round, study_state, study_summary
 from bench.analysis.sequential_records import ItemStudy, item_study
+from bench.grid.kinds import NATIVE
 from bench.option_values import CommandParser, refuse, whole_at_least
 
 DESIGN_FILE = "sequential.json"
@@ -218,7 +219,7 @@ def check_arguments(a: argparse.Namespace) -> tuple[str, ...]:
         refuse(PROG, f"--items {a.items!r}: give two or more distinct items, each an encoder or "
                      "native, e.g. native,effnet_lite0,effnet_lite1")
     for item in items:
-        if item == "native" or is_user_encoder(item):
+        if item == NATIVE or is_user_encoder(item):
             continue
         try:
             get_spec(item)
