@@ -1,7 +1,8 @@
 """Rollouts that render only the frames they read, over worker processes, give the rows and the
 observations of the loop that renders every step in this process (bench.sim.frames,
 bench.sim.workers), and so does a second run on the workers the first one left (the next cell
-of a process): same init states, env seeds, frames, actions and per-episode rows.
+of a process): same init states, env seeds, frames, actions and per-episode rows, with the
+substeps' repeated MuJoCo forward skipped (bench.sim.physics).
 
 The policy pushes the arm by what it sees (state and pixels), so a frame rendered at the wrong
 step, a placeholder read, or an episode run on another init state or seed changes what the
@@ -10,6 +11,8 @@ LIBERO env builds, two spawned workers; the second run on them ~5 s of it).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -54,9 +57,17 @@ def rows(result: dict) -> list[dict]:
 @pytest.mark.slow  # LIBERO scenes rendered in the simulator
 @needs_libero
 def test_gated_frames_and_workers_give_the_every_step_rollout_bit_for_bit():
-    before, gated, pooled, again = [], [], [], []
+    before, gated, pooled, again, built = [], [], [], [], []
+
+    def rollout_env(*args, **kwargs):  # LIBERO's own, kept to read its forward gate's count
+        built.append(sim_env.make_rollout_env(*args, **kwargs))
+        return built[-1]
+
     base = run_rollouts(recorder(before), SPEC, progress=QUIET, render=RENDER, scenes=EVERY_STEP)
-    alone = run_rollouts(recorder(gated), SPEC, progress=QUIET, render=RENDER)
+    alone = run_rollouts(recorder(gated), SPEC, progress=QUIET, render=RENDER,
+                         scenes=dataclasses.replace(LIBERO, make_env=rollout_env))
+    # the repeated forward was skipped, once a physics substep (25 a control step, and more)
+    assert len(built) == 2 and all(env.forward_gate.skipped >= 25 * 23 * 2 for env in built)
     try:
         pool.discard_workers()
         workers = run_rollouts(recorder(pooled), SPEC, progress=QUIET, render=RENDER,

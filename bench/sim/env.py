@@ -163,12 +163,15 @@ def make_env(suite: str, task_id: int, render: RenderSettings = RenderSettings()
 
 def make_rollout_env(suite: str, task_id: int, render: RenderSettings = RenderSettings(),
                      max_steps: int | None = None):
-    """`make_env` whose cameras render only the frames the rollout loop reads (`read_after`):
-    the same frames, physics and states as an env rendering every step (bench.sim.frames)."""
+    """`make_env` whose cameras render only the frames the rollout loop reads (`read_after`)
+    and whose substeps forward once, not twice: the same frames, physics and states as the plain
+    env (bench.sim.frames, bench.sim.physics)."""
     from bench.sim.frames import FrameGate
+    from bench.sim.physics import SkipRepeatForward
 
     env = make_env(suite, task_id, render, max_steps=max_steps)
     env.frame_gate = FrameGate(env, CAMERA_MAPPING)
+    env.forward_gate = SkipRepeatForward(env)
     return env
 
 
