@@ -7,7 +7,8 @@ sensors, so "physics" is a step's time without them. Prints one JSON line.
 
     python scripts/rollout_profile.py RELEASE_DIR --tasks 0,1 --episodes 2 [--gated]
 
---gated: the same loop with frames rendered only where read (bench.sim.frames), as rollouts run.
+--gated: the same loop as rollouts run it: frames rendered only where read (bench.sim.frames)
+and one MuJoCo forward a physics substep (bench.sim.physics).
 """
 
 from __future__ import annotations
@@ -102,8 +103,10 @@ def main() -> None:
         timed_cameras(env, clock, phase)
         if a.gated:  # gate the timed sensors: only real renders are timed
             from bench.sim.frames import FrameGate
+            from bench.sim.physics import SkipRepeatForward
 
             env.frame_gate = FrameGate(env, sim_env.CAMERA_MAPPING)
+            env.forward_gate = SkipRepeatForward(env)
         rows += [episode(act, env, task, e, descriptions[task], clock, phase)
                  for e in range(a.episodes)]
         env.close()
