@@ -16,6 +16,10 @@ The estimate, per process that measures cells (each xdist worker, or this one):
                                        are read per batch; pooled features are read per batch
                                        from the store (FEATURE_BATCH_BYTES: its largest batch)
 
+  + its rollout workers               `--rollout-workers W` beside --rollouts: W spawned simulator
+                                       processes a measuring process keeps between its cells
+                                       (ROLLOUT_WORKER_BYTES each)
+
 times the workers, plus one PROCESS_BYTES for the xdist controller. It is a floor, not a bound:
 activations beyond a batch's, encoders built in the loop and the allocator's slack come on top
 (the real study's processes peaked at 5.6-7.9 GB where it says 1.7 GB), so a refusal means the
@@ -36,6 +40,9 @@ PROCESS_BYTES = int(1.4 * GIB)
 # docs/SCALING.md: the largest batch of stored features read (pool_double of SigLIP on pi0.5).
 FEATURE_BATCH_BYTES = 260 * 2**20
 CAMERAS = 2  # LIBERO's two cameras (bench.suites: IMAGE_KEYS)
+# Measured (docs/PERFORMANCE.md, "Closed-loop rollouts"): a kept rollout worker holding one
+# LIBERO env at 128 px, 1.9 GB private (PSS 2.0 GB).
+ROLLOUT_WORKER_BYTES = int(1.9 * GIB)
 
 
 @dataclass(frozen=True)
@@ -101,8 +108,9 @@ def data_bytes(profile, suite: str) -> int:
     return frames * CAMERAS * 3 * side * side
 
 
-def estimate(profile, workers: int) -> MemoryEstimate:
-    """The run's estimate (module docstring) for `workers` processes measuring cells."""
+def estimate(profile, workers: int, rollout_workers: int = 0) -> MemoryEstimate:
+    """The run's estimate (module docstring) for `workers` processes measuring cells, each
+    keeping `rollout_workers` simulator processes (0 or 1: the simulator runs in-process)."""
     parts = [("process", PROCESS_BYTES)]
     held = -(-len(profile.backbones) // max(1, workers))  # backbones a worker loads
     weights = sum(sorted((backbone_bytes(profile, b) for b in profile.backbones),
@@ -114,6 +122,8 @@ def estimate(profile, workers: int) -> MemoryEstimate:
         data += FEATURE_BATCH_BYTES
     if data:
         parts.append(("data", data))
+    if rollout_workers > 1:
+        parts.append((f"{rollout_workers} rollout workers", rollout_workers * ROLLOUT_WORKER_BYTES))
     return MemoryEstimate(max(1, workers), tuple(parts))
 
 
@@ -136,16 +146,19 @@ def machine_memory() -> tuple[int, int]:
         return 0, 0
 
 
-def check_memory(profile, workers: int, workers_option: str) -> list[str]:
+def check_memory(profile, workers: int, workers_option: str,
+                 rollout_workers: int = 0) -> list[str]:
     """The estimate's line when above half the machine's memory; a UsageError when it exceeds
     the memory available now (nothing measured yet)."""
     total, available = machine_memory()
     if not total:
         return []
-    run = estimate(profile, workers)
+    run = estimate(profile, workers, rollout_workers)
     if run.total > available:
         fit = (available - PROCESS_BYTES) // run.per_worker  # workers beside the controller
         fewer = f"fewer workers ({workers_option} {fit})" if 1 <= fit < workers else "a smaller run"
+        if rollout_workers > 1:
+            fewer += " or fewer rollout workers (--rollout-workers 1: the simulator in-process)"
         raise pytest.UsageError(
             f"memory: this run needs {run.text()}, and {available / GIB:.1f} GB of the machine's "
             f"{total / GIB:.1f} GB is available; fix: {fewer}, fewer backbones (--backbones), "

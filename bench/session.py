@@ -92,8 +92,10 @@ class GraftSession:
         if self._names_checked:
             from bench.memory import measuring_processes
 
+            rollout_workers = options.rollout_batching.workers if options.rollouts else 0
             self.startup_lines += check_startup(self.profile, options.labels, options.screen is
-                                                not None, measuring_processes(config, options))
+                                                not None, measuring_processes(config, options),
+                                                rollout_workers)
             self.store  # opens (creates, probes) the results dir
             self.check_report()
 

@@ -27,9 +27,10 @@ def collects_grid(config: pytest.Config) -> bool:
 
 
 def check_startup(profile, labels: dict[str, str] | None = None, screen: bool = False,
-                  workers: int = 1) -> list[str]:
+                  workers: int = 1, rollout_workers: int = 0) -> list[str]:
     """Every name and user path of the grid, the data-sized numbers against the suites and the
-    run's memory (`workers`: processes measuring cells), before collection: each bad one a
+    run's memory (`workers`: processes measuring cells, each keeping `rollout_workers`
+    simulator processes), before collection: each bad one a
     one-line UsageError (exit 4, no cell run). Returns the lines to print (camera pairings, the
     memory estimate). The output folders come after (the session opens --results-dir, then
     probes --report: the report defaults to a folder inside the results dir, whose own error
@@ -42,7 +43,7 @@ def check_startup(profile, labels: dict[str, str] | None = None, screen: bool = 
     check_references(profile, screen, labels)
     check_data_bounds(profile)
     lines = check_user_world(profile)
-    return lines + check_memory(profile, workers, "-n")
+    return lines + check_memory(profile, workers, "-n", rollout_workers)
 
 
 def check_references(profile, screen: bool, labels: dict[str, str] | None = None) -> None:

@@ -13,8 +13,9 @@ import backbones  # noqa: F401  (imported before pytester's sys.modules snapshot
 import encoders  # noqa: F401
 import bench.memory
 from bench.grid.protocol import PAPER, TINY
-from bench.memory import FEATURE_BATCH_BYTES, GIB, PROCESS_BYTES, estimate
+from bench.memory import FEATURE_BATCH_BYTES, GIB, PROCESS_BYTES, ROLLOUT_WORKER_BYTES, estimate
 from tests.bench_inprocess import bench_run  # noqa: F401  (the fixture)
+from tests.sim_marks import needs_libero
 from tests.test_bad_inputs import assert_one_screen
 
 pytest_plugins = ["pytester"]
@@ -38,6 +39,27 @@ def test_the_estimate_of_the_paper_grid_counts_a_worker_s_backbones():
     assert dict(two.parts)["data"] == FEATURE_BATCH_BYTES  # hub suites: read per batch
     one = estimate(PAPER, 1)  # one process loads both
     assert dict(one.parts)["2 backbone(s)"] == int(3.3e9 * 4) + int(450e6 * 4)
+
+
+def test_kept_rollout_workers_count_for_each_measuring_process():
+    plain = estimate(TINY, 2)
+    kept = estimate(TINY, 2, rollout_workers=3)
+    assert kept.parts == plain.parts + (("3 rollout workers", 3 * ROLLOUT_WORKER_BYTES),)
+    assert kept.total == plain.total + 2 * 3 * ROLLOUT_WORKER_BYTES  # each of the 2 workers
+    assert estimate(TINY, 2, rollout_workers=1) == plain  # the simulator in the process itself
+
+
+@needs_libero  # --rollouts checks the simulator is installed before the memory
+def test_a_rollout_run_whose_workers_cannot_fit_is_refused_naming_them(bench_run, monkeypatch):
+    """The sim profile's run is 1.7 GB in one process; its 2 kept rollout workers add 3.8 GB."""
+    monkeypatch.setattr(bench.memory, "machine_memory", lambda: (8 * GIB, 4 * GIB))
+    # --co: refused at start-up all the same, and a run the check let through collects only
+    out = bench_run("--profile", "sim", "--rollouts", "2", "--rollout-workers", "2", "--co")
+    assert_one_screen(out, "memory: this run needs 5.5 GB at least (one process; a worker: "
+                      "process 1.4 + data 0.3 + 2 rollout workers 3.8 GB), and 4.0 GB",
+                      "fix: a smaller run or fewer rollout workers (--rollout-workers 1: the "
+                      "simulator in-process)")
+    assert not (bench_run.path / "results").exists()
 
 
 def test_a_run_that_cannot_fit_is_refused_before_any_cell(bench_run, monkeypatch):
