@@ -82,11 +82,18 @@ def test_an_unreadable_record_is_named_moved_aside_measured_again_and_counted(be
             "measured again") in report
 
 
+def counts(screen: str) -> tuple[int, int]:
+    """(measured, resumed from store) of a run's summary line."""
+    found = re.findall(r"measured (\d+), resumed from store (\d+)", screen)
+    assert len(found) == 1, screen[-2000:]
+    return int(found[0][0]), int(found[0][1])
+
+
 @pytest.mark.slow  # a second interpreter: the other run
 def test_two_runs_on_one_results_dir_measure_each_cell_once(bench_cli, tmp_path):
     """Run A (another process) measures the two cells, each taking 2 s more (tests/slow_cells);
     run B starts on the same results dir while A measures the first, waits for each claim and
-    resumes A's records. Without the claim, B measured the cell A was measuring (4
+    resumes A's record. Without the claim, B measured the cell A was measuring (4
     measurements for 2 cells)."""
     marks = tmp_path / "marks"
     env = {**os.environ, "GRAFTBENCH_TEST_MARKS": str(marks), "GRAFTBENCH_TEST_CELL_DELAY": "2",
@@ -105,8 +112,12 @@ def test_two_runs_on_one_results_dir_measure_each_cell_once(bench_cli, tmp_path)
     theirs = other.communicate(timeout=180)[0]
     assert other.returncode == 0 and mine.returncode == 0, theirs[-3000:] + mine.stdout[-3000:]
     assert sorted(p.name.rsplit(".", 1)[0] for p in marks.iterdir()) == CELL_IDS  # once each
-    assert "measured 2, resumed from store 0" in theirs, theirs[-2000:]
-    assert "measured 0, resumed from store 2" in mine.stdout, mine.stdout[-2000:]
+    # A measured the first cell (B waited for it, below); the second goes to whichever run claims
+    # it first once the first is done (B, when A is slow to reach it): either way each cell is
+    # measured in one run and resumed from the store in the other.
+    (a_measured, a_resumed), (b_measured, b_resumed) = counts(theirs), counts(mine.stdout)
+    assert a_measured >= 1 and (a_measured + b_measured, a_resumed + b_resumed) == (2, 2), (
+        theirs[-2000:] + mine.stdout[-2000:])
     assert (f"{CELL_IDS[0]}: another process is measuring it (its claim "
             f"{tmp_path / 'results' / '.claims' / CELL_IDS[0]}.lock); waiting for its record"
             in mine.stdout), mine.stdout[-3000:]
