@@ -102,11 +102,7 @@ def main() -> None:
         clock["env_build"].append(since(start))
         timed_cameras(env, clock, phase)
         if a.gated:  # gate the timed sensors: only real renders are timed
-            from bench.sim.frames import FrameGate
-            from bench.sim.physics import SkipRepeatForward
-
-            env.frame_gate = FrameGate(env, sim_env.CAMERA_MAPPING)
-            env.forward_gate = SkipRepeatForward(env)
+            sim_env.install_gates(env)
         rows += [episode(act, env, task, e, descriptions[task], clock, phase)
                  for e in range(a.episodes)]
         env.close()

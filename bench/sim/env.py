@@ -166,10 +166,15 @@ def make_rollout_env(suite: str, task_id: int, render: RenderSettings = RenderSe
     """`make_env` whose cameras render only the frames the rollout loop reads (`read_after`)
     and whose substeps forward once, not twice: the same frames, physics and states as the plain
     env (bench.sim.frames, bench.sim.physics)."""
+    return install_gates(make_env(suite, task_id, render, max_steps=max_steps))
+
+
+def install_gates(env):
+    """The rollout loop's gates on a plain env: frames rendered where read, one forward a
+    substep (scripts/rollout_profile.py installs them after its timed sensors)."""
     from bench.sim.frames import FrameGate
     from bench.sim.physics import SkipRepeatForward
 
-    env = make_env(suite, task_id, render, max_steps=max_steps)
     env.frame_gate = FrameGate(env, CAMERA_MAPPING)
     env.forward_gate = SkipRepeatForward(env)
     return env
