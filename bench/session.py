@@ -115,8 +115,11 @@ class GraftSession:
         self.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
         self.check_report(len(self.store.stored_ids() | set(selection.cells)))
         self.preflight(list(cells))
-        if selection.cells and self.screen_options is None:
-            self._write_grid()  # with --screen: at the end, once the screen's drops are known
+        if selection.cells:
+            # With --screen, again at the end without the cells the screen dropped; written here
+            # too so that a run stopped before its end leaves the list the report reads missing
+            # cells from (a cell the screen would drop counts as missing until it is dropped).
+            self._write_grid(self.selection.cells)
 
     def check_report(self, cells_after: int | None = None) -> None:
         """--report by bench.outputs' rule, a UsageError before any cell (`cells_after`: the
@@ -130,10 +133,13 @@ class GraftSession:
             self.store.remove_if_unused()  # stopped before any cell: no empty folders left
             raise pytest.UsageError(problem)
 
-    def _write_grid(self) -> None:
-        """grid.json (store.write_grid), never under --collect-only: it lists ids, expects none."""
+    def _write_grid(self, cells: list[str]) -> None:
+        """grid.json (store.write_grid), never under --collect-only: it lists ids, expects none.
+        The selected cells not in `cells` (the screen's drops) leave an earlier slice's list."""
         if not self.config.option.collectonly:
-            self.store.write_grid(self.ran_cells, self.profile.name, add=self.selection.sliced)
+            dropped = set(self.selection.cells) - set(cells)
+            self.store.write_grid(list(cells), self.profile.name, add=self.selection.sliced,
+                                  drop=dropped)
 
     def check_names_once(self) -> list[str]:
         """The start-up check of names and paths, when no earlier hook ran it (a grid module
@@ -332,7 +338,7 @@ class GraftSession:
         if self.baseline.rank_flipped and exitstatus == 0:
             exitstatus = pytest.ExitCode.TESTS_FAILED
         if self.screening is not None and self.selection.cells:
-            self._write_grid()
+            self._write_grid(self.ran_cells)
         self._report(sections)
         if self.report_error is not None and exitstatus == 0:
             exitstatus = pytest.ExitCode.INTERNAL_ERROR

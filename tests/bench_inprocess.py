@@ -80,13 +80,14 @@ class _NoGcAtExit:
 
 
 def run_bench(*args: str, shared: bool = True, figures: bool = False,
-              env: dict[str, str | None] | None = None) -> BenchRun:
+              env: dict[str, str | None] | None = None, plugins: tuple = ()) -> BenchRun:
     """`pytest bench -p no:cacheprovider *args` in this process; `env` sets (None: unsets)
     variables for the run. Torch's thread count is restored afterwards. Shared runs draw the
     report's figures only with `figures=True` (~1.2 s a report; the figures have their own
-    tests in test_report and the screen modules, and the ~30 in-process runs check text)."""
+    tests in test_report and the screen modules, and the ~30 in-process runs check text);
+    `plugins`: more plugin objects for the run (a test's look inside it)."""
     threads = torch.get_num_threads()
-    plugins = [_NoGcAtExit(), *([_LendWorkspace(figures)] if shared else [])]
+    plugins = [_NoGcAtExit(), *([_LendWorkspace(figures)] if shared else []), *plugins]
     out, err = io.StringIO(), io.StringIO()
     with pytest.MonkeyPatch.context() as patch:
         for name, value in (env or {}).items():

@@ -42,13 +42,26 @@ def keep_two(tmp_path_factory):
     make_calibration_study(folder / "calib", {f"timm:model_{i}": 0.05 + 0.01 * i
                                               for i in range(5)})
     top_two = ("--screen-keep", "2", "--screen-calibration", str(folder / "calib"))
-    first = run_bench(*where, *ARGS, *top_two, figures=True)
+    first_graft = GridAtFirstGraft(folder / "results")
+    first = run_bench(*where, *ARGS, *top_two, figures=True, plugins=(first_graft,))
     again = run_bench(*where, *ARGS, *top_two)
-    return folder, first, again, (screens, screens_report)
+    return folder, first, again, (screens, screens_report), first_graft.expected
+
+
+class GridAtFirstGraft:
+    """What grid.json expects when the run's first graft starts: what a run stopped there
+    leaves for the report to list missing cells from."""
+
+    def __init__(self, results) -> None:
+        self.results, self.expected = results, None
+
+    def pytest_runtest_setup(self, item):
+        if self.expected is None and item.name.startswith("test_graft["):
+            self.expected = load_results(self.results).expected
 
 
 def test_the_screens_alone_run_with_k_and_report(keep_two):
-    _, first, _, (screens, report) = keep_two
+    _, first, _, (screens, report), *_ = keep_two
     assert screens.returncode == 0, screens.stdout[-3000:]
     assert "screens 5: measured 5, resumed from store 0, failed 0" in screens.stdout
     assert "test_graft[" not in screens.stdout and "## Screening many encoders" in report
@@ -56,7 +69,7 @@ def test_the_screens_alone_run_with_k_and_report(keep_two):
 
 
 def test_the_best_two_by_logme_are_grafted_with_the_references(keep_two):
-    folder, first, _, _ = keep_two
+    folder, first, _, _, at_first_graft = keep_two
     assert first.returncode == 0, first.stdout[-3000:]
     results = load_results(folder / "results")
     gains = {s.scores.encoder: s.scores.score("logme") for s in results.screens}
@@ -72,10 +85,14 @@ def test_the_best_two_by_logme_are_grafted_with_the_references(keep_two):
     screen_at = first.stdout.index("test_screen[smolvla-spatial-pixels]")
     assert screen_at < first.stdout.index("test_graft[smolvla-spatial-pixels-seed0]")
     assert dropped not in load_results(folder / "results").expected  # grid.json: what ran
+    # ... written at start-up too, every selected cell (a stopped run's report lists the missing)
+    assert dropped in at_first_graft
+    assert set(at_first_graft) - set(load_results(folder / "results").expected) == {
+        dropped}
 
 
 def test_a_rerun_resumes_every_screen_and_graft(keep_two):
-    _, _, again, _ = keep_two
+    _, _, again, _, *_ = keep_two
     assert again.returncode == 0, again.stdout[-3000:]
     assert "screens 5: measured 0, resumed from store 5, failed 0" in again.stdout
     # 4 grafts and 10 short grafts (every encoder, the dropped one too, at 1/8 and 1/4)
@@ -83,7 +100,7 @@ def test_a_rerun_resumes_every_screen_and_graft(keep_two):
 
 
 def test_the_report_shows_the_screen_its_cost_and_what_it_dropped(keep_two):
-    folder, _, _, _ = keep_two
+    folder, _, _, _, *_ = keep_two
     text = (folder / "REPORT.md").read_text()
     section = text[text.index("## Screening many encoders"):]
     section = section[:section.index("\n## ", 1)]
@@ -94,7 +111,7 @@ def test_the_report_shows_the_screen_its_cost_and_what_it_dropped(keep_two):
 
 
 def test_the_top_k_report_quotes_the_calibration_study_it_names(keep_two):
-    folder, _, _, _ = keep_two
+    folder, _, _, _, *_ = keep_two
     [chosen] = load_results(folder / "results").selections
     assert chosen.calibration == str((folder / "calib").resolve())
     text = (folder / "REPORT.md").read_text()

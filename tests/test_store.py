@@ -59,3 +59,15 @@ def test_stores_opened_at_once_on_one_folder_do_not_trip_each_other(tmp_path):
     with ThreadPoolExecutor(8) as pool:
         list(pool.map(open_many, range(8)))  # re-raises a ResultsDirError from any thread
     assert not list((tmp_path / "shared").glob(".write-probe*"))
+
+
+def test_a_slice_adds_to_the_folders_grid_and_drops_only_what_it_no_longer_expects(tmp_path):
+    """A -k slice under --screen lists its cells at start-up, then at its end without the ones
+    the screen dropped; another slice's cells stay expected."""
+    store = ResultStore(tmp_path)
+    store.write_grid(["a-1", "a-2"], "tiny")
+    store.write_grid(["b-1", "b-2"], "tiny", add=True)  # the slice's start-up
+    store.write_grid(["b-1"], "tiny", add=True, drop={"b-2"})  # its end: b-2 screened out
+    assert json.loads((tmp_path / "grid.json").read_text())["expected"] == ["a-1", "a-2", "b-1"]
+    store.write_grid(["c-1"], "sim", add=True)  # another profile's slice redefines it
+    assert json.loads((tmp_path / "grid.json").read_text())["expected"] == ["c-1"]

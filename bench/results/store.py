@@ -341,15 +341,18 @@ class ResultStore:
         atomic_write_json(path, selection.to_json())
         return path
 
-    def write_grid(self, expected: list[str], profile: str, add: bool = False) -> None:
+    def write_grid(self, expected: list[str], profile: str, add: bool = False,
+                   drop: set[str] = frozenset()) -> None:
         """grid.json: the cells this run means to measure (the report lists those missing);
         `add` (a -k / -m slice): after what the folder's grid of the same profile expected, not
-        instead of it, so a study run in slices reads as one study."""
+        instead of it, so a study run in slices reads as one study; `drop`: cells an earlier
+        write of this run listed that it no longer expects (the screen's drops)."""
         try:
             kept, earlier = _read_grid(self.root) if add else ([], None)
         except (OSError, ValueError, KeyError, TypeError):
             kept, earlier = [], None
         if earlier == profile:
+            kept = [c for c in kept if c not in drop]
             expected = kept + [c for c in expected if c not in set(kept)]
         atomic_write_json(self.root / GRID, {_GRID_EXPECTED: expected, _GRID_PROFILE: profile})
 
