@@ -78,6 +78,22 @@ def test_a_pinned_release_is_read_from_the_grid_file_and_a_tampered_one_refused(
         check_pinned("pi05", renamed)
 
 
+def test_the_printed_releases_line_pasted_into_a_grid_file_beside_the_pins_loads_them(
+        tmp_path, capsys):
+    from bench.grid.pinned_release import main
+
+    release = _fake_release(tmp_path / "cache" / "released" / "pi05_s-key", backbone="pi05_s")
+    main([str(release), "--into", str(tmp_path / "study" / "releases")])
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert f"for a grid file in {tmp_path / 'study'}/" in line
+    entry = line[line.rindex(": ") + 2:]
+    assert entry.startswith('pi05_s = "releases/pi05_s-')
+    grid = tmp_path / "study" / "study.toml"
+    grid.write_text(f'profile = "tiny"\n[releases]\n{entry}\n')
+    [(backbone, path)] = build_profile(Config(grid=str(grid))).releases
+    assert backbone == "pi05_s" and Path(path).parent == (tmp_path / "study" / "releases").resolve()
+
+
 def test_pytest_bench_stops_on_a_tampered_pin_with_exit_4(bench_cli, tmp_path):
     pinned = pin(_fake_release(tmp_path / "release"), tmp_path / "pins")
     (pinned / "graftbench_release.json").write_text('{"backbone": "pi05", "x": 1}')

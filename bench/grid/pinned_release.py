@@ -104,8 +104,10 @@ def main(argv: list[str] | None = None) -> None:
               "tiny release folder (GRAFTBENCH_CACHE/released/<backbone>-<key>)", file=sys.stderr)
         raise SystemExit(4)
     pinned = pin(args.release, args.into)
-    print(f"pinned: {pinned}\nthe grid file's [releases] line: "
-          f'{pinned.name.rsplit("-", 1)[0]} = "<{pinned} from the grid file\'s folder>"')
+    # Paths in a grid file are read from its folder; a study keeps its releases beside it.
+    print(f"pinned: {pinned}\nthe grid file's [releases] line, for a grid file in "
+          f"{pinned.parent.parent}/ (paths are read from the grid file's folder): "
+          f'{pinned.name.rsplit("-", 1)[0]} = "{pinned.parent.name}/{pinned.name}"')
 
 
 if __name__ == "__main__":
