@@ -1,5 +1,5 @@
 """The robustness tier's analysis: per backbone x suite, each encoder's MSE under every
-perturbation, its degradation relative to its clean MSE with paired window-bootstrap intervals,
+perturbation, its degradation relative to its clean MSE with paired hierarchical intervals,
 a robustness ranking with its tie band, whether the clean winner stays the winner per kind, and
 the transfer question (does the small backbone's most robust encoder stay the most robust on the
 large one?). Pure functions of stored records (bench.results.record, bench.results.robust).
@@ -11,20 +11,23 @@ to lose (`blind`, whose features ignore the image) degrades by 0 while predictin
 
 Degradation of one cell under one perturbation, per window w: (perturbed_w - clean_w) / clean,
 `clean` the cell's clean MSE over the same windows; its mean over windows is the relative
-degradation ((perturbed - clean) / clean), averaged over seeds. Intervals are the rankings'
-(bench.analysis.rankings.paired_window_bootstrap): windows resampled once per replicate for every
-row and seed, seeds kept; the clean level is held fixed (its own uncertainty is the rankings').
+degradation ((perturbed - clean) / clean), averaged over releases and seeds. Intervals are the
+rankings' (bench.analysis.rankings.paired_bootstrap): releases, seeds within them, the held-out
+episodes the robustness windows come from and their windows, drawn once per replicate for every
+row; the clean level is held fixed (its own uncertainty is the rankings').
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
+from bench.analysis.hierarchy import Units
 from bench.analysis.rankings import (DEFAULT_RESAMPLES, PRIMARY, backbone_order,
-                                     paired_window_bootstrap, top_tier_mask)
+                                     paired_bootstrap, record_units, top_tier_mask)
 from bench.analysis.transfer import rank_agreement
 from bench.grid.kinds import GRAFT, column_label
 from bench.results.record import Record
@@ -37,8 +40,8 @@ class Degradation:
 
     row: str
     perturbation: str  # "kind:severity"
-    mse: float  # perturbed MSE, mean over seeds
-    clean: float  # clean MSE on the same windows, mean over seeds
+    mse: float  # perturbed MSE, mean over releases and seeds
+    clean: float  # clean MSE on the same windows, mean over releases and seeds
     relative: float  # mean relative degradation
     ci: tuple[float, float]
 
@@ -62,6 +65,8 @@ class RobustnessTable:
     winners: dict[str, dict[int, str]] = field(default_factory=dict)  # kind -> severity -> row
     n_windows: int = 0
     seeds: list[int] = field(default_factory=list)
+    releases: list[int] = field(default_factory=list)
+    n_episodes: int = 0  # held-out episodes the windows come from (0: not known, windows drawn)
     stale: list[str] = field(default_factory=list)
 
     @property
@@ -86,7 +91,8 @@ class RobustnessTable:
                 "ranking": self.ranking, "degradation_ranking": self.degradation_ranking,
                 "clean_winner": self.clean_winner, "winners": self.winners,
                 "most_robust": self.most_robust, "least_degraded": self.least_degraded,
-                "n_windows": self.n_windows, "seeds": self.seeds, "stale": self.stale}
+                "n_windows": self.n_windows, "n_episodes": self.n_episodes,
+                "releases": self.releases, "seeds": self.seeds, "stale": self.stale}
 
 
 def _pairs(records: Sequence[Record], robust: Sequence[RobustRecord], backbone: str, suite: str,
@@ -107,24 +113,33 @@ def _pairs(records: Sequence[Record], robust: Sequence[RobustRecord], backbone: 
     return out
 
 
-def _arrays(pairs, rows: list[str], seeds: list[int], labels: list[str]):
-    """per-window perturbed errors (P, R, S, W) and clean errors (R, S, W); NaN where absent."""
+def _arrays(pairs, rows: list[str], releases: list[int], seeds: list[int], labels: list[str]):
+    """per-window perturbed errors (P, E, R, S, W), clean errors (E, R, S, W), NaN where absent,
+    and the episodes of the W windows."""
     windows = pairs[0][2].window_ids
-    shape = (len(rows), len(seeds), len(windows))
+    shape = (len(rows), len(releases), len(seeds), len(windows))
     clean = np.full(shape, np.nan)
     perturbed = np.full((len(labels),) + shape, np.nan)
     for row, rec, rr in pairs:
         if rr.window_ids != windows:
             continue  # another window subset: cannot be paired
-        r, s = rows.index(row), seeds.index(int(rec.seed))
+        at = rows.index(row), releases.index(int(rec.release)), seeds.index(int(rec.seed))
         position = {w: i for i, w in enumerate(rec.scores.window_ids)}
         full = np.asarray(rec.scores.per_window_in(PRIMARY), dtype=float)
-        clean[r, s] = full[[position[w] for w in windows]]
+        clean[at] = full[[position[w] for w in windows]]
         for e in rr.entries:
             label = f"{e.kind}:{e.severity}"
             if label in labels:
-                perturbed[labels.index(label), r, s] = e.per_window[PRIMARY]
-    return perturbed, clean
+                perturbed[(labels.index(label), *at)] = e.per_window[PRIMARY]
+    return perturbed, clean, _window_units(pairs[0][1], windows)
+
+
+def _window_units(record: Record, windows: list[int]) -> Units:
+    """The episodes (and tasks) of the robustness windows, a subset of the cell's."""
+    units = record_units(record)
+    position = {w: i for i, w in enumerate(record.scores.window_ids)}
+    picked = [position[w] for w in windows]
+    return Units(units.episode[picked], units.task[picked], units.source, units.by_task)
 
 
 def _degradation(perturbed: np.ndarray, clean: np.ndarray) -> np.ndarray:
@@ -144,17 +159,20 @@ def robustness_table(records: Sequence[Record], robust: Sequence[RobustRecord], 
     grafts = sorted({row for row, rec, _ in pairs if rec.kind == GRAFT})
     table.rows = grafts + sorted({row for row, rec, _ in pairs if rec.kind != GRAFT})
     table.seeds = sorted({int(rec.seed) for _, rec, _ in pairs})
+    table.releases = sorted({int(rec.release) for _, rec, _ in pairs})
     entries = {(e.kind, e.severity): e.perturbation for _, _, rr in pairs for e in rr.entries}
     order = _kind_order([rr for _, _, rr in pairs])
     keys = sorted(entries, key=lambda k: (order.index(k[0]), k[1]))
     table.perturbations = [f"{k}:{s}" for k, s in keys]
     table.params = {f"{k}:{s}": entries[(k, s)]["params"] for k, s in keys}
-    perturbed, clean = _arrays(pairs, table.rows, table.seeds, table.perturbations)
+    perturbed, clean, units = _arrays(pairs, table.rows, table.releases, table.seeds,
+                                      table.perturbations)
     table.n_windows = clean.shape[-1]
+    table.n_episodes = 0 if units.source == "none" else len(units.episodes)
     degradation = _degradation(perturbed, clean)
-    boot = dict(n_resamples=n_resamples, random_seed=random_seed)
+    boot = dict(units=units, n_resamples=n_resamples, random_seed=random_seed)
     for p, label in enumerate(table.perturbations):
-        result = paired_window_bootstrap(degradation[p], 0, **boot)
+        result = paired_bootstrap(degradation[p], leader=0, **boot)
         for r, row in enumerate(table.rows):
             if np.isfinite(perturbed[p, r]).any():
                 table.cells[(row, label)] = Degradation(
@@ -173,19 +191,21 @@ def _kind_order(robust: Sequence[RobustRecord]) -> list[str]:
 
 
 def _ranking(per_window: np.ndarray, grafts: list[str], boot: dict):
-    """Grafts by a (P, E, S, W) per-window score (perturbed MSE or relative degradation) averaged
+    """Grafts by a (P, E, R, S, W) per-window score (perturbed MSE or relative degradation) averaged
     over every perturbation all of them have, lowest first, with its interval and whether it is
     in the leader's tie band (paired difference interval contains 0)."""
     if not grafts:
         return []
-    complete = [p for p in range(len(per_window)) if np.isfinite(
-        np.nanmean(per_window[p], axis=(1, 2))).all()]
-    if not complete:
-        return []
-    score = per_window[complete].mean(axis=0)  # (E, S, W): mean over perturbations
-    point = np.nanmean(score.mean(axis=-1), axis=1)
+    with np.errstate(all="ignore"), warnings.catch_warnings():  # an absent row is NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        complete = [p for p in range(len(per_window)) if np.isfinite(
+            np.nanmean(per_window[p], axis=(1, 2, 3))).all()]
+        if not complete:
+            return []
+        score = per_window[complete].mean(axis=0)  # (E, R, S, W): mean over perturbations
+        point = np.nanmean(score.mean(axis=-1), axis=(1, 2))
     leader = int(np.nanargmin(point))
-    result = paired_window_bootstrap(score, leader, **boot)
+    result = paired_bootstrap(score, leader=leader, **boot)
     tier = top_tier_mask(result.diff_lo, result.diff_hi, leader)
     order = sorted(range(len(grafts)), key=lambda i: (result.mean[i], grafts[i]))
     return [(grafts[i], float(result.mean[i]), (float(result.mean_lo[i]),
@@ -193,10 +213,10 @@ def _ranking(per_window: np.ndarray, grafts: list[str], boot: dict):
 
 
 def _winners(perturbed: np.ndarray, grafts: list[str], keys) -> dict[str, dict[int, str]]:
-    """kind -> severity -> the graft with the lowest perturbed MSE (mean over seeds)."""
+    """kind -> severity -> the graft with the lowest perturbed MSE (mean over releases, seeds)."""
     winners: dict[str, dict[int, str]] = {}
     for p, (kind, severity) in enumerate(keys):
-        means = np.nanmean(perturbed[p].mean(axis=-1), axis=1) if grafts else np.array([])
+        means = np.nanmean(perturbed[p].mean(axis=-1), axis=(1, 2)) if grafts else np.array([])
         if len(means) and np.isfinite(means).any():
             winners.setdefault(kind, {})[severity] = grafts[int(np.nanargmin(means))]
     return winners

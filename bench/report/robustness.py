@@ -31,9 +31,10 @@ METHOD = (
     "retraining, on perturbed copies of every 4th held-out window (the same windows and the same "
     "perturbed frames for every cell of a suite: bench/robust/perturbations.py, drawn per window "
     "from a fixed seed). **Degradation** = (perturbed - clean) / clean normalised MSE on those "
-    "windows, mean over seeds; its "
-    f"{CONFIDENCE:.0%} interval is the rankings' paired window bootstrap (windows resampled once "
-    "per replicate for every encoder and seed; the clean level held fixed). Offline MSE under an "
+    "windows, mean over releases and seeds; its "
+    f"{CONFIDENCE:.0%} interval is the rankings' paired hierarchical bootstrap (releases, seeds "
+    "within them, the held-out episodes the windows come from, then their windows, drawn once "
+    "per replicate for every encoder; the clean level held fixed). Offline MSE under an "
     "image perturbation, not closed-loop success under a scene change.")
 
 
@@ -66,8 +67,10 @@ def _table_text(t: RobustnessTable) -> str:
     if not t.rows:
         note = f" (stale, the cell was measured again: {', '.join(t.stale)})" if t.stale else ""
         return f"_No current robustness record{note}._"
-    head = (f"{t.n_windows} windows, seeds {t.seeds}. Cell: perturbed MSE, then degradation "
-            f"[{CONFIDENCE:.0%} CI].")
+    episodes = (f" from {t.n_episodes} held-out episodes" if t.n_episodes
+                else " (no episode ids: drawn as independent units)")
+    head = (f"{t.n_windows} windows{episodes}, releases {t.releases}, seeds {t.seeds}. Cell: "
+            f"perturbed MSE, then degradation [{CONFIDENCE:.0%} CI].")
     rows = []
     for label in t.perturbations:
         cells = [t.cells.get((row, label)) for row in t.rows]
