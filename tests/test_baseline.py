@@ -97,6 +97,29 @@ def test_paired_interval_is_deterministic_and_pairs_by_window_id():
     assert np.allclose(B.aligned(a, shuffled, "raw")[1], B.aligned(a, b, "raw")[1])
 
 
+def test_the_paired_interval_draws_episodes_and_the_baseline_file_keeps_them():
+    """Known answer: now - baseline is +0.3 on every window of two episodes and -0.1 on every
+    window of two others (8 windows each; +0.1 on average): drawn by episode the interval holds
+    0, drawn as 32 independent windows it would not. The baseline file's cell keeps the window
+    episodes, so a rank check on two baseline cells draws them too."""
+    from bench.results.record import from_snapshot, snapshot_json
+
+    episode = [i // 8 for i in range(32)]
+    shift = [0.3, -0.1, 0.3, -0.1]
+    base = _cell(0.5, n_tasks=1, n_windows=32, window_episode=episode)
+    now = _cell(n_tasks=1, window_episode=episode, per_window=[
+        v + shift[e] for v, e in zip(base.scores.per_window["normalized"], episode)])
+    d, lo, hi = B.paired_interval(*B.aligned(now, base, "normalized"))
+    assert d == pytest.approx(0.1) and lo < 0 < d < hi, (d, lo, hi)
+    plain = [r.replace(window_episode=None) for r in (now, base)]
+    _, w_lo, _ = B.paired_interval(*B.aligned(*plain, "normalized"))
+    assert w_lo > 0
+    kept = from_snapshot(json.loads(json.dumps(snapshot_json(base))))
+    assert kept.scores.window_episode == episode
+    assert B.paired_interval(*B.aligned(now, kept, "normalized")) == (d, lo, hi)
+    assert B.paired_interval(*B.aligned(kept, now, "normalized"))[1:] == (-hi, -lo)
+
+
 # ---------------------------------------------------------------------------------------------
 # Rank check (tie band = paired 95% interval containing 0)
 

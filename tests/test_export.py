@@ -364,3 +364,23 @@ def test_an_export_folder_is_readable_by_the_group(tmp_path):
              for p in [folder, *folder.rglob("*")]}
     assert modes == {".": 0o755, "smolvlm": 0o755, "config.json": 0o644,
                      "smolvlm/config.json": 0o644}
+
+
+def test_the_cards_interval_draws_held_out_episodes():
+    """Known answer: 4 held-out episodes whose windows sit at 0.5, 0.7, 1.3, 1.5 (8 windows
+    each, a little spread within): the card's interval draws the episodes, so it is as wide as
+    four values make it; drawn as 32 independent windows it would be about half as wide."""
+    from bench.export.card import interval_words, mse_interval
+
+    levels = [0.5, 0.7, 1.3, 1.5]
+    episode = [i // 8 for i in range(32)]
+    values = [levels[e] + 0.01 * (i % 8 - 3.5) for i, e in enumerate(episode)]
+    record = make_record(per_window=values, n_tasks=1, window_episode=episode)
+    mean, lo, hi = mse_interval(record, "normalized")
+    windows = make_record(per_window=values, n_tasks=1)  # no episode ids: its windows
+    _, w_lo, w_hi = mse_interval(windows, "normalized")
+    assert mean == pytest.approx(1.0) and lo < mean < hi
+    assert hi - lo > 1.6 * (w_hi - w_lo), (lo, hi, w_lo, w_hi)
+    assert interval_words(record).startswith("95% bootstrap over its 4 held-out episodes, then "
+                                             "their 32 windows")
+    assert "carries no episode ids" in interval_words(windows)

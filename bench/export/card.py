@@ -16,12 +16,25 @@ LIBERO_ENV_CAMERAS = {"observation.images.image": "observation.images.image",
 
 
 def mse_interval(record: Record, space: str) -> tuple[float, float, float]:
-    """(mean, lo, hi): the cell's MSE with its 95% window-bootstrap interval (the report's)."""
-    from bench.analysis.rankings import paired_window_bootstrap
+    """(mean, lo, hi): the cell's MSE with its 95% interval, the report's bootstrap on one cell
+    (its held-out episodes drawn, then their windows)."""
+    from bench.analysis.rankings import paired_bootstrap, record_units
 
-    per_window = np.asarray(record.scores.per_window_in(space), dtype=float)[None, None, :]
-    boot = paired_window_bootstrap(per_window, 0)
+    per_window = np.asarray(record.scores.per_window_in(space), dtype=float)
+    boot = paired_bootstrap(per_window[None, None, None, :], record_units(record), 0)
     return float(boot.mean[0]), float(boot.mean_lo[0]), float(boot.mean_hi[0])
+
+
+def interval_words(record: Record) -> str:
+    """What the card's interval drew (a record without episode ids: its windows)."""
+    from bench.analysis.rankings import record_units
+
+    units = record_units(record)
+    if units.source == "none":
+        return (f"95% bootstrap over its {record.scores.n_windows} held-out windows (the record "
+                "carries no episode ids)")
+    return (f"95% bootstrap over its {len(units.episodes)} held-out episodes, then their "
+            f"{record.scores.n_windows} windows; one cell: other releases and seeds not drawn")
 
 
 def rename_flags(rename_map: dict[str, str]) -> tuple[str, str]:
@@ -52,8 +65,7 @@ def _lines(record: Record, results_dir: Path, note: str | None, flags: tuple[str
         "## Its graftbench record", "",
         f"- cell: `{record.cell_id}` (seed {record.seed}), from `{results_dir}`",
         f"- offline action MSE, normalised: {mse[NORMALIZED][0]:.6g} "
-        f"[{mse[NORMALIZED][1]:.6g}, {mse[NORMALIZED][2]:.6g}] (95% window bootstrap, "
-        f"{record.scores.n_windows} held-out windows)",
+        f"[{mse[NORMALIZED][1]:.6g}, {mse[NORMALIZED][2]:.6g}] ({interval_words(record)})",
         f"- raw units: {mse[RAW][0]:.6g} [{mse[RAW][1]:.6g}, {mse[RAW][2]:.6g}]",
         "- offline action MSE is a pre-commitment diagnostic on held-out demonstrations, not "
         "a closed-loop success rate",

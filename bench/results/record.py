@@ -101,8 +101,10 @@ class Record(_IdentityFields):
 
 # What a baseline file (bench.regression.baseline) keeps of a record: what it is, what it was
 # measured under and the scores a later run is compared on.
+# The windows' episodes and tasks: the paired interval draws episodes (files without them: windows).
 _SNAPSHOT_KEYS = ("cell_id", "kind", "backbone", "suite", "encoder", "seed", "variant",
-                  "protocol_hash", "checkpoint", "versions", "mse", "per_window", "window_ids")
+                  "protocol_hash", "checkpoint", "versions", "mse", "per_window", "window_ids",
+                  "window_episode", "window_task")
 
 
 def snapshot_json(record: Record) -> dict:
