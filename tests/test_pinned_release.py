@@ -94,6 +94,21 @@ def test_the_printed_releases_line_pasted_into_a_grid_file_beside_the_pins_loads
     assert backbone == "pi05_s" and Path(path).parent == (tmp_path / "study" / "releases").resolve()
 
 
+def test_a_bad_into_or_release_stops_in_one_line_with_exit_4(tmp_path, capsys):
+    from bench.grid.pinned_release import main
+
+    release = _fake_release(tmp_path / "cache" / "released" / "pi05-key")
+    (tmp_path / "a_file").write_text("")
+    for argv, says in (([str(release), "--into", str(tmp_path / "a_file")], "cannot pin there"),
+                       ([str(tmp_path / "nothing"), "--into", str(tmp_path / "pins")],
+                        "no graftbench_release.json")):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 4 and says in err and err.count("\n") == 1, err
+    assert not (tmp_path / "pins").exists() and (tmp_path / "a_file").read_text() == ""
+
+
 def test_pytest_bench_stops_on_a_tampered_pin_with_exit_4(bench_cli, tmp_path):
     pinned = pin(_fake_release(tmp_path / "release"), tmp_path / "pins")
     (pinned / "graftbench_release.json").write_text('{"backbone": "pi05", "x": 1}')

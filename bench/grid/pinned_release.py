@@ -103,7 +103,15 @@ def main(argv: list[str] | None = None) -> None:
         print(f"python -m bench.grid.pinned_release: {args.release}: no {RELEASE_FILE}; give a "
               "tiny release folder (GRAFTBENCH_CACHE/released/<backbone>-<key>)", file=sys.stderr)
         raise SystemExit(4)
-    pinned = pin(args.release, args.into)
+    into = Path(args.into)
+    try:
+        into.mkdir(parents=True, exist_ok=True)
+        pinned = pin(args.release, into)
+    except OSError as e:  # --into a file, or where this user cannot write
+        print(f"python -m bench.grid.pinned_release: --into {args.into}: cannot pin there "
+              f"({e.strerror or e}); give a folder you can write, e.g. studies/STUDY/releases",
+              file=sys.stderr)
+        raise SystemExit(4) from None
     # Paths in a grid file are read from its folder; a study keeps its releases beside it.
     print(f"pinned: {pinned}\nthe grid file's [releases] line, for a grid file in "
           f"{pinned.parent.parent}/ (paths are read from the grid file's folder): "
