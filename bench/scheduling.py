@@ -128,13 +128,15 @@ def cell_units(profile, screening: bool, pack_grafts: int = 1) -> dict[str, str]
     cell is a unit of its own, but for the controls that take their graft's trained projector,
     which go with that graft (bench.cell.plan.shared_projector_key). xdist hands the units out
     as workers free up, so the cores stay busy to the end (one backbone per worker left the
-    SmolVLA worker idle while the pi0.5 one, ~1.5x slower a cell, finished). None (group by
-    backbone): the hub world (a worker holds one real backbone), a screen (a backbone's
-    selection reads all its screens), the robustness tier (a case reads its stored cell) or
-    packed grafts (a pack's mates are a backbone's)."""
+    SmolVLA worker idle while the pi0.5 one, ~1.5x slower a cell, finished; a screened study's
+    cells dealt round-robin in two fixed halves left one core idle for its last 25 minutes).
+    Screens and short grafts too: a selection reads every screen of its backbone, and one that
+    another worker is measuring is waited for under its lock, then resumed. None (group by
+    backbone): the hub world (a worker holds one real backbone), the robustness tier (a case
+    reads its stored cell) or packed grafts (a pack's mates are a backbone's)."""
     from bench.cell.plan import shared_projector_key
 
-    if profile.source != "tiny" or screening or profile.robustness or pack_grafts > 1:
+    if profile.source != "tiny" or profile.robustness or pack_grafts > 1:
         return None
     units = {}
     for cell in grid_cells(profile, screening):

@@ -90,11 +90,15 @@ def test_tiny_cells_go_out_one_unit_at_a_time_a_control_with_its_graft():
             assert units[f"{backbone}-spatial-pixels-shuffled_image-seed{seed}"] == graft
             assert units[f"{backbone}-spatial-native_wrapped-seed{seed}"] != graft
     assert scheduling.cell_units(TINY_FULL, screening=False) is not None
+    # A screened tiny grid too: its short grafts are units of their own (the screens, not grid
+    # cells, are their own unit by their id: bench.scheduling.backbone_scheduler).
+    screened = scheduling.cell_units(TINY, screening=True)
+    assert len(screened) > len(scheduling.cell_units(TINY, screening=False))
+    assert screened["smolvla-spatial-pixels-short_1_8-seed0"] == "smolvla-spatial-pixels-short_1_8-seed0"
 
 
-def test_the_hub_world_screens_robustness_and_packs_keep_a_backbone_per_worker():
+def test_the_hub_world_robustness_and_packs_keep_a_backbone_per_worker():
     assert scheduling.cell_units(PAPER, screening=False) is None
-    assert scheduling.cell_units(TINY, screening=True) is None
     assert scheduling.cell_units(TINY, screening=False, pack_grafts=2) is None
     robust = dataclasses.replace(TINY, robustness=("brightness:1",))
     assert scheduling.cell_units(robust, screening=False) is None
