@@ -83,6 +83,11 @@ def test_planted_equal_items_stay_open_with_mcnemars_size_by_hand():
 
 def test_no_size_resolves_an_observed_tie():
     assert mcnemar_episodes(0.1, 0.1) == math.inf
+    # equal shares that are means over three cells, unequal in their last bits: no size either
+    a = np.array([2, 0, 1, 3, 0, 3, 2, 1, 3, 3, 1, 2]) / 3  # successes of 3 cells, 12 episodes
+    b = np.array([3, 2, 1, 3, 3, 0, 2, 3, 0, 1, 2, 1]) / 3
+    upper, lower = float(np.mean(a * (1 - b))), float(np.mean((1 - a) * b))
+    assert upper != lower and mcnemar_episodes(upper, lower) == math.inf
     assert mcnemar_episodes(0.15, 0.10) == pytest.approx(782.52, abs=0.01)
 
 

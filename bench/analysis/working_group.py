@@ -56,8 +56,10 @@ OPEN_PAIR_RULE = (
     f"{1 - CONFIDENCE:.2f}, power {POWER:.0%}): n = (z_a sqrt(p_d) + z_b sqrt(p_d - d^2))^2 / "
     "d^2, with p_d the share of paired episodes where exactly one of the two succeeded and d "
     "the upper item's share minus the lower's (each item's outcome on an episode the mean over "
-    "its cells); 'more' is n minus the paired episodes run. d = 0: no size resolves it. A pair "
-    "open at or past n is held open by the seeds or releases, not by the episodes.")
+    "its cells); 'more' is n minus the paired episodes run. A paired episode is a task and init "
+    "state that every cell of both items ran (with 3 releases, 3 rollouts of each item). d = 0: "
+    "no size resolves it. A pair open at or past n is held open by the seeds or releases, not by "
+    "the episodes.")
 
 
 def mcnemar_episodes(upper_only: float, lower_only: float, *, confidence: float = CONFIDENCE,
@@ -65,7 +67,8 @@ def mcnemar_episodes(upper_only: float, lower_only: float, *, confidence: float 
     """Paired episodes McNemar's test needs to resolve a pair whose shares of episodes where
     only the upper / only the lower item succeeded are these (Connor 1987); inf when equal."""
     discordant, d = upper_only + lower_only, upper_only - lower_only
-    if d == 0:
+    # Shares averaged over cells (1/3, 2/3 of an episode) differ in their last bits when equal.
+    if abs(d) < 1e-9:
         return math.inf
     z_a, z_b = norm.ppf(1 - (1 - confidence) / 2), norm.ppf(power)
     return (z_a * math.sqrt(discordant) + z_b * math.sqrt(discordant - d * d)) ** 2 / d ** 2
