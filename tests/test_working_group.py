@@ -150,3 +150,11 @@ def test_the_section_names_the_sequential_design_the_folder_was_run_under(tmp_pa
         "Run as a sequential study (sequential.json: racing v1, alpha 0.05, budget 1500 "
         "episodes, 36 episodes per item a round): 4 round(s), stopped: resolved; 700 episodes "
         "rolled out in all.")
+    pairs = [{"upper": "a", "lower": "b", "declared": 1}, {"upper": "b", "lower": "c", "declared": 0}]
+    (tmp_path / DESIGN_FILE).write_text(json.dumps({
+        "design": {"rule": "racing v1", "alpha": 0.05, "budget": 1500, "units_per_round": 36},
+        "last": {"rounds": 1, "stop": None, "spent_episodes": 108, "order": ["a", "b", "c"],
+                 "pairs": pairs}}))
+    assert design_line(ctx).endswith("1 round(s), stopped: not yet; 108 episodes rolled out in "
+                                     "all. Its order ('>' declared, '~' open; ties in success "
+                                     "keep the --items order): a > b ~ c.")

@@ -8,7 +8,7 @@ import math
 
 from bench.analysis.agreement import Interval, Undefined
 from bench.analysis.rankings import CONFIDENCE
-from bench.analysis.sequential_study import DESIGN_FILE
+from bench.analysis.sequential_study import DESIGN_FILE, order_line
 from bench.analysis.working_group import OPEN_PAIR_RULE, WORKING_RULE, WorkingGroup
 from bench.report.context import ReportContext
 from bench.report.format import interval, num, table
@@ -93,11 +93,15 @@ def design_line(ctx: ReportContext) -> str | None:
         return None
     design, last = study.get("design", {}), study.get("last", {})
     spent = last.get("spent_episodes")
+    # The design's own order: its declarations are anytime-valid, the tables' intervals are not.
+    order = (f" Its order ('>' declared, '~' open; ties in success keep the --items order): "
+             f"{order_line(last)}." if last.get("order") and "pairs" in last else "")
     return (f"Run as a sequential study ({DESIGN_FILE}: {design.get('rule', '?')}, alpha "
             f"{design.get('alpha', '?')}, budget {design.get('budget', '?')} episodes, "
             f"{design.get('units_per_round', '?')} episodes per item a round): "
             f"{last.get('rounds', '?')} round(s), stopped: {last.get('stop') or 'not yet'}"
-            + (f"; {spent} episodes rolled out in all" if spent is not None else "") + ".")
+            + (f"; {spent} episodes rolled out in all" if spent is not None else "") + "."
+            + order)
 
 
 def working_group_section(ctx: ReportContext) -> str | None:
