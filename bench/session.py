@@ -115,10 +115,7 @@ class GraftSession:
         self.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
         self.check_report(len(self.store.stored_ids() | set(selection.cells)))
         self.preflight(list(cells))
-        if selection.cells:
-            # With --screen, again at the end without the cells the screen dropped; written here
-            # too so that a run stopped before its end leaves the list the report reads missing
-            # cells from (a cell the screen would drop counts as missing until it is dropped).
+        if selection.cells:  # now, so a stopped run leaves the list (--screen: again at the end)
             self._write_grid(self.selection.cells)
 
     def check_report(self, cells_after: int | None = None) -> None:

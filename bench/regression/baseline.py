@@ -9,7 +9,7 @@ Noise rules (also in docs/CI.md):
 - paired interval: the per-window differences of two cells scored on the same windows (aligned by
   window id), their mean, and a 95% percentile bootstrap interval of that mean (the report's: the
   held-out episodes the windows come from drawn, then their windows; windows alone for cells
-  without episode ids; `N_RESAMPLES` replicates, fixed seed 0: the verdict is deterministic).
+  without episode ids; 2,000 replicates, fixed seed 0: the verdict is deterministic; paired.py).
 - `mse:10%:paired` fails only when the threshold is exceeded AND the paired interval of
   (now - baseline) lies wholly above 0.
 - `rank`: within one backbone x suite x seed (graft cells), encoders a and b are tied when the paired
@@ -27,18 +27,15 @@ from itertools import combinations
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
-
 from bench.grid.kinds import GRAFT
 from bench.results.current import RunConditions, differences
+from bench.regression.paired import CONFIDENCE, aligned, paired_interval, separated
 from bench.results.record import (
     NORMALIZED, RAW, SCHEMA_KEY, Record, from_snapshot, snapshot_json,
 )
 
 # The baseline FILE's format (a snapshot of records), not the record's (bench.results.record).
 BASELINE_SCHEMA = 1
-CONFIDENCE = 0.95
-N_RESAMPLES = 2000
 METRIC_SPACES = dict(mse=NORMALIZED, raw_mse=RAW)  # the spec's metric names -> action space
 VALID_FORMS = "mse:10%, raw_mse:10%, mse:0.002 (absolute), mse:10%:paired, rank"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
@@ -48,55 +45,6 @@ _SPEC = re.compile(r"^(?P<metric>mse|raw_mse):(?:(?P<pct>\d+(?:\.\d+)?)%|"
 
 class BaselineError(ValueError):
     """A bad baseline name, file or `--compare-fail` spec (one line, names the culprit)."""
-
-
-# ---------------------------------------------------------------------------------------------
-# Statistics
-
-
-def paired_interval(now: Sequence[float], base: Sequence[float], units=None, *,
-                    confidence: float = CONFIDENCE, n_resamples: int = N_RESAMPLES,
-                    seed: int = 0) -> tuple[float, float, float]:
-    """(mean, lo, hi) of the per-window differences now - base, (W,) each, paired by position:
-    the report's paired bootstrap (bench.analysis.rankings) on the two cells, drawing the
-    held-out episodes of `units` (bench.analysis.hierarchy.Units; None: each window its own),
-    then their windows; lo = hi = NaN with fewer than 2 windows."""
-    from bench.analysis.hierarchy import windows_as_units
-    from bench.analysis.rankings import paired_bootstrap
-
-    rows = np.stack([np.asarray(base, dtype=float), np.asarray(now, dtype=float)])
-    if rows.shape[-1] == 0:
-        return math.nan, math.nan, math.nan
-    units = units if units is not None else windows_as_units(rows.shape[-1])
-    boot = paired_bootstrap(rows[:, None, None, :], units, 0, n_resamples=n_resamples,
-                            confidence_level=confidence, random_seed=seed)
-    return float(boot.diff[1]), float(boot.diff_lo[1]), float(boot.diff_hi[1])
-
-
-def aligned(a: Record, b: Record, space: str) -> tuple[np.ndarray, np.ndarray, object]:
-    """Per-window MSE of cells a and b in `space`, restricted to their common window ids, and
-    the held-out episodes of those windows (a's ids, else b's; windows alone when neither
-    record carries them)."""
-    from bench.analysis.hierarchy import Units
-    from bench.analysis.rankings import record_units
-
-    index_b = {w: i for i, w in enumerate(b.scores.window_ids)}
-    pairs = [(i, index_b[w]) for i, w in enumerate(a.scores.window_ids) if w in index_b]
-    pa = np.asarray(a.scores.per_window_in(space), dtype=float)
-    pb = np.asarray(b.scores.per_window_in(space), dtype=float)
-    ia = [i for i, _ in pairs]
-    ib = [j for _, j in pairs]
-    units, at = record_units(a), ia
-    if units.source == "none":
-        units, at = record_units(b), ib
-    if units.source == "none":
-        return pa[ia], pb[ib], None
-    return pa[ia], pb[ib], Units(units.episode[at], units.task[at], units.source, units.by_task)
-
-
-def separated(lo: float, hi: float) -> bool:
-    """True when an interval excludes 0 (NaN intervals never separate anything)."""
-    return (lo > 0.0 or hi < 0.0) and not (math.isnan(lo) or math.isnan(hi))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -383,7 +331,7 @@ def markdown_section(comp: Comparison, path: Path | str) -> str:
         f"on {'; '.join(b.hardware or ['?'])}. Checks: {checks}.",
         "",
         "Change: mean over the shared held-out windows of (now - baseline) normalised MSE, with its "
-        f"paired {CONFIDENCE:.0%} bootstrap interval over windows.",
+        f"paired {CONFIDENCE:.0%} bootstrap interval (held-out episodes drawn, then windows).",
         "",
     ]
     if comp.mismatched:
