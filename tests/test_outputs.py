@@ -102,6 +102,18 @@ def test_bench_report_never_writes_over_what_it_does_not_own(tmp_path, capsys, t
     assert files(tmp_path) == before
 
 
+def test_bench_report_into_a_folder_it_cannot_make_stops_before_the_report(tmp_path, capsys):
+    """Before: the report was built, then its folder failed with a traceback (exit 1). /proc
+    takes no new folder, not even root's (CI's user)."""
+    user_files(tmp_path)
+    before = files(tmp_path)
+    target = Path("/proc/graftbench-no-such-folder/REPORT.md")
+    code, out, err = report([tmp_path / "results", "--no-plots", "--report", target], capsys)
+    assert code == 4 and out == "" and err.count("\n") == 1, err
+    assert f"--report {target}: {target.parent} is not writable" in err, err
+    assert files(tmp_path) == before
+
+
 def test_an_unreadable_record_stops_the_report_unless_asked(tmp_path, capsys):
     """Before: 1 record of 2 corrupt, exit 0, the complete report replaced by a 1-cell one."""
     results = tmp_path / "results"

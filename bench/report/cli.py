@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -87,6 +88,13 @@ def check_out(out: Path, results, replace: bool) -> None:
             if not parent.is_dir():
                 refuse(PROG, f"--report {out}: {parent} is a file; give a path in a folder")
             break
+    try:  # the folder the report goes to, made now: a refusal here beats a traceback at the end
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out.parent, prefix=".write-probe-"):
+            pass
+    except OSError as e:
+        refuse(PROG, f"--report {out}: {out.parent} is not writable ({e.strerror or e}); give a "
+                     "path in a folder you can write")
 
 
 def check_readable(folder: Path, results, skip: bool) -> None:
