@@ -132,6 +132,25 @@ def test_unpaired_init_states_are_refused():
     assert not out.agreement
 
 
+def test_items_run_on_more_episodes_are_paired_on_the_common_ones():
+    """A sequential study: b ran 10 episodes per task, a and c the first 4 of them (init states
+    0-3). The agreement reads the 4 common episodes of every cell, says how many it left out,
+    and gives what those cells alone give."""
+    more = cells({"b": (0.2, 0.5)})
+    fewer = cells({"a": (0.1, 0.9), "c": (0.3, 0.2)}, per_task=10)
+    for r in fewer:  # keep each task's first 4 episodes
+        r.run.rollouts["episodes"] = [e for e in r.run.rollouts["episodes"] if e["episode"] < 4]
+    out = rollout_agreement(fewer + more, "smolvla", "spatial", n_resamples=200)
+    assert out.missing is None and out.uncommon_episodes == 2 * 2 * 6  # b's 2 seeds x 2 tasks
+    assert out.n_episodes == [16, 16, 16]  # 2 seeds x 2 tasks x 4
+    assert out.success == pytest.approx([1.0, 1.0, 0.5])  # first 4 of each task: a 9, b 5, c 2
+    for r in more:
+        r.run.rollouts["episodes"] = [e for e in r.run.rollouts["episodes"] if e["episode"] < 4]
+    alone = rollout_agreement(fewer + more, "smolvla", "spatial", n_resamples=200)
+    assert alone.uncommon_episodes == 0 and alone.agreement == out.agreement
+    assert alone.intervals == out.intervals
+
+
 def test_wilson_interval_and_labels():
     lo, hi = wilson_interval(0, 10)
     assert lo == 0.0 and 0.2 < hi < 0.35  # 0/10 is not "certainly 0%"

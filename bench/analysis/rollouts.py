@@ -54,6 +54,13 @@ def episode_keys(rollouts: dict) -> list[tuple[int, int, int]]:
             for e in rollouts["episodes"]]
 
 
+def common_success(rollouts: dict, keys: list[tuple[int, int, int]]) -> list[float]:
+    """A cell's success on the episodes `keys`, in that order."""
+    success = {k: float(e["success"]) for k, e in zip(episode_keys(rollouts),
+                                                        rollouts["episodes"])}
+    return [success[k] for k in keys]
+
+
 def _jsonable(value):
     if isinstance(value, Undefined):
         return {"undefined": value.reason}
@@ -86,6 +93,9 @@ class ClosedLoop:
     candidates: list[str] = field(default_factory=list)
     candidate_agreement: dict[str, Measure] = field(default_factory=dict)
     candidate_intervals: dict[str, Interval | Undefined] = field(default_factory=dict)
+    # Episodes left out because not every rolled-out cell ran them (a sequential study runs
+    # its later rounds on the items still open): the agreement is paired on the common ones.
+    uncommon_episodes: int = 0
 
     @property
     def measured(self) -> bool:
@@ -153,10 +163,14 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     if not rolled:
         out.missing = "no cell with rollouts (run with --rollouts N on a simulated suite)"
         return out
-    keys = episode_keys(rolled[0].run.rollouts)
+    # Paired on the episodes (task, init state) every cell ran, in the first cell's order.
+    common = set.intersection(*(set(episode_keys(r.run.rollouts)) for r in rolled))
+    keys = [k for k in episode_keys(rolled[0].run.rollouts) if k in common]
+    out.uncommon_episodes = sum(len(r.run.rollouts["episodes"]) for r in rolled) - len(
+        keys) * len(rolled)
     windows = rolled[0].scores.window_ids
     for r in rolled:
-        if episode_keys(r.run.rollouts) != keys or r.scores.window_ids != windows:
+        if not keys or r.scores.window_ids != windows:
             out.missing = (f"{r.cell_id} was rolled out from other init states or scored on other "
                            "windows than the rest: not paired, no agreement computed")
             return out
@@ -167,16 +181,16 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     # (I, S, E) per-episode success per seed; the items' (I, W) MSE and (I, E) success are
     # means over their seeds (bench.analysis.offline_measures: full chunk, with its seed stacks).
     rolled_items = Rolled(out.items, groups, seed_stack(
-        [[[float(e["success"]) for e in g.run.rollouts["episodes"]] for g in groups[i]]
-         for i in out.items]), np.array([k[0] for k in keys]))
+        [[common_success(g.run.rollouts, keys) for g in groups[i]] for i in out.items]),
+        np.array([k[0] for k in keys]))
     full = full_chunk(rolled_items)
     per_window, per_episode = full.errors, full.success
     out.seeds = {i: sorted(g.seed for g in groups[i]) for i in out.items}
     out.mse = per_window.mean(axis=1).tolist()
     out.success = per_episode.mean(axis=1).tolist()
     for i in out.items:
-        n = sum(len(g.run.rollouts["episodes"]) for g in groups[i])
-        k = sum(bool(e["success"]) for g in groups[i] for e in g.run.rollouts["episodes"])
+        n = len(keys) * len(groups[i])
+        k = int(sum(sum(common_success(g.run.rollouts, keys)) for g in groups[i]))
         out.n_episodes.append(n)
         out.success_ci.append(wilson_interval(k, n))
     if len(out.items) < 2:

@@ -215,6 +215,12 @@ def closed_loop_section(ctx: ReportContext) -> str:
         if rows:
             head += "\n\n" + table(rows, ["item", "seeds", "norm. MSE", "success",
                                           f"success {CONFIDENCE:.0%} CI", "episodes"])
+        if cl.uncommon_episodes:
+            head += (f"\n\nPaired on the episodes (task, init state) every rolled-out cell ran: "
+                     f"{cl.uncommon_episodes} episode(s) that only some cells ran are left out "
+                     "here (a sequential study's later rounds run the items still open; the "
+                     "working group's verdict below compares each pair on all the episodes both "
+                     "ran).")
         if not cl.measured:
             head += f"\n\n_No agreement: {cl.missing}._"
         else:
