@@ -49,6 +49,10 @@ class Units:
     def episodes(self) -> np.ndarray:
         return np.unique(self.episode)
 
+    def take(self, positions) -> "Units":
+        """The units of the windows at `positions` (a subset of these windows, in that order)."""
+        return Units(self.episode[positions], self.task[positions], self.source, self.by_task)
+
     @property
     def stratified(self) -> bool:
         """Episodes drawn within tasks: when every task holds at least two, or `by_task`."""

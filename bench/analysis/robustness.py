@@ -138,8 +138,7 @@ def _window_units(record: Record, windows: list[int]) -> Units:
     """The episodes (and tasks) of the robustness windows, a subset of the cell's."""
     units = record_units(record)
     position = {w: i for i, w in enumerate(record.scores.window_ids)}
-    picked = [position[w] for w in windows]
-    return Units(units.episode[picked], units.task[picked], units.source, units.by_task)
+    return units.take([position[w] for w in windows])
 
 
 def _degradation(perturbed: np.ndarray, clean: np.ndarray) -> np.ndarray:

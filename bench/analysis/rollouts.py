@@ -180,9 +180,10 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     out.items = sorted(groups)
     # (I, S, E) per-episode success per seed; the items' (I, W) MSE and (I, E) success are
     # means over their seeds (bench.analysis.offline_measures: full chunk, with its seed stacks).
-    rolled_items = Rolled(out.items, groups, seed_stack(
-        [[common_success(g.run.rollouts, keys) for g in groups[i]] for i in out.items]),
-        np.array([k[0] for k in keys]))
+    # each item's cells' success on the common episodes, read once
+    success = {i: [common_success(g.run.rollouts, keys) for g in groups[i]] for i in out.items}
+    rolled_items = Rolled(out.items, groups, seed_stack([success[i] for i in out.items]),
+                          np.array([k[0] for k in keys]))
     full = full_chunk(rolled_items)
     per_window, per_episode = full.errors, full.success
     out.seeds = {i: sorted(g.seed for g in groups[i]) for i in out.items}
@@ -190,7 +191,7 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     out.success = per_episode.mean(axis=1).tolist()
     for i in out.items:
         n = len(keys) * len(groups[i])
-        k = int(sum(sum(common_success(g.run.rollouts, keys)) for g in groups[i]))
+        k = int(sum(map(sum, success[i])))
         out.n_episodes.append(n)
         out.success_ci.append(wilson_interval(k, n))
     if len(out.items) < 2:

@@ -38,7 +38,6 @@ def aligned(a: Record, b: Record, space: str) -> tuple[np.ndarray, np.ndarray, o
     """Per-window MSE of cells a and b in `space`, restricted to their common window ids, and
     the held-out episodes of those windows (a's ids, else b's; windows alone when neither
     record carries them)."""
-    from bench.analysis.hierarchy import Units
     from bench.analysis.rankings import record_units
 
     index_b = {w: i for i, w in enumerate(b.scores.window_ids)}
@@ -52,7 +51,7 @@ def aligned(a: Record, b: Record, space: str) -> tuple[np.ndarray, np.ndarray, o
         units, at = record_units(b), ib
     if units.source == "none":
         return pa[ia], pb[ib], None
-    return pa[ia], pb[ib], Units(units.episode[at], units.task[at], units.source, units.by_task)
+    return pa[ia], pb[ib], units.take(at)
 
 
 def separated(lo: float, hi: float) -> bool:
