@@ -151,6 +151,27 @@ def test_items_run_on_more_episodes_are_paired_on_the_common_ones():
     assert alone.intervals == out.intervals
 
 
+def test_candidates_are_paired_on_the_episodes_every_candidate_ran():
+    """A sequential study rolled the failing item z out for 4 episodes per task, the candidates
+    for 10. Over the first 4, a and b tie in success (4 of 4 each); over all 10 the success
+    order is the MSE order (a 9, b 6, c 2): the candidates' agreement reads their own 10 and
+    equals what a, b and c alone give, while the all-items agreement stays on the common 4."""
+    good = cells({"a": (0.10, 0.9), "b": (0.20, 0.6), "c": (0.30, 0.2)})
+    failing = cells({"z": (0.50, 0.0)})
+    for r in failing:
+        r.run.rollouts["episodes"] = [e for e in r.run.rollouts["episodes"] if e["episode"] < 4]
+    out = rollout_agreement(good + failing, "smolvla", "spatial", n_resamples=200,
+                            candidates=frozenset("abc"))
+    alone = rollout_agreement(good, "smolvla", "spatial", n_resamples=200)
+    assert (out.common_episodes, out.candidate_episodes) == (8, 20)
+    assert out.candidates == ["a", "b", "c"]
+    assert out.candidate_agreement == alone.agreement
+    assert out.candidate_agreement["tau_b"] == pytest.approx(1.0)
+    assert out.candidate_intervals == alone.intervals
+    assert [m.on_candidates.value for m in out.measures] == [m.value for m in alone.measures]
+    assert out.success == pytest.approx([1.0, 1.0, 0.5, 0.0])  # a, b, c, z on the common 4
+
+
 def test_wilson_interval_and_labels():
     lo, hi = wilson_interval(0, 10)
     assert lo == 0.0 and 0.2 < hi < 0.35  # 0/10 is not "certainly 0%"

@@ -96,6 +96,10 @@ class ClosedLoop:
     # Episodes left out because not every rolled-out cell ran them (a sequential study runs
     # its later rounds on the items still open): the agreement is paired on the common ones.
     uncommon_episodes: int = 0
+    # Paired episodes of the agreement over every item, and of the candidates' (their own
+    # common episodes: a sequential study rolls the failing items out for fewer rounds).
+    common_episodes: int = 0
+    candidate_episodes: int = 0
 
     @property
     def measured(self) -> bool:
@@ -152,20 +156,36 @@ def _on_candidates(out: ClosedLoop, per_window: np.ndarray, per_episode: np.ndar
         per_window[rows], per_episode[rows], kept, out.n_resamples, random_seed, units)
 
 
+def _paired(rolled: list, keys: list) -> Rolled:
+    """The records' items (grouped over releases and seeds by label), paired on the episodes
+    `keys`: each cell's success read once."""
+    groups: dict[str, list] = {}
+    for r in rolled:
+        groups.setdefault(record_label(r), []).append(r)
+    items = sorted(groups)
+    success = [[common_success(g.run.rollouts, keys) for g in groups[i]] for i in items]
+    return Rolled(items, groups, seed_stack(success), np.array([k[0] for k in keys]))
+
+
+def common_keys(rolled: list) -> list[tuple[int, int, int]]:
+    """The episodes (task, episode, init state) every record ran, in the first one's order."""
+    common = set.intersection(*(set(episode_keys(r.run.rollouts)) for r in rolled))
+    return [k for k in episode_keys(rolled[0].run.rollouts) if k in common]
+
+
 def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
                       n_resamples: int = DEFAULT_RESAMPLES, random_seed: int = 0,
                       candidates: frozenset[str] | None = None) -> ClosedLoop:
     """Agreement of offline MSE and success over the rolled-out cells of backbone x suite, and
-    over the `candidates` (item labels) among them when given."""
+    over the `candidates` (item labels) among them when given: on the episodes every candidate
+    ran (more than every item ran when a sequential study rolled the failing ones out less)."""
     out = ClosedLoop(backbone, suite, n_resamples=n_resamples)
     rolled = [r for r in records if r.backbone == backbone and r.suite == suite
               and rolled_out(r)]
     if not rolled:
         out.missing = "no cell with rollouts (run with --rollouts N on a simulated suite)"
         return out
-    # Paired on the episodes (task, init state) every cell ran, in the first cell's order.
-    common = set.intersection(*(set(episode_keys(r.run.rollouts)) for r in rolled))
-    keys = [k for k in episode_keys(rolled[0].run.rollouts) if k in common]
+    keys = common_keys(rolled)
     out.uncommon_episodes = sum(len(r.run.rollouts["episodes"]) for r in rolled) - len(
         keys) * len(rolled)
     windows = rolled[0].scores.window_ids
@@ -174,37 +194,54 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
             out.missing = (f"{r.cell_id} was rolled out from other init states or scored on other "
                            "windows than the rest: not paired, no agreement computed")
             return out
-    groups: dict[str, list] = {}
-    for r in rolled:
-        groups.setdefault(record_label(r), []).append(r)
-    out.items = sorted(groups)
-    # (I, S, E) per-episode success per seed; the items' (I, W) MSE and (I, E) success are
-    # means over their seeds (bench.analysis.offline_measures: full chunk, with its seed stacks).
-    # each item's cells' success on the common episodes, read once
-    success = {i: [common_success(g.run.rollouts, keys) for g in groups[i]] for i in out.items}
-    rolled_items = Rolled(out.items, groups, seed_stack([success[i] for i in out.items]),
-                          np.array([k[0] for k in keys]))
+    rolled_items = _paired(rolled, keys)
+    out.items, groups = rolled_items.items, rolled_items.groups
+    # The items' (I, W) MSE and (I, E) success are means over their seeds (full chunk, with its
+    # seed stacks: bench.analysis.offline_measures).
     full = full_chunk(rolled_items)
     per_window, per_episode = full.errors, full.success
     out.seeds = {i: sorted(g.seed for g in groups[i]) for i in out.items}
     out.mse = per_window.mean(axis=1).tolist()
     out.success = per_episode.mean(axis=1).tolist()
-    for i in out.items:
+    out.common_episodes = len(keys)
+    for i, by_seed in zip(out.items, rolled_items.success_by_seed):
         n = len(keys) * len(groups[i])
-        k = int(sum(map(sum, success[i])))
         out.n_episodes.append(n)
-        out.success_ci.append(wilson_interval(k, n))
+        out.success_ci.append(wilson_interval(int(np.nansum(by_seed)), n))
     if len(out.items) < 2:
         out.missing = f"only one rolled-out item ({out.items[0]}): nothing to rank"
         return out
     units = rolled_items.units  # as the rankings draw; seeds per item: full.seeds
     out.agreement, out.intervals = agreement_with_success(per_window, per_episode, full.seeds,
                                                           n_resamples, random_seed, units)
-    if candidates is not None:
-        _on_candidates(out, per_window, per_episode, full.seeds, candidates, random_seed, units)
     out.measures = measure_agreements(rolled_items, candidates, n_resamples=n_resamples,
                                       seed=random_seed)
+    if candidates is not None:
+        own = [r for r in rolled if record_label(r) in candidates]
+        own_keys = common_keys(own) if own else keys
+        out.candidate_episodes = len(own_keys)
+        if own_keys == keys:  # the same pairing: the candidates' rows of the same draws
+            _on_candidates(out, per_window, per_episode, full.seeds, candidates, random_seed,
+                           units)
+        else:
+            _on_own_episodes(out, _paired(own, own_keys), random_seed)
     return out
+
+
+def _on_own_episodes(out: ClosedLoop, cand: Rolled, random_seed: int) -> None:
+    """The candidates' agreement (and each measure's) on the episodes every candidate ran."""
+    out.candidates = list(cand.items)
+    if len(cand.items) < 2:
+        out.candidate_agreement = {"tau_b": Undefined(
+            f"{len(cand.items)} candidate item(s) rolled out: fewer than 2, nothing to rank")}
+        return
+    full = full_chunk(cand)
+    out.candidate_agreement, out.candidate_intervals = agreement_with_success(
+        full.errors, full.success, full.seeds, out.n_resamples, random_seed, cand.units)
+    own = measure_agreements(cand, n_resamples=out.n_resamples, seed=random_seed)
+    by_name = {m.name: m for m in own}
+    for m in out.measures:
+        m.on_candidates = by_name.get(m.name)
 
 
 def closed_loop_all(records: Sequence, **kwargs) -> list[ClosedLoop]:

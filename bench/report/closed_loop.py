@@ -190,7 +190,10 @@ def agreement_table(cl) -> str:
     ci = f"{CONFIDENCE:.0%} bootstrap CI"
     headers = ["statistic", f"all {len(cl.items)} items", ci, "replicates defined"]
     if with_candidates:
-        headers += [f"the {len(cl.candidates)} candidates", ci, "replicates defined"]
+        own = cl.candidate_episodes and cl.candidate_episodes != cl.common_episodes
+        headers += [f"the {len(cl.candidates)} candidates"
+                    + (f" ({cl.candidate_episodes} episodes)" if own else ""), ci,
+                    "replicates defined"]
     text = (f"Agreement (Kendall p over all items = {stat_text(cl.agreement['p_value'], 3)}; "
             "candidates: the native policy and grafts of encoders with trained weights, "
             "bench.analysis.candidates"
@@ -218,9 +221,13 @@ def closed_loop_section(ctx: ReportContext) -> str:
         if cl.uncommon_episodes:
             head += (f"\n\nPaired on the episodes (task, init state) every rolled-out cell ran: "
                      f"{cl.uncommon_episodes} episode(s) that only some cells ran are left out "
-                     "here (a sequential study's later rounds run the items still open; the "
-                     "working group's verdict below compares each pair on all the episodes both "
-                     "ran).")
+                     f"here ({cl.common_episodes} per cell; a sequential study's later rounds run "
+                     "the items still open)"
+                     + (f"; the candidates' agreement is on the {cl.candidate_episodes} episodes "
+                        "every candidate ran" if cl.candidate_episodes > cl.common_episodes
+                        else "")
+                     + ". The working group's verdict below compares each pair on all the "
+                     "episodes both ran.")
         if not cl.measured:
             head += f"\n\n_No agreement: {cl.missing}._"
         else:
