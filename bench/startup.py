@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from ondisk.paths import not_a_folder, unwritable
+
 
 def collects_grid(config: pytest.Config) -> bool:
     """Whether this run collects the grid (bench/test_grid.py, or a folder above it), so its
@@ -238,18 +240,9 @@ def check_rollout_workers(workers, rollouts: int, batch: int) -> int:
 
 def check_writable(option: str, folder: Path) -> None:
     """A UsageError naming the option when `folder` cannot be created or written."""
-    import tempfile
-
-    problem = _not_a_folder(folder)
+    problem = unwritable(folder)
     if problem:  # said as it is: "not writable (File exists)" hid a file in the path
         raise pytest.UsageError(f"{option}: {folder}: {problem}; pass a path in a writable folder")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        raise pytest.UsageError(f"{option}: {folder} is not writable ({e.strerror}); "
-                                "pass a writable folder") from None
 
 
 def check_environment(config: pytest.Config) -> None:
@@ -261,7 +254,7 @@ def check_environment(config: pytest.Config) -> None:
         raise pytest.UsageError("GRAFTBENCH_CACHE='': empty (an unset variable?); fix: point it "
                                 "at a folder, or unset it for .graftbench/cache")
     if cache is not None:
-        problem = _not_a_folder(Path(cache))
+        problem = not_a_folder(Path(cache))
         if problem:
             raise pytest.UsageError(f"GRAFTBENCH_CACHE={cache}: {problem}; fix: point it at a "
                                     "writable folder, or unset it for .graftbench/cache")
@@ -279,22 +272,9 @@ def check_environment(config: pytest.Config) -> None:
                                     "(this process) or submitit-local (this machine)")
     baseline_dir = config.getoption("--baseline-dir")
     if baseline_dir is not None:
-        problem = _not_a_folder(Path(baseline_dir))
+        problem = not_a_folder(Path(baseline_dir))
         if problem:
             raise pytest.UsageError(f"--baseline-dir {baseline_dir}: {problem}; fix: name a "
                                     "folder (baselines are NAME.json files in it)")
 
 
-def _not_a_folder(path: Path) -> str | None:
-    """Why `path` cannot be (or become) a writable folder, or None. Creates nothing: the first
-    ancestor that exists must be a writable folder."""
-    if path.exists():
-        if not path.is_dir():
-            return "a file, not a folder"
-        return None if os.access(path, os.W_OK | os.X_OK) else "not writable"
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                return f"{parent} is a file, so no folder can be made there"
-            return None if os.access(parent, os.W_OK | os.X_OK) else f"{parent} is not writable"
-    return None

@@ -226,7 +226,7 @@ def test_a_report_over_no_records_refuses_and_leaves_every_file(tmp_path, capsys
     (["--resamples", "0"], "argument --resamples: 0: give a whole number >= 2"),
     (["--resamples", "-5"], "argument --resamples: -5: give a whole number >= 2"),
     (["--report", "{dir}"], "--report {dir}: a folder; --report names the report's file"),
-    (["--report", "{dir}/x/REPORT.md"], "is a file; give a path in a folder"),
+    (["--report", "{dir}/x/REPORT.md"], "{dir}/x: a file, not a folder; give a path in a folder"),
 ], ids=["resamples-0", "resamples-negative", "report-a-folder", "report-under-a-file"])
 def test_a_bad_report_option_is_one_line(tmp_path, capsys, args, says):
     """Before: a 33-line scipy traceback; an IsADirectoryError traceback."""

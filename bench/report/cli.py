@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 from typing import Sequence
 
 from bench.option_values import CommandParser, refuse, whole_at_least
+from ondisk.paths import unwritable
 
 PROG = "python -m bench.report"
 LEAST_RESAMPLES = 2  # one replicate has no spread: every interval would be NaN
@@ -83,18 +83,10 @@ def check_out(out: Path, results, replace: bool) -> None:
                              len(results.failed), replace=replace)
     if problem:
         refuse(PROG, problem)
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                refuse(PROG, f"--report {out}: {parent} is a file; give a path in a folder")
-            break
-    try:  # the folder the report goes to, made now: a refusal here beats a traceback at the end
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out.parent, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        refuse(PROG, f"--report {out}: {out.parent} is not writable ({e.strerror or e}); give a "
-                     "path in a folder you can write")
+    problem = unwritable(out.parent)  # made now: a refusal here beats a traceback at the end
+    if problem:
+        refuse(PROG, f"--report {out}: {out.parent}: {problem}; give a path in a folder you can "
+                     "write")
 
 
 def check_readable(folder: Path, results, skip: bool) -> None:
