@@ -102,9 +102,11 @@ def get_entry(name: str) -> BackboneEntry:
     """The entry of backbone `name`; else ValueError in bench.table's one refusal shape (this
     registry sits below bench: it cannot import it)."""
     if name not in BACKBONES:
-        # A ladder size is a suggestion only where no family's own name is close.
-        close = (difflib.get_close_matches(name, [n for n, e in BACKBONES.items()
-                                                  if e.tiny_size is None], n=1)
+        # The name in other case first (smolvla_L); a ladder size is a suggestion only where
+        # no family's own name is close.
+        close = ([n for n in BACKBONES if n.lower() == name.lower()]
+                 or difflib.get_close_matches(name, [n for n, e in BACKBONES.items()
+                                                     if e.tiny_size is None], n=1)
                  or difflib.get_close_matches(name, BACKBONES, n=1))
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ValueError(

@@ -31,7 +31,8 @@ class Table(dict, Generic[T]):
 
     def refusal(self, name: str) -> str:
         """The one line that refuses an unknown `name`, with the nearest valid one."""
-        close = difflib.get_close_matches(str(name), list(self), n=1, cutoff=0.7)
+        close = ([n for n in self if n.lower() == str(name).lower()]  # only the case differs
+                 or difflib.get_close_matches(str(name), list(self), n=1, cutoff=0.7))
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         return f"unknown {self.what} {name!r}{hint}; valid {self.plural}: {', '.join(self)}"
 

@@ -80,7 +80,8 @@ def list_encoders() -> list[str]:
 
 def _unknown(name: str) -> UnknownEncoder:
     valid = list_encoders()
-    close = difflib.get_close_matches(name, valid, n=3, cutoff=0.5)
+    close = ([n for n in valid if n.lower() == name.lower()]  # only the case differs
+             or difflib.get_close_matches(name, valid, n=3, cutoff=0.5))
     # bench.table's one refusal shape (this registry sits below bench: it cannot import it).
     hint = f" (did you mean {' or '.join(repr(c) for c in close)}?)" if close else ""
     prefixes = "".join(f"'{p}:<model>', " for p in sorted(_PREFIXES))

@@ -347,6 +347,15 @@ def test_every_table_refuses_an_unknown_name_in_one_shape():
                                  ("spatial", "blur", "graft", "smolvla", "pixels")):
         assert line.startswith(f"unknown {what} "), line
         assert f"(did you mean {close!r}" in line and "; valid " in line, line
+    # a name in another case is offered the name itself, not a neighbour ('smolvla_L' was
+    # offered 'smolvla', the family's smallest size, not its largest)
+    offered = [SUITES.refusal("Spatial")]
+    for call, name in ((get_entry, "smolvla_L"), (get_spec, "DINOv2_S")):
+        with pytest.raises(ValueError) as err:
+            call(name)
+        offered.append(str(err.value))
+    for line, close in zip(offered, ("spatial", "smolvla_l", "dinov2_s")):
+        assert f"(did you mean {close!r}" in line, line
 
 
 def _fake_generation(made: list[str]):
