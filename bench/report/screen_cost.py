@@ -126,4 +126,6 @@ SMALL_MODEL_COST_HEADERS = ["suite", "small model", "large model", "small graft 
 SMALL_MODEL_COST_TEXT = (
     "**Cost of screening on the small model** (per encoder: one graft cell of the small model "
     "against one of the large; the small model's native training, once per release, is not "
-    "counted)")
+    "counted). Wall seconds as each cell ran: a record holds no load, so rungs measured in "
+    "different runs, or beside other jobs, compare loosely (a study's own side-by-side step "
+    "costs are the figure to read for that)")
