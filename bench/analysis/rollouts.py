@@ -214,13 +214,15 @@ def rollout_agreement(records: Sequence, backbone: str, suite: str, *,
     units = rolled_items.units  # as the rankings draw; seeds per item: full.seeds
     out.agreement, out.intervals = agreement_with_success(per_window, per_episode, full.seeds,
                                                           n_resamples, random_seed, units)
-    out.measures = measure_agreements(rolled_items, candidates, n_resamples=n_resamples,
-                                      seed=random_seed)
+    own = [r for r in rolled if candidates is not None and record_label(r) in candidates]
+    own_keys = common_keys(own) if own else keys
+    # The same pairing: the candidates' rows of the same draws; else their own episodes' below.
+    same = candidates is not None and own_keys == keys
+    out.measures = measure_agreements(rolled_items, candidates if same else None,
+                                      n_resamples=n_resamples, seed=random_seed)
     if candidates is not None:
-        own = [r for r in rolled if record_label(r) in candidates]
-        own_keys = common_keys(own) if own else keys
         out.candidate_episodes = len(own_keys)
-        if own_keys == keys:  # the same pairing: the candidates' rows of the same draws
+        if same:
             _on_candidates(out, per_window, per_episode, full.seeds, candidates, random_seed,
                            units)
         else:
