@@ -67,3 +67,23 @@ def missing_summary(artifacts: Sequence[Artifact]) -> str:
     names = ", ".join(f"{a.kind} {a.repo_id}" for a in missing)
     return (f"preflight: {len(missing)} artifact(s) missing ({names}); nothing was run. "
             "The list above gives the commands that fetch them.")
+
+
+def stop_on_missing(cells, config, store) -> None:
+    """Hub grids: list every artifact the selected `cells` read; stop (UsageError, no cell run,
+    the results `store` removed if unused) when one is missing. --collect-only shows the list and
+    stops anyway."""
+    import sys
+
+    import pytest
+
+    artifacts = cells_artifacts(cells)
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    screen = render(artifacts)
+    if reporter is not None:
+        reporter.write_line(screen)
+    else:
+        sys.stderr.write(screen + "\n")
+    if any(not a.present for a in artifacts) and not config.option.collectonly:
+        store.remove_if_unused()
+        raise pytest.UsageError(missing_summary(artifacts))

@@ -6,8 +6,10 @@ both cores (`default_workers`). bench.plugin's hooks call these.
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
+from typing import Mapping
 
 import pytest
 
@@ -104,15 +106,17 @@ def backbone_scheduler(config: pytest.Config, log, gs):
         # A screen loads its backbone (normaliser, native grid), and the backbone's selection
         # reads every screen: screens go with the backbone's first group, ahead of its cells.
         backbone_of |= {c.id: c.backbone for c in screen_cases(gs.profile)}
-    units = cell_units(gs.profile, gs.screen_options is not None, gs.options.pack_grafts)
+    # At the first split, when the workers' selection (which the packs are drawn from) is known.
+    units = functools.cache(
+        lambda: cell_units(gs.profile, gs.screen_options is not None, gs.pack_units()))
 
     class BackboneScheduling(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             cell_id = cell_id_of(nodeid)
             if cell_id not in backbone_of:
                 return nodeid
-            if units is not None:
-                return units.get(cell_id, cell_id)
+            if units() is not None:
+                return units().get(cell_id, cell_id)
             selected = gs.selection.cells
             mine = [c for c in selected if backbone_of.get(c) == backbone_of[cell_id]]
             backbones = {backbone_of[c] for c in selected if c in backbone_of}
@@ -123,26 +127,36 @@ def backbone_scheduler(config: pytest.Config, log, gs):
     return BackboneScheduling(config, log)
 
 
-def cell_units(profile, screening: bool, pack_grafts: int = 1) -> dict[str, str] | None:
+def cell_units(profile, screening: bool, packs: Mapping[str, str] | None = None
+               ) -> dict[str, str] | None:
     """{cell id: its unit} for a grid of the tiny world, whose releases load in a second: each
     cell is a unit of its own, but for the controls that take their graft's trained projector,
-    which go with that graft (bench.cell.plan.shared_projector_key). xdist hands the units out
-    as workers free up, so the cores stay busy to the end (one backbone per worker left the
-    SmolVLA worker idle while the pi0.5 one, ~1.5x slower a cell, finished; a screened study's
-    cells dealt round-robin in two fixed halves left one core idle for its last 25 minutes).
-    Screens and short grafts too: a selection reads every screen of its backbone, and one that
-    another worker is measuring is waited for under its lock, then resumed. None (group by
-    backbone): the hub world (a worker holds one real backbone), the robustness tier (a case
-    reads its stored cell) or packed grafts (a pack's mates are a backbone's)."""
+    which go with that graft (bench.cell.plan.shared_projector_key), and the cells of one pack
+    (`packs`, --pack-grafts: bench.cell.pack_run.pack_units), which go together. xdist hands the
+    units out as workers free up, so the cores stay busy to the end (one backbone per worker
+    left the SmolVLA worker idle while the pi0.5 one, ~1.5x slower a cell, finished; a screened
+    study's cells dealt round-robin in two fixed halves left one core idle for its last 25
+    minutes; packs kept on their backbone's worker left one idle for 14). Screens and short
+    grafts too: a selection reads every screen of its backbone, and one that another worker is
+    measuring is waited for under its lock, then resumed. None (group by backbone): the hub
+    world (a worker holds one real backbone) or the robustness tier (a case reads its stored
+    cell)."""
     from bench.cell.plan import shared_projector_key
 
-    if profile.source != "tiny" or profile.robustness or pack_grafts > 1:
+    if not units_per_cell(profile):
         return None
+    packs = packs or {}
     units = {}
     for cell in grid_cells(profile, screening):
         shared = shared_projector_key(cell, "cache")
-        units[cell.id] = shared[0] if shared is not None else cell.id
+        own = shared[0] if shared is not None else cell.id  # a control: its graft's
+        units[cell.id] = packs.get(own, own)
     return units
+
+
+def units_per_cell(profile) -> bool:
+    """Does a run of `profile` hand its cells out one unit at a time (`cell_units`)?"""
+    return profile.source == "tiny" and not profile.robustness
 
 
 def serial_threads() -> tuple[int, str]:

@@ -84,6 +84,7 @@ class GraftSession:
         self.selection = Selection()  # what collection selected: frozen, set by `collected`
         self._robustness = None
         self._screening = None
+        self._pack_units = None  # (units,): pack_units, drawn once the selection is known
         self.report_written: Path | None = None
         self.report_error: str | None = None  # why REPORT.md could not be written, if it failed
         # Names, user paths, output folders: checked here when this run collects the grid (an
@@ -110,11 +111,15 @@ class GraftSession:
         workers collected), `cells` its grid cells. Where the run's ends run (not an xdist
         worker): the results dir and --report checked, the paper preflight, grid.json written."""
         self.selection = selection
+        self.pack_units()  # now: before any process of the run measures a cell
         if hasattr(self.config, "workerinput") or not (selection.cells or selection.screens):
             return
         self.store  # opened at start-up (bench/ runs), else here: a one-line UsageError if it cannot
         self.check_report(len(self.store.stored_ids() | set(selection.cells)))
-        self.preflight(list(cells))
+        if self.profile.source == "hub" and cells:  # every artifact listed; one missing: stop
+            from bench.preflight import stop_on_missing
+
+            stop_on_missing(list(cells), self.config, self.store)
         if selection.cells:  # now, so a stopped run leaves the list (--screen: again at the end)
             self._write_grid(self.selection.cells)
 
@@ -244,14 +249,25 @@ class GraftSession:
                 if not (self.screening and self.screening.dropped_reason(c))]
 
     def _pack_candidates(self, cell: CellSpec) -> list[CellSpec]:
-        """The selected cells that may share `cell`'s pack (--pack-grafts), in run order: of its
-        backbone x suite and tier (short grafts run before the screen's selection exists), none
-        the screen dropped."""
-        where = (cell.backbone, cell.suite, cell.spec.tier)
-        alike = [c for c in self._selected_specs() if (c.backbone, c.suite, c.spec.tier) == where]
+        """The selected cells that may share `cell`'s pack (bench.cell.pack_run.candidates),
+        none the screen dropped (short grafts run before the screen's selection exists)."""
+        from bench.cell.pack_run import candidates
+
+        alike = candidates(cell, self._selected_specs(), self.pack_units())
         if self.screening is None or cell.spec.tier:
             return alike
         return [c for c in alike if not self.screening.dropped_reason(c)]
+
+    def pack_units(self) -> dict[str, str] | None:
+        """bench.cell.pack_run.run_units, drawn once when collection ends: no process of the run
+        has measured a cell yet, so the controller and each worker draw the same units."""
+        if self._pack_units is None:
+            from bench.cell.pack_run import run_units
+            from bench.scheduling import units_per_cell
+
+            self._pack_units = (run_units(self.options, units_per_cell(self.profile),
+                                          self._selected_specs(), self.store.stored_ids),)
+        return self._pack_units[0]
 
     outcomes = property(lambda self: self.cells.outcomes)  # cell id -> Outcome
     records = property(lambda self: self.cells.records)
@@ -294,24 +310,6 @@ class GraftSession:
                                                       report.longreprtext))
 
     # --- the session's ends -----------------------------------------------------------------
-    def preflight(self, cells: list[CellSpec]) -> None:
-        """Hub grids: list every artifact the selected cells read; stop (UsageError, no cell
-        run) when one is missing. --collect-only shows the list and stops anyway."""
-        if self.profile.source != "hub" or not cells:
-            return
-        from bench.preflight import cells_artifacts, missing_summary, render
-
-        artifacts = cells_artifacts(cells)
-        reporter = self.config.pluginmanager.get_plugin("terminalreporter")
-        screen = render(artifacts)
-        if reporter is not None:
-            reporter.write_line(screen)
-        else:
-            sys.stderr.write(screen + "\n")
-        if any(not a.present for a in artifacts) and not self.config.option.collectonly:
-            self.store.remove_if_unused()
-            raise pytest.UsageError(missing_summary(artifacts))
-
     @property
     def ran_cells(self) -> list[str]:
         """The selected cells the screen did not drop: what grid.json and the baseline expect."""

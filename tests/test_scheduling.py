@@ -12,6 +12,8 @@ from types import SimpleNamespace
 import pytest
 
 from bench import scheduling
+from bench.cell.pack_run import candidates, pack_units
+from bench.grid.cells import grid_cells
 from bench.grid.protocol import PAPER, TINY, TINY_FULL, with_overrides
 from ondisk.paths import REPO_ROOT
 
@@ -97,8 +99,39 @@ def test_tiny_cells_go_out_one_unit_at_a_time_a_control_with_its_graft():
     assert screened["smolvla-spatial-pixels-short_1_8-seed0"] == "smolvla-spatial-pixels-short_1_8-seed0"
 
 
-def test_the_hub_world_robustness_and_packs_keep_a_backbone_per_worker():
+def test_the_hub_world_and_robustness_keep_a_backbone_per_worker():
     assert scheduling.cell_units(PAPER, screening=False) is None
-    assert scheduling.cell_units(TINY, screening=False, pack_grafts=2) is None
     robust = dataclasses.replace(TINY, robustness=("brightness:1",))
     assert scheduling.cell_units(robust, screening=False) is None
+
+
+def test_tiny_packs_go_out_as_units_of_k_cells_of_one_release():
+    """--pack-grafts K in the tiny world: a backbone x suite x release's packable cells, K at a
+    time in run order, are one unit each (not the backbone's: that kept a backbone's packs on one
+    worker), a control with its graft's pack; a lead's mates are its unit's alone, and a cell
+    stored when the units were drawn leads no pack."""
+    cells = grid_cells(with_overrides(TINY, seeds=(0, 1), releases_per_backbone=2), False)
+    packs = pack_units(cells, 3, "cache")
+    units = scheduling.cell_units(with_overrides(TINY, seeds=(0, 1), releases_per_backbone=2),
+                                  screening=False, packs=packs)
+    by_unit: dict[str, list[str]] = {}
+    for cell in cells:
+        if cell.backbone == "smolvla":
+            by_unit.setdefault(units[cell.id], []).append(cell.id.removeprefix("smolvla-spatial-"))
+    packed = {u: ids for u, ids in by_unit.items() if u.startswith("pack:")}
+    assert sorted(packed.values()) == [  # grafts 3 at a time, a release apart; the pixels
+        ["dinov2_s-rel1-seed0", "dinov2_s-rel1-seed1", "pixels-rel1-seed0",  # controls with
+         "pixels-shuffled_image-rel1-seed0"],  # their graft
+        ["dinov2_s-seed0", "dinov2_s-seed1", "pixels-seed0", "pixels-shuffled_image-seed0"],
+        ["native_wrapped-rel1-seed0", "native_wrapped-rel1-seed1"],
+        ["native_wrapped-seed0", "native_wrapped-seed1"],
+        ["pixels-rel1-seed1", "blind-rel1-seed0", "blind-rel1-seed1",
+         "pixels-shuffled_image-rel1-seed1"],
+        ["pixels-seed1", "blind-seed0", "blind-seed1", "pixels-shuffled_image-seed1"],
+    ], packed
+    assert by_unit["smolvla-spatial-native-seed0"] == ["native-seed0"]  # trains nothing: alone
+
+    lead = cells[0]  # smolvla-spatial-dinov2_s-seed0
+    assert [c.id for c in candidates(lead, cells, packs)] == [c.id for c in cells[:3]]
+    assert len(candidates(lead, cells, None)) == 28  # not units: all of its backbone x suite
+    assert candidates(lead, cells, pack_units(cells[1:], 3, "cache")) == []  # lead stored

@@ -4,11 +4,12 @@
 The cell service (bench.cell.service) owns the pack's way; this module measures and writes nothing
 of its own. For a cell its plan measures, the service asks `can_lead` (the cell is packable,
 bench.cell.packed.packable, and takes no graft's projector), then picks its mates among up to K-1
-cells the session offers (`CellService.pack_candidates`: the selection in run order, of its
-backbone x suite and tier, none the screen dropped) that `may_join` (packable, of the lead's
-backbone, suite and release, not a control that takes its graft's projector) and that it has not
-measured or failed yet; any seed: each cell keeps its own seed, data order, noise and schedule in
-the pack, so a seed is no reason to keep cells apart, and more cells fill a pack. Each mate is
+cells the session offers (`CellService.pack_candidates`: `candidates`, the selection in run
+order, of its backbone x suite and tier, in the tiny world of its unit, `pack_units`; none the
+screen dropped) that `may_join` (packable, of the lead's backbone, suite and release, not a
+control that takes its graft's projector) and that it has not measured or failed yet; any seed:
+each cell keeps its own seed, data order, noise and schedule in the pack, so a seed is no reason
+to keep cells apart, and more cells fill a pack. Each mate is
 claimed on the results store WITHOUT waiting: one another process holds is left to it; one with a
 current record (its plan: resume) is left out and resumed by its own case, and so is one whose
 record lacks only closed-loop episodes (its plan: extend, bench.cell.extend). The pack trains
@@ -23,6 +24,8 @@ without the option.
 """
 
 from __future__ import annotations
+
+from typing import Sequence
 
 from bench.grid.cells import CellSpec
 from bench.progress import say
@@ -43,6 +46,53 @@ def may_join(mate: CellSpec, lead: CellSpec, features_mode: str) -> bool:
 
     return ((mate.backbone, mate.suite, mate.release) == (lead.backbone, lead.suite, lead.release)
             and packable(mate) is None and not _takes_graft_projector(mate, features_mode))
+
+
+def pack_units(cells: Sequence[CellSpec], k: int, features_mode: str) -> dict[str, str]:
+    """{cell id: its pack's unit} for the `cells` (run order) that may lead or join a pack: those
+    of one backbone x suite x release and tier, K at a time. Where packs are scheduling units
+    (the tiny world: bench.scheduling.cell_units) a unit goes to one worker and a lead's mates are
+    drawn from its unit alone (`candidates`): drawn from the whole selection, every pack of a
+    backbone had to stay on one worker, which idled the other core once one backbone was left."""
+    from bench.cell.packed import packable
+
+    filling: dict[tuple, list[str]] = {}
+    units = {}
+    for cell in cells:
+        if packable(cell) is not None or _takes_graft_projector(cell, features_mode):
+            continue
+        key = (cell.backbone, cell.suite, cell.release, cell.spec.tier)
+        if len(filling.get(key, ())) == k:
+            del filling[key]
+        members = filling.setdefault(key, [])
+        members.append(cell.id)
+        units[cell.id] = f"pack:{members[0]}"
+    return units
+
+
+def run_units(options, per_cell: bool, selected: Sequence[CellSpec], stored_ids
+              ) -> dict[str, str] | None:
+    """`pack_units` of a run's `selected` cells less those stored (`stored_ids()`) where packs
+    are scheduling units (cells go out a unit at a time, `per_cell`: the tiny world,
+    bench.scheduling.units_per_cell; --pack-grafts K > 1; no --executor), else None."""
+    if options.pack_grafts == 1 or options.executor != "local" or not per_cell:
+        return None
+    stored = stored_ids()
+    return pack_units([c for c in selected if c.id not in stored], options.pack_grafts,
+                      options.features_mode)
+
+
+def candidates(lead: CellSpec, selected: Sequence[CellSpec], units: dict[str, str] | None
+               ) -> list[CellSpec]:
+    """Of the `selected` cells (run order), those that may share `lead`'s pack: of its backbone x
+    suite and tier and, where packs are scheduling units (`units`: `run_units`), of its unit;
+    none when the lead is in no unit (stored when the units were drawn: its rerun goes alone)."""
+    where = (lead.backbone, lead.suite, lead.spec.tier)
+    alike = [c for c in selected if (c.backbone, c.suite, c.spec.tier) == where]
+    if units is None:
+        return alike
+    unit = units.get(lead.id)
+    return [c for c in alike if unit is not None and units.get(c.id) == unit]
 
 
 def _takes_graft_projector(cell: CellSpec, features_mode: str) -> bool:
