@@ -98,6 +98,10 @@ def test_the_command_line_overrides_the_file(tmp_path):
     ('profile = "huge"\n', ["profile = 'huge'", "tiny-full"]),
     ("[protocol]\nlrr = 0.1\n", ["[protocol] lrr is not a key here", "did you mean 'lr'",
                                  "batch_size"]),
+    # a key of the other place: named, with where it goes
+    ("eval_stride = 30\n", ["eval_stride is not a key here", "a [protocol] key: move it"]),
+    ("[protocol]\nreleases_per_backbone = 3\n", ["[protocol] releases_per_backbone is not a key",
+                                                 "a top-level key: move it"]),
     ('[protocol]\nbatch_size = "16"\n', ["[protocol] batch_size = '16'", "expected an integer"]),
     ("[protocol]\nbatch_size = 16.0\n", ["[protocol] batch_size = 16.0", "expected an integer"]),
     ("[protocol]\nlr = \"fast\"\n", ["[protocol] lr = 'fast'", "expected a number"]),

@@ -190,7 +190,8 @@ def _protocol(where: str, key: str, table) -> tuple[tuple[str, Any], ...]:
     out = []
     for name, value in table.items():
         if name not in defaults:
-            raise _unknown_key(where, f"[protocol] {name}", name, defaults)
+            raise _unknown_key(where, f"[protocol] {name}", name, defaults,
+                               "top-level" if name in KEYS else None)
         value = _like(where, f"[protocol] {name}", value, defaults[name])
         problem = range_error(name, value, f"{where} [protocol]")  # the one table's ranges
         if problem:
@@ -233,9 +234,13 @@ def _tiny_patch() -> int:
     return TinyPaliGemmaArch.patch_size
 
 
-def _unknown_key(where: str, key: str, name: str, known) -> GridFileError:
+def _unknown_key(where: str, key: str, name: str, known, home: str | None = None
+                 ) -> GridFileError:
+    """`home`: where the key belongs when it is one of another place's (a fix in one move)."""
     close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
+    if home:
+        hint = f" (it is a {home} key: move it there)"
     return _fail(where, key, f"is not a key here{hint}; known: {', '.join(known)}")
 
 
@@ -324,7 +329,8 @@ def parse_grid(data: dict, info: GridFileInfo) -> GridFile:
     for key, value in data.items():
         check = KEYS.get(key) or TABLES.get(key)
         if check is None:
-            raise _unknown_key(where, key, key, known)
+            fields = {f.name for f in dataclasses.fields(Protocol)}
+            raise _unknown_key(where, key, key, known, "[protocol]" if key in fields else None)
         values[key] = check(where, key, value)
     protocol = values.get("protocol", ())
     _check_release_pins(where, values)
