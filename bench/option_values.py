@@ -236,9 +236,8 @@ def report_file(report: str | None) -> Path | None:
     would be lost after every cell was measured (writing REPORT.md onto a folder fails)."""
     if report is None:
         return None
-    path = Path(report)
-    if path.is_dir() or report.endswith(("/", "\\")):
-        raise pytest.UsageError(f"--report {report}: a folder; --report names the report's file "
-                                f"(its plots, CSV and JSON go beside it), e.g. --report "
-                                f"{path / 'REPORT.md'}")
-    return path
+    from bench.outputs import report_folder_refusal
+
+    if problem := report_folder_refusal("--report", report):
+        raise pytest.UsageError(problem)
+    return Path(report)

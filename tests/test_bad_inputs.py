@@ -227,7 +227,10 @@ def test_a_report_over_no_records_refuses_and_leaves_every_file(tmp_path, capsys
     (["--resamples", "-5"], "argument --resamples: -5: give a whole number >= 2"),
     (["--report", "{dir}"], "--report {dir}: a folder; --report names the report's file"),
     (["--report", "{dir}/x/REPORT.md"], "{dir}/x: a file, not a folder; give a path in a folder"),
-], ids=["resamples-0", "resamples-negative", "report-a-folder", "report-under-a-file"])
+    # a folder not made yet, typed as one: it was written as a file named "new"
+    (["--report", "{dir}/new/"], "--report {dir}/new/: a folder; --report names the report's"),
+], ids=["resamples-0", "resamples-negative", "report-a-folder", "report-under-a-file",
+        "report-a-new-folder"])
 def test_a_bad_report_option_is_one_line(tmp_path, capsys, args, says):
     """Before: a 33-line scipy traceback; an IsADirectoryError traceback."""
     save_record(tmp_path, make_record())
@@ -235,7 +238,7 @@ def test_a_bad_report_option_is_one_line(tmp_path, capsys, args, says):
     args = [a.format(dir=tmp_path) for a in args]
     code, out, err = report([tmp_path, "--no-plots", *args], capsys)
     assert code == 4 and err.count("\n") == 1 and says.format(dir=tmp_path) in err, err
-    assert not (tmp_path / "REPORT.md").exists()
+    assert not (tmp_path / "REPORT.md").exists() and not (tmp_path / "new").exists()
 
 
 def test_a_file_as_the_results_dir_is_called_a_file(tmp_path, capsys):

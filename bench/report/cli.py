@@ -30,7 +30,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results_dir", type=Path, help="results dir holding cells/ (and grid.json)")
     # --report, as in `pytest bench --report PATH`; --out kept for older commands.
-    parser.add_argument("--report", "--out", dest="out", type=Path, default=None,
+    parser.add_argument("--report", "--out", dest="out", default=None,  # as typed: a trailing /
                         help="report path (default: RESULTS_DIR/REPORT.md)")
     # No default here: bench.analysis.rankings (scipy) loads only once the input is checked.
     parser.add_argument("--resamples", type=whole_at_least(LEAST_RESAMPLES, "2000"),
@@ -75,18 +75,21 @@ def check_results_dir(folder: Path):
                  f"were{hint}")
 
 
-def check_out(out: Path, results, replace: bool) -> None:
-    """The report path, by the one rule of bench.outputs: refused in one line, nothing written."""
+def check_out(typed: str | Path, results, replace: bool) -> Path:
+    """The report path (`typed`: as given), by the one rule of bench.outputs: refused in one
+    line, nothing written."""
     from bench.outputs import report_refusal
 
-    problem = report_refusal("--report", out, cells_after=len(results.records) +
+    problem = report_refusal("--report", typed, cells_after=len(results.records) +
                              len(results.failed), replace=replace)
     if problem:
         refuse(PROG, problem)
+    out = Path(typed)
     problem = unwritable(out.parent)  # made now: a refusal here beats a traceback at the end
     if problem:
         refuse(PROG, f"--report {out}: {out.parent}: {problem}; give a path in a folder you can "
                      "write")
+    return out
 
 
 def check_readable(folder: Path, results, skip: bool) -> None:
@@ -108,8 +111,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse(argv)
     results = check_results_dir(args.results_dir)
     check_readable(args.results_dir, results, args.skip_unreadable)
-    out = args.out if args.out is not None else args.results_dir / "REPORT.md"
-    check_out(out, results, args.replace_report)
+    out = check_out(args.out if args.out is not None else args.results_dir / "REPORT.md", results,
+                    args.replace_report)
     from bench.report.build import build_report  # the analyses' imports: only once checked
 
     from bench.analysis.rankings import DEFAULT_RESAMPLES
