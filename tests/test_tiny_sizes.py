@@ -110,3 +110,22 @@ def test_a_hub_profile_refuses_a_tiny_only_size():
 
     with pytest.raises(pytest.UsageError, match=r"'smolvla_m' is a size of the tiny ladder"):
         validate_names(dataclasses.replace(PAPER, backbones=("smolvla_m",), encoders=()))
+
+
+def test_the_step_script_refuses_a_wrong_size_before_building_any(capsys, monkeypatch):
+    """scripts/ladder_steps.py NAME...: a name not on the ladder, wherever it stands, is one line
+    naming the near one (the case only differs here), exit 4; no size is measured first."""
+    import importlib.util
+
+    from ondisk.paths import REPO_ROOT
+
+    spec = importlib.util.spec_from_file_location("ladder_steps",
+                                                  REPO_ROOT / "scripts" / "ladder_steps.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    monkeypatch.setattr(script, "measure", lambda name: pytest.fail(f"{name} measured"))
+    with pytest.raises(SystemExit) as stop:
+        script.main(["pi05", "pi05_L"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 4 and err.count("\n") == 1, err
+    assert "NAME 'pi05_L': not a size of the ladder (did you mean 'pi05_l'?)" in err
