@@ -231,13 +231,20 @@ def protocol_value(option: str, field: str, value):
     return value
 
 
+def report_folder_refusal(option: str, out: str | Path) -> str | None:
+    """Why `out` names a folder, not the report's file (None: it does not): an existing folder,
+    or a path given with a trailing separator (pass the text as typed: a Path drops it)."""
+    if Path(out).is_dir() or str(out).endswith(("/", "\\")):
+        return (f"{option} {out}: a folder; {option} names the report's file (its plots, CSV and "
+                f"JSON go beside it), e.g. {option} {Path(out) / 'REPORT.md'}")
+    return None
+
+
 def report_file(report: str | None) -> Path | None:
     """--report as a file path (None: not given). A folder is refused at start-up: the report
     would be lost after every cell was measured (writing REPORT.md onto a folder fails)."""
     if report is None:
         return None
-    from bench.outputs import report_folder_refusal
-
     if problem := report_folder_refusal("--report", report):
         raise pytest.UsageError(problem)
     return Path(report)

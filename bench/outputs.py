@@ -96,20 +96,13 @@ def report_cells(out: Path) -> int | None:
         return None
 
 
-def report_folder_refusal(option: str, out: str | Path) -> str | None:
-    """Why `out` names a folder, not the report's file (None: it does not): an existing folder,
-    or a path given with a trailing separator (pass the text as typed: a Path drops it)."""
-    if Path(out).is_dir() or str(out).endswith(("/", "\\")):
-        return (f"{option} {out}: a folder; {option} names the report's file (its plots, CSV and "
-                f"JSON go beside it), e.g. {option} {Path(out) / 'REPORT.md'}")
-    return None
-
-
 def report_refusal(option: str, out: str | Path, *, cells_after: int | None = None,
                    replace: bool = False) -> str | None:
     """Why the report may not be written at `out` (as typed: `report_folder_refusal`; None: it
-    may). `cells_after`: how many cells
-    the new report will hold at most, checked against the one it replaces unless `replace`."""
+    may). `cells_after`: how many cells the new report will hold at most, checked against the one
+    it replaces unless `replace`."""
+    from bench.option_values import report_folder_refusal
+
     folder = report_folder_refusal(option, out)
     if folder:
         return folder

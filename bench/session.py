@@ -266,7 +266,8 @@ class GraftSession:
             from bench.scheduling import units_per_cell
 
             self._pack_units = (run_units(self.options, units_per_cell(self.profile),
-                                          self._selected_specs(), self.store.stored_ids),)
+                                          self._selected_specs(),
+                                          lambda c: self.store.cell_path(c).exists()),)
         return self._pack_units[0]
 
     outcomes = property(lambda self: self.cells.outcomes)  # cell id -> Outcome

@@ -70,15 +70,15 @@ def pack_units(cells: Sequence[CellSpec], k: int, features_mode: str) -> dict[st
     return units
 
 
-def run_units(options, per_cell: bool, selected: Sequence[CellSpec], stored_ids
+def run_units(options, per_cell: bool, selected: Sequence[CellSpec], has_record
               ) -> dict[str, str] | None:
-    """`pack_units` of a run's `selected` cells less those stored (`stored_ids()`) where packs
-    are scheduling units (cells go out a unit at a time, `per_cell`: the tiny world,
-    bench.scheduling.units_per_cell; --pack-grafts K > 1; no --executor), else None."""
+    """`pack_units` of a run's `selected` cells less those with a record (`has_record(id)`: they
+    resume; a failed cell is measured again, so it packs) where packs are scheduling units (cells
+    go out a unit at a time, `per_cell`: the tiny world, bench.scheduling.units_per_cell;
+    --pack-grafts K > 1; no --executor), else None."""
     if options.pack_grafts == 1 or options.executor != "local" or not per_cell:
         return None
-    stored = stored_ids()
-    return pack_units([c for c in selected if c.id not in stored], options.pack_grafts,
+    return pack_units([c for c in selected if not has_record(c.id)], options.pack_grafts,
                       options.features_mode)
 
 
