@@ -12,7 +12,6 @@ Prints one JSON line per size (studies/family_scale/README.md, "The ladder").
 
 from __future__ import annotations
 
-import difflib
 import json
 import statistics
 import sys
@@ -92,16 +91,16 @@ def measure(name: str) -> dict:
 
 
 def main(argv: list[str]) -> None:
-    """Every name checked before the first size is built: a wrong one is one line, exit 4."""
+    """Every name checked before the first size is built: a wrong one is one line, exit 4, in
+    the registries' one refusal shape (bench.table)."""
     from bench.option_values import refuse
+    from bench.table import Table
 
+    sizes = Table("ladder size", "sizes (none: all)")
+    sizes.update(SIZES)
     for name in argv:
-        if name not in SIZES:
-            close = ([n for n in SIZES if n.lower() == name.lower()]
-                     or difflib.get_close_matches(name, list(SIZES), n=1))
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            refuse("scripts/ladder_steps.py", f"NAME {name!r}: not a size of the ladder{hint}; "
-                   f"give some of {', '.join(SIZES)}, or none for all")
+        if name not in sizes:
+            refuse("scripts/ladder_steps.py", f"NAME: {sizes.refusal(name)}")
     torch.set_num_threads(1)
     for name in argv or list(SIZES):
         print(name, json.dumps(measure(name)), flush=True)

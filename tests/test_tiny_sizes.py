@@ -128,4 +128,4 @@ def test_the_step_script_refuses_a_wrong_size_before_building_any(capsys, monkey
         script.main(["pi05", "pi05_L"])
     err = capsys.readouterr().err
     assert stop.value.code == 4 and err.count("\n") == 1, err
-    assert "NAME 'pi05_L': not a size of the ladder (did you mean 'pi05_l'?)" in err
+    assert "NAME: unknown ladder size 'pi05_L' (did you mean 'pi05_l'?); valid sizes" in err
