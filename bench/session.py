@@ -265,9 +265,9 @@ class GraftSession:
             from bench.cell.pack_run import run_units
             from bench.scheduling import units_per_cell
 
-            self._pack_units = (run_units(self.options, units_per_cell(self.profile),
-                                          self._selected_specs(),
-                                          lambda c: self.store.cell_path(c).exists()),)
+            self._pack_units = (run_units(self.options, self.profile.protocol.hash,
+                                          units_per_cell(self.profile), self._selected_specs(),
+                                          self.store),)
         return self._pack_units[0]
 
     outcomes = property(lambda self: self.cells.outcomes)  # cell id -> Outcome

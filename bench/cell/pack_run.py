@@ -70,16 +70,21 @@ def pack_units(cells: Sequence[CellSpec], k: int, features_mode: str) -> dict[st
     return units
 
 
-def run_units(options, per_cell: bool, selected: Sequence[CellSpec], has_record
+def run_units(options, protocol_hash: str, per_cell: bool, selected: Sequence[CellSpec], store
               ) -> dict[str, str] | None:
-    """`pack_units` of a run's `selected` cells less those with a record (`has_record(id)`: they
-    resume; a failed cell is measured again, so it packs) where packs are scheduling units (cells
-    go out a unit at a time, `per_cell`: the tiny world, bench.scheduling.units_per_cell;
-    --pack-grafts K > 1; no --executor), else None."""
+    """`pack_units` of a run's `selected` cells less those with a current record in `store` (they
+    resume; a failed cell, or one whose record another protocol made, is measured again, so it
+    packs; with --rerun every cell) where packs are scheduling units (cells go out a unit at a
+    time, `per_cell`: the tiny world, bench.scheduling.units_per_cell; --pack-grafts K > 1; no
+    --executor), else None."""
     if options.pack_grafts == 1 or options.executor != "local" or not per_cell:
         return None
-    return pack_units([c for c in selected if not has_record(c.id)], options.pack_grafts,
-                      options.features_mode)
+    from bench.results.current import RunConditions
+
+    run = RunConditions(protocol_hash=protocol_hash, feature_dtype=options.feature_dtype,
+                        rollouts=options.rollouts)
+    measured = [c for c in selected if options.rerun or store.current(c.id, run) is None]
+    return pack_units(measured, options.pack_grafts, options.features_mode)
 
 
 def candidates(lead: CellSpec, selected: Sequence[CellSpec], units: dict[str, str] | None
