@@ -177,6 +177,20 @@ def test_the_report_says_family_or_scale_with_the_small_model_rung_and_its_cost(
     assert summary["family_scale"][0]["verdict"] == FAMILY
 
 
+def test_the_small_model_cost_is_the_median_cell_not_the_one_that_trained_a_release():
+    """A cell that first loads an untrained release holds its native training in its seconds
+    (studies/family_scale: one pi05_l cell 2,063 s, the others ~440): the rung's cost is the
+    median cell, so that one does not move it (the mean would read 28.8 s here, not 4)."""
+    from bench.report.screen_cost import small_model_cost_rows
+
+    records = ladder_records({"pi05_s": UP, "pi05_l": UP})
+    first = next(i for i, r in enumerate(records) if r.backbone == "pi05_l")
+    records[first] = records[first].replace(
+        timings_s={**records[first].run.timings_s, "total": 400.0})
+    assert records[first].run.total_s == 400.0
+    assert small_model_cost_rows(records) == [["spatial", "pi05_s", "pi05_l", "4", "4", "100.0%"]]
+
+
 def test_a_report_without_two_sizes_to_compare_has_no_section(tmp_path):
     from bench.report.build import build_report
     from tests.factories import save_record
