@@ -96,8 +96,9 @@ def candidates(lead: CellSpec, selected: Sequence[CellSpec], units: dict[str, st
     alike = [c for c in selected if (c.backbone, c.suite, c.spec.tier) == where]
     if units is None:
         return alike
-    unit = units.get(lead.id)
-    return [c for c in alike if unit is not None and units.get(c.id) == unit]
+    if lead.id not in units:
+        return []
+    return [c for c in alike if units.get(c.id) == units[lead.id]]
 
 
 def _takes_graft_projector(cell: CellSpec, features_mode: str) -> bool:

@@ -46,9 +46,9 @@ def encoder_costs(stored: Sequence, records: Sequence, backbone: str,
     mine = sorted((r for r in stored if (r.scores.backbone, r.scores.suite) == (backbone, suite)),
                   key=lambda r: r.scores.encoder)
     return [EncoderCost(r.scores.encoder, r.scores.seconds, extraction_seconds(r),
-                        tuple(mean_seconds(records, backbone, suite, SHORT_GRAFT, v,
+                        tuple(cell_seconds(records, backbone, suite, SHORT_GRAFT, v,
                                            r.scores.encoder) for v in variants),
-                        mean_seconds(records, backbone, suite, GRAFT, None, r.scores.encoder))
+                        cell_seconds(records, backbone, suite, GRAFT, None, r.scores.encoder))
             for r in mine]
 
 
@@ -58,11 +58,11 @@ def extraction_seconds(screen) -> float:
             else screen.feature_seconds)
 
 
-def mean_seconds(records: Sequence, backbone: str, suite: str, kind: str,
+def cell_seconds(records: Sequence, backbone: str, suite: str, kind: str,
                  variant: str | None, encoder: str | None = None,
                  average=statistics.fmean) -> float | None:
-    """Mean (or `average`) measured wall seconds of the kind x variant's records on backbone x
-    suite (of one `encoder`, when given); None when there is none."""
+    """The `average` (mean unless given) measured wall seconds per cell of the kind x variant's
+    records on backbone x suite (of one `encoder`, when given); None when there is none."""
     seconds = [r.run.total_s for r in records if r.kind == kind and r.variant == variant
                and (r.backbone, r.suite) == (backbone, suite) and r.run.total_s is not None
                and (encoder is None or r.encoder == encoder)]
@@ -119,7 +119,7 @@ def small_model_cost_rows(records: Sequence) -> list[list[str]]:
     per encoder."""
     rows = []
     for small, large, suite in screening_rungs(records):
-        s, big = (mean_seconds(records, b, suite, GRAFT, None, average=statistics.median)
+        s, big = (cell_seconds(records, b, suite, GRAFT, None, average=statistics.median)
                   for b in (small, large))
         ratio = _percent(s / big if s is not None and big else None)
         rows.append([suite, small, large, num(s, 3), num(big, 3), ratio])
